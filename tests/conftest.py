@@ -1,0 +1,17 @@
+"""Test-wide JAX setup: 4 virtual CPU devices (sharding tests) and a persistent compile cache.
+
+Both must be configured before any JAX computation runs, hence here and at import time.
+"""
+
+import os
+import pathlib
+
+import jax
+
+jax.config.update("jax_num_cpu_devices", 4)
+_CACHE = pathlib.Path(os.environ.get("TOKENGS_JAX_CACHE", pathlib.Path(__file__).parent.parent / ".jax_cache"))
+jax.config.update("jax_compilation_cache_dir", str(_CACHE))
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+FIXTURES = pathlib.Path(__file__).resolve().parent.parent.parent / "shared" / "fixtures"

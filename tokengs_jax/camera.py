@@ -1,0 +1,95 @@
+"""Camera conventions in one place.
+
+- Axes: OpenCV (+x right, +y down, +z forward).
+- Poses: `c2w [..., 4, 4]` camera-to-world for data and Plücker rays; `w2c [..., 4, 4]`
+  world-to-camera for rendering and projection.
+- Intrinsics: `[..., 4]` = (fx, fy, cx, cy) in pixels. RE10K/DL3DV files store them divided by
+  width/height ("normalised"); convert at the file boundary with `intrinsics_to_pixels`.
+- Pixel (row i, column j) has its centre at (j + 0.5, i + 0.5).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from tokengs_jax import math as tmath
+
+
+def invert_rigid(pose: jax.Array) -> jax.Array:
+  """Inverse of a rigid 4x4 transform (c2w <-> w2c) without a general matrix inverse.
+
+  pose: [..., 4, 4] -> [..., 4, 4].
+  """
+  rot = pose[..., :3, :3]
+  trans = pose[..., :3, 3:]
+  rot_t = jnp.swapaxes(rot, -1, -2)
+  top = jnp.concatenate([rot_t, -rot_t @ trans], axis=-1)
+  bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0], pose.dtype), top.shape[:-2] + (1, 4))
+  return jnp.concatenate([top, bottom], axis=-2)
+
+
+def intrinsics_matrix(intrinsics: jax.Array) -> jax.Array:
+  """(fx, fy, cx, cy) -> K.  intrinsics: [..., 4] -> [..., 3, 3]."""
+  fx, fy, cx, cy = jnp.moveaxis(intrinsics, -1, 0)
+  zero, one = jnp.zeros_like(fx), jnp.ones_like(fx)
+  return jnp.stack(
+      [jnp.stack([fx, zero, cx], -1), jnp.stack([zero, fy, cy], -1), jnp.stack([zero, zero, one], -1)],
+      axis=-2,
+  )
+
+
+def intrinsics_to_pixels(normalised: jax.Array, height: int, width: int) -> jax.Array:
+  """(fx/W, fy/H, cx/W, cy/H) -> pixels.  normalised: [..., 4] -> [..., 4]."""
+  scale = jnp.array([width, height, width, height], dtype=normalised.dtype)
+  return normalised * scale
+
+
+def pixel_centers(height: int, width: int, dtype=jnp.float32) -> jax.Array:
+  """Pixel-centre coordinates (u, v) = (j + 0.5, i + 0.5).  -> [H, W, 2]."""
+  u = jnp.arange(width, dtype=dtype) + 0.5
+  v = jnp.arange(height, dtype=dtype) + 0.5
+  uu, vv = jnp.meshgrid(u, v, indexing="xy")
+  return jnp.stack([uu, vv], axis=-1)
+
+
+def ray_directions(c2w: jax.Array, intrinsics: jax.Array, height: int, width: int) -> jax.Array:
+  """Unit world-space ray directions through every pixel centre.
+
+  c2w: [..., 4, 4], intrinsics: [..., 4] -> [..., H, W, 3].
+  """
+  uv = pixel_centers(height, width, dtype=c2w.dtype)  # [H, W, 2]
+  fx, fy, cx, cy = (intrinsics[..., k, None, None] for k in range(4))
+  x = (uv[..., 0] - cx) / fx
+  y = (uv[..., 1] - cy) / fy
+  dirs_cam = jnp.stack([x, y, jnp.ones_like(x)], axis=-1)  # [..., H, W, 3]
+  dirs_cam = dirs_cam / jnp.linalg.norm(dirs_cam, axis=-1, keepdims=True)
+  rot = c2w[..., None, None, :3, :3]
+  return jnp.einsum("...ij,...j->...i", rot, dirs_cam)
+
+
+def plucker_rays(c2w: jax.Array, intrinsics: jax.Array, height: int, width: int) -> jax.Array:
+  """Plücker ray embedding (moment o x d first, then direction d), as the official `ray_condition`.
+
+  c2w: [..., 4, 4], intrinsics: [..., 4] (pixels) -> [..., H, W, 6].
+  """
+  dirs = ray_directions(c2w, intrinsics, height, width)
+  origins = jnp.broadcast_to(c2w[..., None, None, :3, 3], dirs.shape)
+  return jnp.concatenate([jnp.cross(origins, dirs), dirs], axis=-1)
+
+
+def project_points(points: jax.Array, w2c: jax.Array, intrinsics: jax.Array):
+  """Pinhole projection of world points into cameras.
+
+  points: [..., N, 3], w2c: [..., V, 4, 4], intrinsics: [..., V, 4]
+  -> (uv [..., V, N, 2] in pixels, depth [..., V, N] camera z). Points with depth near 0 get a
+  finite (floored) uv; callers decide visibility from `depth`.
+  """
+  rot = w2c[..., :3, :3]  # [..., V, 3, 3]
+  trans = w2c[..., :3, 3]  # [..., V, 3]
+  cam = jnp.einsum("...vij,...nj->...vni", rot, points) + trans[..., None, :]
+  depth = cam[..., 2]
+  fx, fy, cx, cy = (intrinsics[..., k, None] for k in range(4))
+  u = fx * tmath.safe_div(cam[..., 0], depth) + cx
+  v = fy * tmath.safe_div(cam[..., 1], depth) + cy
+  return jnp.stack([u, v], axis=-1), depth
