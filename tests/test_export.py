@@ -1,0 +1,68 @@
+import numpy as np
+import pytest
+
+from tokengs_jax import export
+
+
+def _gaussians(n=50, seed=0):
+  rng = np.random.default_rng(seed)
+  return dict(means=rng.normal(size=(n, 3)), opacities=rng.uniform(0.05, 0.95, n),
+              scales=rng.uniform(0.01, 0.2, (n, 3)), quats=rng.normal(size=(n, 4)),
+              colors=rng.uniform(0, 1, (n, 3)))
+
+
+def test_ply_round_trip_in_viewer_layout(tmp_path):
+  g = _gaussians()
+  path = export.write_ply(tmp_path / "g.ply", **g)
+  header = path.read_bytes().split(b"end_header")[0].decode()
+  for name in ("f_dc_0", "opacity", "scale_0", "rot_3", "nx"):
+    assert f"property float {name}" in header
+  back = export.read_ply(path)
+  q = g["quats"] / np.linalg.norm(g["quats"], axis=-1, keepdims=True)
+  np.testing.assert_allclose(back["quats"], q, atol=1e-6)
+  for k in ("means", "opacities", "scales", "colors"):
+    np.testing.assert_allclose(back[k], g[k], rtol=1e-4, atol=1e-5)
+
+
+def test_ply_refuses_non_finite(tmp_path):
+  g = _gaussians(4)
+  g["means"][1, 0] = np.nan
+  with pytest.raises(ValueError, match="non-finite"):
+    export.write_ply(tmp_path / "bad.ply", **g)
+
+
+def test_grid_and_png(tmp_path):
+  a = np.zeros((8, 10, 3)); b = np.ones((6, 4, 3))
+  grid = export.image_grid([[a, b], [b]], pad=2)
+  assert grid.dtype == np.uint8 and grid.shape == (2 + 8 + 2 + 6 + 2, 2 + 10 + 2 + 4 + 2, 3)
+  assert grid[2, 2].tolist() == [0, 0, 0] and grid[2, 14].tolist() == [255, 255, 255]
+  from PIL import Image
+  assert Image.open(export.save_png(tmp_path / "g.png", grid)).size == (grid.shape[1], grid.shape[0])
+
+
+def test_colorize_depth_masks_empty_pixels():
+  depth = np.linspace(1, 5, 12).reshape(3, 4)
+  alpha = np.ones((3, 4)); alpha[0, 0] = 0
+  rgb = export.colorize_depth(depth, alpha)
+  assert rgb.shape == (3, 4, 3) and np.all(rgb[0, 0] == 0) and np.all(np.isfinite(rgb))
+  assert rgb[2, 3].sum() < rgb[0, 1].sum() or rgb[0, 1, 0] > rgb[2, 3, 0]  # near brighter in red
+  assert np.all(export.colorize_depth(np.zeros((2, 2))) == 0)
+
+
+def test_fly_through_passes_through_keyframes():
+  c = np.cos(0.3); s = np.sin(0.3)
+  k0 = np.eye(4); k1 = np.eye(4); k1[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]; k1[:3, 3] = [1, 0, 0]
+  path = export.fly_through_poses(np.stack([k0, k1]), 5)
+  np.testing.assert_allclose(path[0], k0, atol=1e-6)
+  np.testing.assert_allclose(path[-1], k1, atol=1e-6)
+  mid = path[2]
+  np.testing.assert_allclose(mid[:3, 3], [0.5, 0, 0], atol=1e-6)
+  np.testing.assert_allclose(np.arctan2(mid[0, 2], mid[0, 0]), 0.15, atol=1e-6)
+
+
+def test_mp4_is_written(tmp_path):
+  frames = [np.full((15, 17, 3), i / 5.0) for i in range(5)]
+  path = export.write_mp4(tmp_path / "v.mp4", frames, fps=5)
+  assert path.stat().st_size > 0
+  import imageio.v2 as imageio
+  assert sum(1 for _ in imageio.get_reader(path)) == 5

@@ -1,0 +1,171 @@
+"""Outputs a person looks at: PLY for 3DGS viewers, PNG grids, depth colouring, MP4 fly-throughs.
+
+Everything here is host-side numpy (it runs after the jitted work, on fetched arrays).
+"""
+
+from __future__ import annotations
+
+import pathlib
+from typing import Sequence
+
+import numpy as np
+from PIL import Image
+
+# Zeroth-order real spherical harmonic; 3DGS viewers decode colour = 0.5 + SH_C0 * f_dc.
+SH_C0 = 0.28209479177387814
+_PLY_FIELDS = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
+               + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)])
+
+
+def _logit(p: np.ndarray, eps: float = 1e-6) -> np.ndarray:
+  p = np.clip(p, eps, 1.0 - eps)
+  return np.log(p) - np.log1p(-p)
+
+
+def write_ply(path, means, opacities, scales, quats, colors) -> pathlib.Path:
+  """Writes Gaussians in the binary PLY layout of the reference 3DGS code (and its viewers).
+
+  Viewers store pre-activation values, so opacity goes out as a logit, scales as logs, colour as
+  the SH DC coefficient, and quaternions (wxyz) normalised.
+
+  means: [N, 3], opacities: [N], scales: [N, 3] (linear), quats: [N, 4] wxyz, colors: [N, 3] in [0, 1].
+  """
+  means, scales, quats, colors = (np.asarray(a, np.float32) for a in (means, scales, quats, colors))
+  opacities = np.asarray(opacities, np.float32).reshape(-1, 1)
+  norm = np.linalg.norm(quats, axis=-1, keepdims=True)
+  quats = np.where(norm > 0, quats / np.maximum(norm, 1e-12), np.array([1, 0, 0, 0], np.float32))
+  table = np.concatenate([
+      means, np.zeros_like(means), (colors - 0.5) / SH_C0, _logit(opacities),
+      np.log(np.maximum(scales, 1e-12)), quats], axis=-1).astype("<f4")
+  if not np.all(np.isfinite(table)):
+    raise ValueError(f"refusing to write non-finite Gaussians to {path}")
+  header = "\n".join(["ply", "format binary_little_endian 1.0", f"element vertex {len(table)}"]
+                     + [f"property float {name}" for name in _PLY_FIELDS] + ["end_header"]) + "\n"
+  path = pathlib.Path(path)
+  path.parent.mkdir(parents=True, exist_ok=True)
+  with open(path, "wb") as f:
+    f.write(header.encode("ascii"))
+    f.write(table.tobytes())
+  return path
+
+
+def read_ply(path) -> dict[str, np.ndarray]:
+  """Reads a PLY written by `write_ply` back into activated values (for tests and tools).
+
+  Returns dict with means [N,3], opacities [N], scales [N,3], quats [N,4], colors [N,3].
+  """
+  data = pathlib.Path(path).read_bytes()
+  end = data.index(b"end_header\n") + len(b"end_header\n")
+  names = [line.split()[-1] for line in data[:end].decode("ascii").splitlines()
+           if line.startswith("property")]
+  table = np.frombuffer(data[end:], dtype="<f4").reshape(-1, len(names))
+  col = {name: table[:, i] for i, name in enumerate(names)}
+  stack = lambda keys: np.stack([col[k] for k in keys], axis=-1)
+  return {
+      "means": stack(["x", "y", "z"]),
+      "opacities": 1.0 / (1.0 + np.exp(-col["opacity"])),
+      "scales": np.exp(stack([f"scale_{i}" for i in range(3)])),
+      "quats": stack([f"rot_{i}" for i in range(4)]),
+      "colors": 0.5 + SH_C0 * stack(["f_dc_0", "f_dc_1", "f_dc_2"]),
+  }
+
+
+def to_uint8(image) -> np.ndarray:
+  """[..., 3] floats in [0, 1] -> uint8 (non-finite values become 0)."""
+  image = np.nan_to_num(np.asarray(image, np.float32), nan=0.0, posinf=1.0, neginf=0.0)
+  return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def colorize_depth(depth, alpha=None) -> np.ndarray:
+  """Depth [H, W] or [H, W, 1] -> [H, W, 3] in [0, 1], near = bright, using robust percentiles.
+
+  Pixels with alpha < 0.5 (nothing rendered) are black.
+  """
+  depth = np.asarray(depth, np.float32).reshape(np.shape(depth)[:2])
+  valid = np.isfinite(depth) & (depth > 0)
+  if alpha is not None:
+    valid &= np.asarray(alpha).reshape(depth.shape) >= 0.5
+  if not valid.any():
+    return np.zeros(depth.shape + (3,), np.float32)
+  inv = np.where(valid, 1.0 / np.where(valid, depth, 1.0), 0.0)
+  lo, hi = np.percentile(inv[valid], [2, 98])
+  t = np.clip((inv - lo) / max(hi - lo, 1e-8), 0.0, 1.0)
+  # A small blue -> green -> yellow ramp; readable without matplotlib.
+  ramp = np.stack([t ** 1.5, np.sqrt(t) * 0.9, 0.6 * (1.0 - t) + 0.1], axis=-1)
+  return np.where(valid[..., None], ramp, 0.0)
+
+
+def image_grid(rows: Sequence[Sequence[np.ndarray]], pad: int = 2) -> np.ndarray:
+  """Tiles images ([H, W, 3] floats in [0, 1], any sizes) row by row on a white canvas -> uint8."""
+  rows = [[to_uint8(img) for img in row] for row in rows if len(row)]
+  heights = [max(img.shape[0] for img in row) for row in rows]
+  width = max(sum(img.shape[1] for img in row) + pad * (len(row) + 1) for row in rows)
+  canvas = np.full((sum(heights) + pad * (len(rows) + 1), width, 3), 255, np.uint8)
+  y = pad
+  for row, h in zip(rows, heights):
+    x = pad
+    for img in row:
+      canvas[y:y + img.shape[0], x:x + img.shape[1]] = img
+      x += img.shape[1] + pad
+    y += h + pad
+  return canvas
+
+
+def save_png(path, image) -> pathlib.Path:
+  """Writes a uint8 [H, W, 3] array (or floats in [0, 1]) as PNG."""
+  path = pathlib.Path(path)
+  path.parent.mkdir(parents=True, exist_ok=True)
+  image = np.asarray(image)
+  Image.fromarray(image if image.dtype == np.uint8 else to_uint8(image)).save(path)
+  return path
+
+
+def write_mp4(path, frames: Sequence[np.ndarray], fps: int = 24) -> pathlib.Path:
+  """Encodes frames ([H, W, 3] floats in [0, 1] or uint8) as H.264 MP4 with imageio's ffmpeg.
+
+  Sizes are padded to even numbers, which yuv420p requires.
+  """
+  import imageio.v2 as imageio  # heavy import, only when a video is asked for
+
+  path = pathlib.Path(path)
+  path.parent.mkdir(parents=True, exist_ok=True)
+  with imageio.get_writer(path, fps=fps, codec="libx264", macro_block_size=1,
+                          pixelformat="yuv420p") as writer:
+    for frame in frames:
+      frame = np.asarray(frame)
+      frame = frame if frame.dtype == np.uint8 else to_uint8(frame)
+      h, w = frame.shape[:2]
+      writer.append_data(np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge"))
+  return path
+
+
+def _slerp_rotation(r0: np.ndarray, r1: np.ndarray, t: float) -> np.ndarray:
+  """Geodesic interpolation between two rotation matrices (axis-angle of r0^T r1)."""
+  rel = r0.T @ r1
+  angle = np.arccos(np.clip((np.trace(rel) - 1.0) / 2.0, -1.0, 1.0))
+  if angle < 1e-8:
+    return r0
+  axis = np.array([rel[2, 1] - rel[1, 2], rel[0, 2] - rel[2, 0], rel[1, 0] - rel[0, 1]])
+  axis = axis / max(np.linalg.norm(axis), 1e-12)
+  k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+  a = t * angle
+  return r0 @ (np.eye(3) + np.sin(a) * k + (1 - np.cos(a)) * k @ k)
+
+
+def fly_through_poses(c2w: np.ndarray, num_frames: int) -> np.ndarray:
+  """Camera path through the given keyframe poses, in order (piecewise slerp + lerp).
+
+  c2w: [K, 4, 4] camera-to-world keyframes -> [num_frames, 4, 4].
+  """
+  c2w = np.asarray(c2w, np.float64)
+  if len(c2w) == 1:
+    return np.repeat(c2w, num_frames, axis=0)
+  out = []
+  for s in np.linspace(0.0, len(c2w) - 1.0, num_frames):
+    i = min(int(s), len(c2w) - 2)
+    t = s - i
+    pose = np.eye(4)
+    pose[:3, :3] = _slerp_rotation(c2w[i, :3, :3], c2w[i + 1, :3, :3], t)
+    pose[:3, 3] = (1 - t) * c2w[i, :3, 3] + t * c2w[i + 1, :3, 3]
+    out.append(pose)
+  return np.stack(out).astype(np.float32)
