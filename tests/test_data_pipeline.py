@@ -1,0 +1,212 @@
+"""View sampler, evaluation index, chunked source and the grain pipeline on generated chunks."""
+
+import json
+
+import numpy as np
+import pytest
+
+from tokengs_jax.data import (SAMPLER_PRESETS, BadExampleError, BoundedSamplerConfig, ChunkedSceneSource,
+                              ExampleConfig, InputPipeline, MissingIndexEntryError, NotEnoughFramesError,
+                              chunks, context_gap_bounds, evaluation_views, load_evaluation_index,
+                              sample_bounded, write_chunk)
+
+SMALL_SAMPLER = BoundedSamplerConfig(2, 3, 2, 6, 0, 0, 2, 6)
+SMALL = ExampleConfig((16, 24), SMALL_SAMPLER, 0.25)
+
+
+def _scene(key, frames=10, seed=0, height=20, width=32):
+  rng = np.random.default_rng(seed)
+  c2w = np.tile(np.eye(4), (frames, 1, 1))
+  c2w[:, :3, 3] = np.cumsum(rng.normal(scale=0.1, size=(frames, 3)), axis=0) + rng.normal(size=3)
+  intrinsics = np.tile([30.0, 30.0, width / 2, height / 2], (frames, 1))
+  images = rng.integers(0, 255, (frames, height, width, 3), dtype=np.uint8)
+  return {"key": key, "c2w": c2w, "intrinsics": intrinsics, "images": images}
+
+
+def _write_dataset(root, scenes_per_chunk):
+  root.mkdir(parents=True, exist_ok=True)
+  index = {}
+  for number, scenes in enumerate(scenes_per_chunk):
+    name = f"{number:06d}.torch"
+    write_chunk(root / name, scenes)
+    index.update({scene["key"]: name for scene in scenes})
+  (root / "index.json").write_text(json.dumps(index))
+  return root
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+  root = tmp_path_factory.mktemp("re10k") / "train"
+  return _write_dataset(root, [[_scene(f"k{c}{s}", seed=10 * c + s) for s in range(3)] for c in range(2)])
+
+
+# ---- sampler
+
+
+def test_bounded_sampler_respects_bounds():
+  rng = np.random.default_rng(0)
+  config = BoundedSamplerConfig(3, 5, 4, 9, 1, 0, 4, 9)
+  for _ in range(200):
+    context, target = sample_bounded(config, 30, rng)
+    gap = context[-1] - context[0]
+    assert 4 <= gap <= 9 and len(set(context.tolist())) == 3 and np.all(np.diff(context) > 0)
+    assert target.shape == (5,) and context[0] + 1 <= target.min() and target.max() <= context[-1] - 1
+    assert 0 <= context[0] and context[-1] < 30
+
+
+def test_warm_up_schedule_and_presets():
+  config = SAMPLER_PRESETS["pixelsplat_re10k"]
+  assert context_gap_bounds(config, 0) == (25, 45)
+  assert context_gap_bounds(config, 75_000) == (35, 118)
+  assert context_gap_bounds(config, 10**6) == (45, 192)
+  assert context_gap_bounds(SAMPLER_PRESETS["tokengs_dl3dv"], 0) == (10, 40)
+  context, target = sample_bounded(config, 300, np.random.default_rng(0), deterministic=True)
+  np.testing.assert_array_equal(context, [0, 192])
+  np.testing.assert_array_equal(target, [0, 64, 128, 192])
+
+
+def test_too_few_frames():
+  with pytest.raises(NotEnoughFramesError, match="5 frames"):
+    sample_bounded(BoundedSamplerConfig(2, 1, 6, 9, 0, 0, 6, 9), 5, np.random.default_rng(0))
+  with pytest.raises(NotEnoughFramesError):
+    sample_bounded(BoundedSamplerConfig(4, 1, 1, 9, 0, 0, 1, 9), 3, np.random.default_rng(0))
+
+
+def test_evaluation_index(tmp_path):
+  path = tmp_path / "evaluation_index.json"
+  path.write_text(json.dumps({"a": {"context": [1, 9], "target": [3, 5, 7]}, "b": None}))
+  index = load_evaluation_index(path)
+  assert set(index) == {"a"}
+  context, target = evaluation_views(index, "a", 10)
+  np.testing.assert_array_equal(context, [1, 9])
+  np.testing.assert_array_equal(target, [3, 5, 7])
+  with pytest.raises(MissingIndexEntryError, match="'b'"):
+    evaluation_views(index, "b", 10)
+  with pytest.raises(NotEnoughFramesError, match="frame 9"):
+    evaluation_views(index, "a", 8)
+
+
+# ---- pipeline
+
+
+def _pipeline(source, config=SMALL, **kwargs):
+  kwargs = {"batch_size": 2, "seed": 0, "shard_index": 0, "shard_count": 1, **kwargs}
+  return InputPipeline(source, config, **kwargs)
+
+
+def test_batches_have_fixed_shapes_and_normalised_cameras(dataset):
+  source = ChunkedSceneSource(dataset)
+  assert len(source) == 6
+  batches = [b for _, b in zip(range(4), _pipeline(source))]
+  for batch in batches:
+    assert batch["context_images"].shape == (2, 2, 16, 24, 3)
+    assert batch["target_images"].shape == (2, 3, 16, 24, 3)
+    assert batch["context_c2w"].shape == (2, 2, 4, 4) and batch["target_intrinsics"].shape == (2, 3, 4)
+    assert batch["context_images"].dtype == np.float32
+    assert 0.0 <= batch["context_images"].min() and batch["context_images"].max() <= 1.0
+    np.testing.assert_allclose(batch["context_c2w"][:, 0], np.broadcast_to(np.eye(4), (2, 4, 4)), atol=1e-6)
+    assert batch["scene_index"].dtype == np.int64
+
+
+def test_translation_scale_is_applied(dataset):
+  source = ChunkedSceneSource(dataset)
+  record = source[0]
+  from tokengs_jax.data import make_example
+  views = (np.array([0, 4]), np.array([2, 3, 5]))
+  config = ExampleConfig((20, 32), SMALL_SAMPLER, 0.25, random_flip=False)
+  example = make_example(record, config, np.random.default_rng(0), views=views)
+  raw = np.linalg.inv(record["c2w"][0]) @ record["c2w"][4]
+  np.testing.assert_allclose(example["context_c2w"][1, :3, 3], 0.25 * raw[:3, 3], atol=1e-5)
+  np.testing.assert_allclose(example["context_intrinsics"], record["intrinsics"][[0, 4]], atol=1e-5)
+
+
+def test_checkpoint_restores_the_exact_stream(dataset):
+  pipeline = _pipeline(ChunkedSceneSource(dataset))
+  iterator = pipeline.iterator()
+  for _ in range(3):
+    next(iterator)
+  state = iterator.get_state()
+  expected = [next(iterator) for _ in range(3)]
+  restored = pipeline.iterator()
+  restored.set_state(state)
+  for batch in expected:
+    got = next(restored)
+    for key in batch:
+      np.testing.assert_array_equal(got[key], batch[key])
+
+
+def test_shards_are_disjoint_and_cover_the_source(dataset):
+  source = ChunkedSceneSource(dataset)
+  seen = []
+  for shard in range(2):
+    pipeline = _pipeline(source, batch_size=1, shard_index=shard, shard_count=2, num_epochs=1)
+    seen.append({int(b["scene_index"][0]) for b in pipeline})
+  assert seen[0].isdisjoint(seen[1]) and seen[0] | seen[1] == set(range(6))
+
+
+def test_bad_scenes_raise_naming_file_and_scene_or_are_skipped_and_counted(tmp_path):
+  good = [_scene(f"g{i}", seed=i) for i in range(3)]
+  short = _scene("short", frames=2)
+  root = _write_dataset(tmp_path / "bad", [good + [short]])
+  record = chunks._scene_to_record(_scene("corrupt"), 95)
+  for frame in range(1, 10):  # frame 0 stays readable: the scan reads the image size from it
+    record["images"][frame] = np.frombuffer(b"\xff\xd8\xff\xe0 not a jpeg", np.uint8)
+  chunks.save_tensor_archive(root / "000001.torch", [record])
+  source = ChunkedSceneSource(root)
+  assert len(source) == 5
+  sampler = BoundedSamplerConfig(2, 3, 3, 9, 0, 0, 3, 9)
+  strict = _pipeline(source, ExampleConfig((16, 16), sampler, 0.25), shuffle=False, num_epochs=1,
+                     batch_size=1)
+  with pytest.raises(BadExampleError, match=r"000000\.torch scene 'short'.*2 frames"):
+    list(strict)
+  lenient = _pipeline(source, ExampleConfig((16, 16), sampler, 0.25), shuffle=False, num_epochs=1,
+                      batch_size=1, skip_bad=True)
+  keys = [int(b["scene_index"][0]) for b in lenient]
+  assert len(keys) == 3
+  assert sum(lenient.skipped.values()) == 2
+  assert any("000001.torch scene 'corrupt' frame" in m for m in lenient.skip_messages)
+
+
+def test_nan_pose_chunk_is_refused_at_scan(tmp_path):
+  record = chunks._scene_to_record(_scene("nan"), 95)
+  record["cameras"][3, 7] = np.inf
+  root = tmp_path / "nan"
+  root.mkdir()
+  chunks.save_tensor_archive(root / "000000.torch", [record])
+  with pytest.raises(chunks.ChunkError, match=r"000000\.torch scene 'nan'.*NaN/inf"):
+    ChunkedSceneSource(root)
+
+
+def test_missing_index_entry_and_evaluation_views(dataset, tmp_path):
+  with pytest.raises(MissingIndexEntryError, match="'nope'"):
+    ChunkedSceneSource(dataset, keys=["k01", "nope"])
+  source = ChunkedSceneSource(dataset, keys=["k12", "k01", "nope"], skip_bad=True)
+  assert [e.key for e in source.entries] == ["k12", "k01"] and source.skipped["missing_index_entry"] == 1
+  index = {"k12": ((0, 8), (2, 4)), "k01": ((1, 9), (3, 5))}
+  pipeline = _pipeline(source, ExampleConfig((20, 32), SMALL_SAMPLER, 0.25, random_flip=False),
+                       evaluation_index=index, shuffle=False, num_epochs=1, batch_size=1)
+  batches = list(pipeline)
+  assert [int(b["scene_index"][0]) for b in batches] == [0, 1]
+  record = source[1]
+  raw = np.linalg.inv(record["c2w"][1]) @ record["c2w"][5]
+  np.testing.assert_allclose(batches[1]["target_c2w"][0, 1, :3, 3], 0.25 * raw[:3, 3], atol=1e-5)
+
+
+def test_dynamic_records_get_normalised_times():
+  scene = _scene("dyn", frames=8)
+  record = {**scene, "times": np.arange(8) * 0.5 + 3.0, "height": 20, "width": 32}
+  pipeline = _pipeline([record], batch_size=1, num_epochs=1, shuffle=False,
+                       select_views=lambda rec, rng, step: (np.array([0, 2]), np.array([1, 3, 6])))
+  (batch,) = list(pipeline)
+  np.testing.assert_allclose(batch["context_times"][0], [0.0, 2 / 6])
+  np.testing.assert_allclose(batch["target_times"][0], [1 / 6, 0.5, 1.0])
+
+
+@pytest.mark.slow
+def test_worker_processes_give_the_same_batches(dataset):
+  source = ChunkedSceneSource(dataset)
+  inline = [b for _, b in zip(range(3), _pipeline(source))]
+  workers = [b for _, b in zip(range(3), _pipeline(source, num_workers=2))]
+  for a, b in zip(inline, workers):
+    for key in a:
+      np.testing.assert_array_equal(a[key], b[key])

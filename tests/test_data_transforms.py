@@ -1,0 +1,113 @@
+"""Camera round trips: a 3D point lands on the same image content after every transform."""
+
+import numpy as np
+import pytest
+
+from tokengs_jax.camera import project_points
+from tokengs_jax.data import transforms
+
+H, W = 40, 64
+
+
+def _camera_looking_at_origin(rng):
+  eye = rng.normal(size=3) * 0.5 + np.array([0.0, 0.0, -4.0])
+  forward = -eye / np.linalg.norm(eye)
+  right = np.cross([0.0, 1.0, 0.0], forward)
+  right /= np.linalg.norm(right)
+  down = np.cross(forward, right)
+  c2w = np.eye(4)
+  c2w[:3, :3] = np.stack([right, down, forward], axis=1)
+  c2w[:3, 3] = eye
+  return c2w
+
+
+def _project(point, c2w, intrinsics):
+  uv, depth = project_points(np.asarray(point, np.float32)[None],
+                             transforms.rigid_inverse(c2w).astype(np.float32)[None],
+                             np.asarray(intrinsics, np.float32)[None])
+  assert float(depth[0, 0]) > 0
+  return np.asarray(uv[0, 0], np.float64)
+
+
+def _blob_image(uv, height, width, sigma=2.0):
+  """A Gaussian blob centred on continuous pixel coordinate uv (pixel centres at +0.5)."""
+  v, u = np.mgrid[0:height, 0:width] + 0.5
+  blob = np.exp(-((u - uv[0]) ** 2 + (v - uv[1]) ** 2) / (2 * sigma**2))
+  return np.repeat((blob * 255).round().astype(np.uint8)[..., None], 3, axis=-1)
+
+
+def _centroid(image):
+  weight = image[..., 0].astype(np.float64)
+  v, u = np.mgrid[0:image.shape[0], 0:image.shape[1]] + 0.5
+  return np.array([(u * weight).sum(), (v * weight).sum()]) / weight.sum()
+
+
+@pytest.fixture
+def scene():
+  rng = np.random.default_rng(3)
+  c2w = np.stack([_camera_looking_at_origin(rng) for _ in range(3)])
+  intrinsics = np.array([[50.0, 52.0, 30.5, 21.0]] * 3)
+  point = np.array([0.1, -0.05, 0.2])
+  images = np.stack([_blob_image(_project(point, c, k), H, W) for c, k in zip(c2w, intrinsics)])
+  return c2w, intrinsics, point, images
+
+
+@pytest.mark.parametrize("shape", [(24, 24), (32, 40), (40, 64), (80, 96)])
+def test_resize_crop_keeps_projection_on_the_content(scene, shape):
+  c2w, intrinsics, point, images = scene
+  out_images, out_intrinsics = transforms.resize_and_center_crop(images, intrinsics, shape)
+  assert out_images.shape == (3, *shape, 3) and out_images.dtype == np.uint8
+  for view in range(3):
+    uv = _project(point, c2w[view], out_intrinsics[view])
+    np.testing.assert_allclose(_centroid(out_images[view]), uv, atol=0.3)
+
+
+def test_flip_mirrors_world_and_image_together(scene):
+  c2w, intrinsics, point, images = scene
+  flipped, c2w_f, intr_f = transforms.flip_horizontal(images, c2w, intrinsics)
+  mirrored = point * np.array([-1.0, 1.0, 1.0])
+  for view in range(3):
+    uv = _project(point, c2w[view], intrinsics[view])
+    uv_f = _project(mirrored, c2w_f[view], intr_f[view])
+    np.testing.assert_allclose(uv_f, [W - uv[0], uv[1]], atol=1e-4)
+    np.testing.assert_allclose(_centroid(flipped[view]), uv_f, atol=0.05)
+    np.testing.assert_allclose(np.linalg.det(c2w_f[view, :3, :3]), 1.0, atol=1e-5)  # still a rotation
+
+
+@pytest.mark.parametrize("method", ["first_cam", "mean_cam"])
+@pytest.mark.parametrize("scale_method", ["constant", "distance", "bound"])
+def test_normalisation_and_scale_keep_projections(scene, method, scale_method):
+  c2w, intrinsics, point, _ = scene
+  normalised = transforms.normalize_cameras(c2w, 2, method)
+  if method == "first_cam":
+    np.testing.assert_allclose(normalised[0], np.eye(4), atol=1e-6)
+  else:  # the mean context camera is at the origin, looking down +z on average
+    np.testing.assert_allclose(normalised[:2, :3, 3].mean(0), 0.0, atol=1e-5)
+    np.testing.assert_allclose(normalised[:2, :3, 2].mean(0)[:2], 0.0, atol=1e-5)
+  scale = transforms.translation_scale(normalised, 2, 0.25, scale_method)
+  normalised[:, :3, 3] *= scale
+  reference = c2w[0] if method == "first_cam" else transforms._mean_camera(c2w[:2])
+  moved = (transforms.rigid_inverse(reference) @ np.append(point, 1.0))[:3] * scale
+  for view in range(3):
+    np.testing.assert_allclose(_project(moved, normalised[view], intrinsics[view]),
+                               _project(point, c2w[view], intrinsics[view]), atol=2e-3)
+
+
+def test_all_transforms_chained(scene):
+  """Crop, normalise + scale, flip: the point still lands on the blob in every view."""
+  c2w, intrinsics, point, images = scene
+  images, intrinsics = transforms.resize_and_center_crop(images, intrinsics, (32, 32))
+  normalised = transforms.normalize_cameras(c2w, 2, "first_cam")
+  images, normalised, intrinsics = transforms.flip_horizontal(images, normalised, intrinsics)
+  normalised[:, :3, 3] *= 0.25
+  moved = (transforms.rigid_inverse(c2w[0]) @ np.append(point, 1.0))[:3] * 0.25 * np.array([-1, 1, 1])
+  for view in range(3):
+    np.testing.assert_allclose(_centroid(images[view]), _project(moved, normalised[view], intrinsics[view]),
+                               atol=0.3)
+
+
+def test_unknown_methods_raise(scene):
+  with pytest.raises(ValueError, match="normalisation"):
+    transforms.normalize_cameras(scene[0], 2, "median_cam")
+  with pytest.raises(ValueError, match="scale method"):
+    transforms.translation_scale(scene[0], 2, 0.1, "huge")

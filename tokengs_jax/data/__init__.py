@@ -1,0 +1,44 @@
+"""Data: chunk files, datasets, view sampling, transforms and the grain input pipeline.
+
+    from tokengs_jax.data import ChunkedSceneSource, InputPipeline, DATASET_PRESETS
+    source = ChunkedSceneSource("datasets/re10k/train", skip_bad=True)
+    for batch in InputPipeline(source, DATASET_PRESETS["re10k"], batch_size=8, num_workers=8): ...
+"""
+
+from tokengs_jax.data.chunked import ChunkedSceneSource, SceneEntry
+from tokengs_jax.data.chunks import (
+    ChunkError,
+    LazyTensor,
+    UnsafeChunkError,
+    decode_jpeg,
+    encode_jpeg,
+    load_tensor_archive,
+    read_chunk,
+    save_tensor_archive,
+    write_chunk,
+)
+from tokengs_jax.data.pipeline import (
+    DATASET_PRESETS,
+    TRANSLATION_SCALES,
+    BadExampleError,
+    ExampleConfig,
+    InputPipeline,
+    make_example,
+)
+from tokengs_jax.data.sampler import (
+    SAMPLER_PRESETS,
+    BoundedSamplerConfig,
+    MissingIndexEntryError,
+    NotEnoughFramesError,
+    context_gap_bounds,
+    evaluation_views,
+    load_evaluation_index,
+    sample_bounded,
+)
+from tokengs_jax.data.transforms import (
+    flip_horizontal,
+    normalize_cameras,
+    resize_and_center_crop,
+    rigid_inverse,
+    translation_scale,
+)

@@ -1,0 +1,215 @@
+"""From scene records to fixed-shape training/evaluation batches, on grain.
+
+Source-agnostic: any random-access sequence of scene records (see `tokengs_jax.data.chunked` for
+the record fields) works. Per example: pick views (bounded sampler, an evaluation index, or a
+caller's `select_views`), decode only those frames, resize-then-centre-crop, normalise cameras
+(first_cam/mean_cam + translation scale), randomly flip, and convert images to float32 in [0, 1].
+
+Batches are dicts of numpy arrays (notes/INTERFACES.md): `context_images [B, Vc, H, W, 3]`,
+`context_c2w [B, Vc, 4, 4]`, `context_intrinsics [B, Vc, 4]`, the same for `target_*`,
+`scene_index [B]`, and for records with `times`: `context_times [B, Vc]`, `target_times [B, Vt]`.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+from typing import Callable, Literal, Sequence
+
+import grain
+import numpy as np
+
+from tokengs_jax.data.chunks import ChunkError, LazyTensor, decode_jpeg
+from tokengs_jax.data.sampler import (SAMPLER_PRESETS, BoundedSamplerConfig, MissingIndexEntryError,
+                                      NotEnoughFramesError, evaluation_views, sample_bounded)
+from tokengs_jax.data.transforms import (flip_horizontal, normalize_cameras, resize_and_center_crop,
+                                         translation_scale)
+
+__all__ = ["ExampleConfig", "DATASET_PRESETS", "TRANSLATION_SCALES", "make_example",
+           "InputPipeline", "BadExampleError"]
+
+# Paper, training details: camera translations scaled so that mean depths are roughly 1.
+TRANSLATION_SCALES = {"re10k": 0.25, "dl3dv": 0.15, "kubric": 0.1}
+
+
+class BadExampleError(ValueError):
+  """An example could not be built; the message names the file and scene."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ExampleConfig:
+  """How one example is built from a scene record.
+
+  Attributes:
+    image_shape: (H, W) of every output view.
+    sampler: bounded view sampling (ignored when an evaluation index or `select_views` is given).
+    translation_scale: base camera translation scale (RE10K 0.25, DL3DV 0.15, Kubric 0.1).
+    normalization: `first_cam` (official default) or `mean_cam`.
+    scale_method: `constant` (official default), `distance` or `bound`.
+    random_flip: flip each example left-right with probability 1/2 (training).
+    deterministic: pixelSplat's test-stage sampling, no flip (validation without an index).
+  """
+  image_shape: tuple[int, int] = (256, 256)
+  sampler: BoundedSamplerConfig = SAMPLER_PRESETS["depthsplat_re10k"]
+  translation_scale: float = TRANSLATION_SCALES["re10k"]
+  normalization: Literal["first_cam", "mean_cam"] = "first_cam"
+  scale_method: Literal["constant", "distance", "bound"] = "constant"
+  random_flip: bool = True
+  deterministic: bool = False
+
+
+DATASET_PRESETS = {
+    "re10k": ExampleConfig((256, 256), SAMPLER_PRESETS["depthsplat_re10k"], TRANSLATION_SCALES["re10k"]),
+    "dl3dv": ExampleConfig((256, 448), SAMPLER_PRESETS["tokengs_dl3dv"], TRANSLATION_SCALES["dl3dv"]),
+}
+
+ViewSelector = Callable[[dict, np.random.Generator, int], tuple[np.ndarray, np.ndarray]]
+
+
+def _where(record: dict) -> str:
+  return f"{record.get('source', '<memory>')} scene '{record['key']}'"
+
+
+def _frame(record: dict, index: int) -> np.ndarray:
+  """Frame `index` of a record as uint8 [H, W, 3], decoding JPEG bytes if needed."""
+  frame = record["images"][index]
+  if isinstance(frame, LazyTensor):
+    frame = frame.load()
+  if isinstance(frame, np.ndarray) and frame.ndim == 3:
+    return frame
+  return decode_jpeg(frame, where=f"{_where(record)} frame {index}")
+
+
+def make_example(record: dict, config: ExampleConfig, rng: np.random.Generator, *, step: int = 0,
+                 views: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
+  """One example (no batch axis) from a scene record; keys as the batch without the leading `B`.
+
+  views: fixed (context [Vc], target [Vt]) frame indices; default: the bounded sampler.
+  Raises `BadExampleError` (naming file and scene) for any unusable scene.
+  """
+  where = _where(record)
+  c2w_all = np.asarray(record["c2w"])
+  try:
+    if views is None:
+      views = sample_bounded(config.sampler, c2w_all.shape[0], rng, step=step,
+                             deterministic=config.deterministic)
+    context, target = views
+    frames = np.concatenate([context, target])
+    c2w = c2w_all[frames]
+    intrinsics = np.asarray(record["intrinsics"])[frames]
+    if not (np.isfinite(c2w).all() and np.isfinite(intrinsics).all()):
+      raise BadExampleError(f"{where}: NaN/inf in the cameras of frames {frames.tolist()}")
+    images = np.stack([_frame(record, int(i)) for i in frames])
+  except (NotEnoughFramesError, MissingIndexEntryError, ChunkError) as error:
+    raise BadExampleError(f"{where}: {error}") from error
+  if images.shape[1:3] != (record.get("height", images.shape[1]), record.get("width", images.shape[2])):
+    raise BadExampleError(f"{where}: frames are {images.shape[1:3]}, cameras are for "
+                          f"{(record['height'], record['width'])}")
+  images, intrinsics = resize_and_center_crop(images, intrinsics, config.image_shape)
+  num_context = len(context)
+  c2w = normalize_cameras(c2w, num_context, config.normalization)
+  scale = translation_scale(c2w, num_context, config.translation_scale, config.scale_method)
+  if config.random_flip and not config.deterministic and rng.random() < 0.5:
+    images, c2w, intrinsics = flip_horizontal(images, c2w, intrinsics)
+  c2w[:, :3, 3] *= scale
+  images = images.astype(np.float32) / 255.0
+  example = {
+      "context_images": images[:num_context], "context_c2w": c2w[:num_context],
+      "context_intrinsics": intrinsics[:num_context],
+      "target_images": images[num_context:], "target_c2w": c2w[num_context:],
+      "target_intrinsics": intrinsics[num_context:],
+  }
+  if "times" in record:  # official: min-max normalised over the example's frames
+    times = np.asarray(record["times"], np.float64)[frames]
+    span = times.max() - times.min()
+    times = ((times - times.min()) / span if span > 0 else np.zeros_like(times)).astype(np.float32)
+    example["context_times"], example["target_times"] = times[:num_context], times[num_context:]
+  return example
+
+
+@dataclasses.dataclass(frozen=True)
+class _Skipped:
+  reason: str
+  message: str
+
+
+class _BuildExample:
+  """The per-index map (picklable, runs in the workers): a seeded example or a `_Skipped`."""
+
+  def __init__(self, source, config, seed, batch_size, evaluation_index, select_views, skip_bad):
+    self.source, self.config, self.seed, self.batch_size = source, config, seed, batch_size
+    self.evaluation_index, self.select_views, self.skip_bad = evaluation_index, select_views, skip_bad
+
+  def __call__(self, position: int, scene_index: int):
+    rng = np.random.default_rng([self.seed, position])  # same example for the same position
+    step = position // self.batch_size
+    try:
+      record = self.source[scene_index]
+      views = None
+      if self.evaluation_index is not None:
+        views = evaluation_views(self.evaluation_index, record["key"], len(record["images"]))
+      elif self.select_views is not None:
+        views = self.select_views(record, rng, step)
+      example = make_example(record, self.config, rng, step=step, views=views)
+    except (BadExampleError, ChunkError, NotEnoughFramesError, MissingIndexEntryError) as error:
+      if not self.skip_bad:
+        raise
+      return _Skipped(type(error).__name__, str(error))
+    example["scene_index"] = np.int64(scene_index)
+    return example
+
+
+class InputPipeline:
+  """A grain pipeline of fixed-shape batches from a random-access source of scene records.
+
+  Args:
+    source: `len()` + `[i]` -> scene record.
+    config: how examples are built.
+    batch_size: examples per batch on this process.
+    seed: shuffling and per-example randomness (views, flips) derive from it and the position.
+    shuffle / num_epochs: reshuffled every epoch; `num_epochs=None` repeats forever.
+    shard_index / shard_count: this process's disjoint share of the scenes (default: JAX process
+      index and count), for multi-host training.
+    num_workers: decoding processes (0: in this process).
+    evaluation_index: key -> (context, target) frames (see `sampler.load_evaluation_index`).
+    select_views: custom `(record, rng, step) -> (context, target)`, e.g. for dynamic scenes.
+    skip_bad: drop and count bad examples (`skipped`, `skip_messages`) instead of raising.
+
+  Iterate it (or `iterator()`); the iterator's `get_state()` / `set_state()` checkpoint the
+  position exactly.
+  """
+
+  def __init__(self, source: Sequence[dict], config: ExampleConfig, *, batch_size: int, seed: int = 0,
+               shuffle: bool = True, num_epochs: int | None = None, shard_index: int | None = None,
+               shard_count: int | None = None, num_workers: int = 0, evaluation_index: dict | None = None,
+               select_views: ViewSelector | None = None, skip_bad: bool = False, drop_remainder: bool = True):
+    if shard_index is None or shard_count is None:
+      import jax  # only for the process topology
+      shard_index, shard_count = jax.process_index(), jax.process_count()
+    self.skipped: collections.Counter = collections.Counter()
+    self.skip_messages: collections.deque = collections.deque(maxlen=100)
+    scenes = grain.MapDataset.range(len(source))[shard_index::shard_count]
+    if shuffle:
+      scenes = scenes.shuffle(seed=seed)
+    scenes = scenes.repeat(num_epochs)
+    build = _BuildExample(source, config, seed, batch_size, evaluation_index, select_views, skip_bad)
+    examples = scenes.map_with_index(build).to_iter_dataset()
+    if num_workers > 0:
+      from absl import flags  # grain's worker pool reads absl flags; outside absl.app use defaults
+      if not flags.FLAGS.is_parsed():
+        flags.FLAGS.mark_as_parsed()
+      examples = examples.mp_prefetch(grain.MultiprocessingOptions(num_workers=num_workers))
+    self.dataset = examples.filter(self._keep).batch(batch_size, drop_remainder=drop_remainder)
+
+  def _keep(self, example) -> bool:
+    if isinstance(example, _Skipped):
+      self.skipped[example.reason] += 1
+      self.skip_messages.append(example.message)
+      return False
+    return True
+
+  def iterator(self):
+    return iter(self.dataset)
+
+  def __iter__(self):
+    return self.iterator()

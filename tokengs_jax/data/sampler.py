@@ -1,0 +1,163 @@
+"""Which frames of a scene become context and target views.
+
+`BoundedSampler` follows pixelSplat's bounded view sampler (a context gap drawn between a minimum
+and a maximum that warm up linearly with the training step; targets inside the context span), with
+the official TokenGS extension to more than two context views (the extra ones drawn at random,
+sorted, strictly inside the span). `evaluation_views` reads the fixed context/target frames of the
+published evaluation index JSONs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+
+import numpy as np
+
+__all__ = [
+    "BoundedSamplerConfig",
+    "SAMPLER_PRESETS",
+    "NotEnoughFramesError",
+    "MissingIndexEntryError",
+    "context_gap_bounds",
+    "sample_bounded",
+    "load_evaluation_index",
+    "evaluation_views",
+]
+
+
+class NotEnoughFramesError(ValueError):
+  """A scene has too few frames for the sampler's context gap or number of views."""
+
+
+class MissingIndexEntryError(KeyError):
+  """A scene has no (or a null) entry in the evaluation index."""
+
+  def __str__(self):  # KeyError would print the message with quotes
+    return str(self.args[0])
+
+
+@dataclasses.dataclass(frozen=True)
+class BoundedSamplerConfig:
+  """Bounded view sampling; the names follow pixelSplat's `ViewSamplerBoundedCfg`.
+
+  Attributes:
+    num_context_views: context views per example (2 in pixelSplat; more as official TokenGS).
+    num_target_views: target views per example, drawn with replacement inside the context span.
+    min_context_gap / max_context_gap: bounds of (last - first context frame) after warm-up.
+    min_target_distance: targets keep this many frames away from the outer context frames.
+    warm_up_steps: steps over which the gap bounds move linearly from the initial values.
+    initial_min_context_gap / initial_max_context_gap: the gap bounds at step 0.
+  """
+  num_context_views: int = 2
+  num_target_views: int = 4
+  min_context_gap: int = 45
+  max_context_gap: int = 192
+  min_target_distance: int = 0
+  warm_up_steps: int = 0
+  initial_min_context_gap: int = 45
+  initial_max_context_gap: int = 192
+
+
+# Published numbers (see notes/data.md for the exact source of each).
+SAMPLER_PRESETS = {
+    # pixelSplat config/dataset/view_sampler_dataset_specific_config/bounded_re10k.yaml
+    "pixelsplat_re10k": BoundedSamplerConfig(2, 4, 45, 192, 0, 150_000, 25, 45),
+    # MVSplat trains RE10K with pixelSplat's bounded sampler and the same numbers
+    "mvsplat_re10k": BoundedSamplerConfig(2, 4, 45, 192, 0, 150_000, 25, 45),
+    # DepthSplat bounded_re10k.yaml
+    "depthsplat_re10k": BoundedSamplerConfig(2, 4, 45, 135, 0, 30_000, 25, 45),
+    # DepthSplat boundedv2_dl3dv.yaml (context_gap_warm_up_steps 10000)
+    "depthsplat_dl3dv": BoundedSamplerConfig(2, 4, 20, 50, 0, 10_000, 15, 30),
+    # official TokenGS registry "dl3dv" (min_gap 10, max_gap 40; num_views 8 = 4 context + 4 target)
+    "tokengs_dl3dv": BoundedSamplerConfig(4, 4, 10, 40, 0, 0, 10, 40),
+}
+
+
+def context_gap_bounds(config: BoundedSamplerConfig, step: int) -> tuple[int, int]:
+  """(min, max) context gap at a training step: linear warm-up as pixelSplat's `schedule`."""
+  if config.warm_up_steps <= 0:
+    return config.min_context_gap, config.max_context_gap
+  fraction = step / config.warm_up_steps
+
+  def schedule(initial, final):
+    return min(initial + int((final - initial) * fraction), final)
+
+  return (schedule(config.initial_min_context_gap, config.min_context_gap),
+          schedule(config.initial_max_context_gap, config.max_context_gap))
+
+
+def sample_bounded(config: BoundedSamplerConfig, num_frames: int, rng: np.random.Generator, *,
+                   step: int = 0, deterministic: bool = False) -> tuple[np.ndarray, np.ndarray]:
+  """Draws context and target frame indices for a scene of `num_frames` frames.
+
+  Training (`deterministic=False`): gap uniform in the warmed-up [min, max] (max clipped to
+  num_frames - 1), first context frame uniform, targets uniform (with replacement) in
+  [first + d, last - d], d = `min_target_distance`. `deterministic` (pixelSplat's test stage):
+  the largest gap (clipped to the scene), starting at frame 0, and targets evenly spaced over the span (pixelSplat takes
+  every frame of the span; evenly spaced keeps the batch shape fixed).
+
+  Returns (context [num_context_views] int64 sorted, target [num_target_views] int64).
+  Raises `NotEnoughFramesError` when the scene is too short.
+  """
+  if deterministic:  # pixelSplat's test stage: always the full final gap, no warm-up
+    min_gap = max_gap = config.max_context_gap
+  else:
+    min_gap, max_gap = context_gap_bounds(config, step)
+  max_gap = min(num_frames - 1, max_gap)
+  if deterministic:  # a shorter scene uses all of its frames
+    min_gap = min(min_gap, max_gap)
+  min_gap = max(min_gap, 2 * config.min_target_distance, config.num_context_views - 1)
+  if max_gap < min_gap:
+    raise NotEnoughFramesError(
+        f"{num_frames} frames cannot hold a context gap of at least {min_gap}")
+  gap = max_gap if deterministic else int(rng.integers(min_gap, max_gap + 1))
+  first = 0 if deterministic else int(rng.integers(0, num_frames - gap))
+  last = first + gap
+  inner = np.arange(first + 1, last)
+  if deterministic:
+    middle = inner[np.linspace(0, len(inner) - 1, config.num_context_views - 2).round().astype(int)] \
+        if config.num_context_views > 2 else inner[:0]
+  else:
+    middle = np.sort(rng.choice(inner, config.num_context_views - 2, replace=False))
+  context = np.concatenate([[first], middle, [last]]).astype(np.int64)
+  low, high = first + config.min_target_distance, last - config.min_target_distance
+  if deterministic:
+    target = np.linspace(low, high, config.num_target_views).round().astype(np.int64)
+  else:
+    target = rng.integers(low, high + 1, size=config.num_target_views).astype(np.int64)
+  return context, target
+
+
+def load_evaluation_index(path: str | os.PathLike) -> dict[str, tuple[tuple[int, ...], tuple[int, ...]]]:
+  """Reads a pixelSplat/MVSplat/DepthSplat evaluation index JSON.
+
+  The file maps scene key -> {"context": [...], "target": [...]} or null; null entries (scenes the
+  benchmark leaves out) are dropped. Returns key -> (context frames, target frames).
+  """
+  with open(path) as handle:
+    raw = json.load(handle)
+  if not isinstance(raw, dict):
+    raise ValueError(f"{path}: an evaluation index maps scene keys to entries, found {type(raw).__name__}")
+  index = {}
+  for key, entry in raw.items():
+    if entry is None:
+      continue
+    if not (isinstance(entry, dict) and isinstance(entry.get("context"), list)
+            and isinstance(entry.get("target"), list)):
+      raise ValueError(f"{path}: entry for scene '{key}' needs 'context' and 'target' lists")
+    index[key] = (tuple(int(i) for i in entry["context"]), tuple(int(i) for i in entry["target"]))
+  return index
+
+
+def evaluation_views(index: dict, key: str, num_frames: int) -> tuple[np.ndarray, np.ndarray]:
+  """The index's (context [Vc], target [Vt]) frames of scene `key`, checked against its length."""
+  if key not in index:
+    raise MissingIndexEntryError(f"scene '{key}' has no entry in the evaluation index")
+  context, target = (np.asarray(v, np.int64) for v in index[key])
+  frames = np.concatenate([context, target])
+  if frames.size and (frames.min() < 0 or frames.max() >= num_frames):
+    raise NotEnoughFramesError(
+        f"evaluation index asks for frame {int(frames.max())} of a {num_frames}-frame scene")
+  return context, target
