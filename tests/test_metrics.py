@@ -1,0 +1,103 @@
+"""Evaluation metrics against skimage, the `lpips` package's numbers and hand values."""
+
+import pathlib
+import pickle
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from skimage.metrics import structural_similarity
+
+from tokengs_jax import lpips as lpips_lib
+from tokengs_jax import metrics
+
+DATA = pathlib.Path(__file__).parent / "data"
+
+
+def _skimage_ssim(pred, target):
+  return structural_similarity(pred, target, win_size=11, gaussian_weights=True, sigma=1.5,
+                               use_sample_covariance=True, data_range=1.0, channel_axis=-1)
+
+
+@pytest.mark.parametrize("shape", [(24, 31, 3), (11, 11, 3), (40, 17, 3)])
+def test_ssim_matches_skimage(shape):
+  rng = np.random.default_rng(sum(shape))
+  target = rng.uniform(0, 1, shape).astype(np.float32)
+  # A correlated prediction (SSIM well away from 0) and one with values outside [0, 1].
+  preds = [np.clip(target + rng.normal(0, 0.1, shape), 0, 1).astype(np.float32),
+           (target * 1.3 - 0.1).astype(np.float32)]
+  for pred in preds:
+    np.testing.assert_allclose(metrics.ssim(pred, target), _skimage_ssim(pred, target), atol=1e-5)
+
+
+def test_ssim_constant_and_identical_images():
+  flat_a = np.full((16, 16, 3), 0.3, np.float32)
+  flat_b = np.full((16, 16, 3), 0.7, np.float32)
+  np.testing.assert_allclose(metrics.ssim(flat_a, flat_b), _skimage_ssim(flat_a, flat_b), atol=1e-5)
+  np.testing.assert_allclose(metrics.ssim(flat_b, flat_b), 1.0, atol=1e-6)
+
+
+def test_ssim_batches_and_jits():
+  rng = np.random.default_rng(3)
+  pred = rng.uniform(0, 1, (2, 3, 20, 22, 3)).astype(np.float32)
+  target = rng.uniform(0, 1, (2, 3, 20, 22, 3)).astype(np.float32)
+  batched = jax.jit(metrics.ssim)(pred, target)
+  assert batched.shape == (2, 3)
+  expected = [[_skimage_ssim(pred[i, j], target[i, j]) for j in range(3)] for i in range(2)]
+  np.testing.assert_allclose(batched, expected, atol=1e-5)
+
+
+def test_ssim_rejects_images_smaller_than_the_window():
+  with pytest.raises(ValueError, match="11x11"):
+    metrics.ssim(np.zeros((10, 20, 3)), np.zeros((10, 20, 3)))
+
+
+def test_psnr_hand_values_clipping_and_cap():
+  target = np.full((2, 8, 8, 3), 0.5, np.float32)
+  pred = target + np.array([0.1, -0.01], np.float32)[:, None, None, None]
+  np.testing.assert_allclose(jax.jit(metrics.psnr)(pred, target), [20.0, 40.0], rtol=1e-4)
+  # Values beyond [0, 1] are clipped first: 1.7 vs 1.0 are the same pixel.
+  over = np.full((8, 8, 3), 1.7, np.float32)
+  white = np.ones((8, 8, 3), np.float32)
+  np.testing.assert_allclose(metrics.psnr(over, white), metrics.PSNR_CAP_DB)
+  # Identical images give the documented cap, not inf.
+  assert float(metrics.psnr(target[0], target[0])) == pytest.approx(metrics.PSNR_CAP_DB)
+
+
+def test_lpips_matches_reference_package_numbers():
+  ref = np.load(DATA / "lpips_reference.npz")
+  pred = ref["pred"].astype(np.float32) / 255.0
+  target = ref["target"].astype(np.float32) / 255.0
+  np.testing.assert_allclose(metrics.lpips(pred, target), ref["lpips"], atol=1e-5)
+  assert ref["lpips"][1] == 0.0  # the identical pair
+  # Leading dimensions are kept, also under an outer jit (shape only: no second compile).
+  grid = jax.eval_shape(jax.jit(metrics.lpips), pred[:4].reshape(2, 2, *pred.shape[1:]),
+                        target[:4].reshape(2, 2, *pred.shape[1:]))
+  assert grid.shape == (2, 2)
+
+
+def test_lpips_gradient_is_finite_for_flat_and_identical_images():
+  params = lpips_lib.load_vgg_params()
+  # Black images make whole VGG feature maps zero: the channel norm's sqrt must not give NaN.
+  pred = jnp.zeros((2, 16, 16, 3))
+  target = jnp.stack([jnp.zeros((16, 16, 3)), jnp.full((16, 16, 3), 0.5)])
+  loss = lambda weights, p: jnp.sum(lpips_lib.lpips_distance(weights, p, target))
+  grad = jax.jit(jax.grad(loss, argnums=1))(params, pred)  # weights as an argument: fast compile
+  assert np.isfinite(np.asarray(grad)).all()
+
+
+def test_weights_loader_refuses_foreign_pickles(tmp_path, monkeypatch):
+  path = tmp_path / "evil.ckpt"
+  path.write_bytes(pickle.dumps({"VGG16_0": print}))  # any non-numpy global must be refused
+  with pytest.raises(pickle.UnpicklingError, match="refusing"):
+    lpips_lib.load_vgg_params(str(path))
+  monkeypatch.setenv(lpips_lib.WEIGHTS_ENV, str(path))
+  assert lpips_lib.default_weights_path() == path
+
+
+def test_mean_over_scenes_averages_scenes_equally():
+  # Scene 0 has 3 targets, scene 1 has 1: per-scene means 2 and 10, overall 6 (not 4).
+  assert metrics.mean_over_scenes([np.array([1.0, 2.0, 3.0]), np.array([10.0])]) == 6.0
+  with pytest.raises(ValueError):
+    metrics.mean_over_scenes([])

@@ -1,0 +1,208 @@
+"""Training losses of TokenGS (official `tokengs/models/losses.py`, `tokengs.py`, `options.py`).
+
+    loss = lambda_rgb * rgb + lambda_ssim * (1 - SSIM) / 2 + lambda_vis * visibility
+           + lambda_lpips * LPIPS  [+ lambda_dyn_aux(step) * loss of the dynamic Gaussians alone]
+
+- rgb: MSE ("l2", official default) or L1 over every pixel and channel.
+- SSIM term: fused-ssim conventions of the official code (11-tap Gaussian window, sigma 1.5,
+  zero "same" padding, population covariance, C1 = 0.01^2, C2 = 0.03^2), mapped to (1 - SSIM) / 2.
+- visibility: projected centres outside every supervision view are pulled back (below).
+- LPIPS: VGG v0.1, `normalize=True`, mean over views (optional; `lpips_params` must be given).
+
+Deviation from the official visibility loss: the official code takes gsplat's `means2d`, which
+are projections made without looking at depth (and are zero for culled centres), so a centre
+behind every camera can land "inside" an image and escape the loss. Here a centre whose depth is
+<= `near` in a view counts as not visible there: its distance in that view is the clamp value
+`threshold`, the most any view can contribute. A centre behind all views therefore costs
+`threshold` (with no gradient, like an official centre far outside every image), and a centre
+behind some views is pulled towards the nearest view in which it lies in front of the camera.
+
+Everything is a pure function of arrays; values and gradients stay finite for constant images,
+points on or behind the camera plane, and identical prediction/target.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+import jax
+import jax.numpy as jnp
+
+from tokengs_jax import camera
+from tokengs_jax import metrics
+
+
+@dataclasses.dataclass(frozen=True)
+class LossConfig:
+  """Loss weights and options; defaults as the official `Options` (base training preset).
+
+  Attributes:
+    rgb_loss: "l2" (MSE, official default) or "l1" (the latent/Kubric presets).
+    lambda_rgb: weight of the photometric term (0.8 in the official L1+SSIM presets).
+    lambda_ssim: weight of the (1 - SSIM) / 2 term.
+    lambda_vis: weight of the visibility loss.
+    visibility_threshold: clamp of the per-Gaussian visibility distance (official 1.0); > 0.
+    near: depth at or below which a centre counts as not visible in a view (official znear).
+    lambda_lpips: weight of the LPIPS term (0.5 in the official LPIPS presets).
+    lambda_dyn_aux: base weight of the dynamic-only auxiliary loss (0.3 in the Kubric release).
+    dyn_aux_hold_steps: steps for which the base weight is held (official warmup_steps, 5000).
+    dyn_aux_decay_steps: steps of the linear decay after that (10000); <= 0 keeps it constant.
+    dyn_aux_min: weight reached at the end of the decay.
+  """
+
+  rgb_loss: Literal["l2", "l1"] = "l2"
+  lambda_rgb: float = 1.0
+  lambda_ssim: float = 0.2
+  lambda_vis: float = 1.0
+  visibility_threshold: float = 1.0
+  near: float = 0.025
+  lambda_lpips: float = 0.0
+  lambda_dyn_aux: float = 0.0
+  dyn_aux_hold_steps: int = 0
+  dyn_aux_decay_steps: int = 0
+  dyn_aux_min: float = 0.0
+
+  def __post_init__(self):
+    if self.rgb_loss not in ("l2", "l1"):
+      raise ValueError(f"rgb_loss must be 'l2' or 'l1', got {self.rgb_loss!r}")
+    if self.visibility_threshold <= 0:
+      raise ValueError("visibility_threshold must be > 0: it is also the cost of a hidden centre")
+
+
+def rgb_loss(pred: jax.Array, target: jax.Array, kind: str = "l2") -> jax.Array:
+  """Mean squared ("l2") or absolute ("l1") error.  pred, target: [..., H, W, 3] -> []."""
+  diff = pred - target
+  return jnp.mean(diff * diff) if kind == "l2" else jnp.mean(jnp.abs(diff))
+
+
+def ssim_loss(pred: jax.Array, target: jax.Array) -> jax.Array:
+  """(1 - SSIM) / 2 with the official fused-ssim conventions.  [..., H, W, 3] -> []."""
+  values = metrics.ssim_map(pred, target, zero_pad=True, sample_covariance=False)
+  return (1.0 - jnp.mean(values)) / 2.0
+
+
+def visibility_loss(
+    means: jax.Array,
+    world_to_camera: jax.Array,
+    intrinsics: jax.Array,
+    height: int,
+    width: int,
+    *,
+    threshold: float = 1.0,
+    near: float = 0.025,
+) -> jax.Array:
+  """Mean over Gaussians of how far each centre lies outside the closest supervision view.
+
+  In each view the centre is projected to normalised coordinates (u / W, v / H) * 2 - 1; its
+  distance is relu(|u_n| - 1) + relu(|v_n| - 1), or `threshold` where depth <= `near` (see the
+  module docstring). Per Gaussian: minimum over views, clamped at `threshold`.
+
+  Args:
+    means: [..., N, 3] Gaussian centres (world).
+    world_to_camera: [..., V, 4, 4].
+    intrinsics: [..., V, 4] (fx, fy, cx, cy) in pixels.
+    height, width: image size in pixels.
+    threshold: clamp value (> 0), also the distance assigned to a hidden centre.
+    near: depth at or below which a centre is hidden in a view.
+
+  Returns:
+    [...] the loss per scene.
+  """
+  uv, depth = camera.project_points(means, world_to_camera, intrinsics)  # [...,V,N,2], [...,V,N]
+  size = jnp.asarray([width, height], uv.dtype)
+  uv_normalised = uv / size * 2.0 - 1.0
+  outside = jnp.sum(jax.nn.relu(jnp.abs(uv_normalised) - 1.0), axis=-1)  # [..., V, N]
+  in_front = depth > near
+  # The where's other branch gets a zero cotangent, so the huge uv of a centre near the camera
+  # plane (finite thanks to project_points' floored division) never reaches the gradient.
+  distance = jnp.where(in_front, outside, threshold)
+  per_gaussian = jnp.minimum(jnp.min(distance, axis=-2), threshold)  # [..., N]
+  return jnp.mean(per_gaussian, axis=-1)
+
+
+def dynamic_aux_weight(step: jax.Array | int, config: LossConfig) -> jax.Array:
+  """Hold-then-decay weight of the dynamic auxiliary loss (official compute_lambda_dyn_aux_eff).
+
+  The base weight holds while step <= dyn_aux_hold_steps, then moves linearly to dyn_aux_min over
+  dyn_aux_decay_steps and stays there; with dyn_aux_decay_steps <= 0 it is constant. step: [] int.
+  """
+  base = config.lambda_dyn_aux
+  if base <= 0:
+    return jnp.zeros((), jnp.float32)
+  if config.dyn_aux_decay_steps <= 0:
+    return jnp.full((), base, jnp.float32)
+  past_hold = jnp.asarray(step, jnp.float32) - config.dyn_aux_hold_steps
+  fraction = jnp.clip(past_hold / config.dyn_aux_decay_steps, 0.0, 1.0)
+  return base + fraction * (config.dyn_aux_min - base)
+
+
+def render_loss(
+    pred_rgb: jax.Array,
+    target_rgb: jax.Array,
+    config: LossConfig = LossConfig(),
+    *,
+    means: jax.Array | None = None,
+    world_to_camera: jax.Array | None = None,
+    intrinsics: jax.Array | None = None,
+    lpips_params: dict | None = None,
+) -> tuple[jax.Array, dict[str, jax.Array]]:
+  """Total training loss of rendered target views and its terms.
+
+  Args:
+    pred_rgb: [B, V, H, W, 3] renders (any leading shape works; terms average over it).
+    target_rgb: [B, V, H, W, 3] ground truth in [0, 1].
+    config: weights and options.
+    means: [B, N, 3] Gaussian centres; with the cameras, needed when lambda_vis > 0.
+    world_to_camera: [B, V, 4, 4] the supervision views.
+    intrinsics: [B, V, 4] in pixels.
+    lpips_params: `tokengs_jax.lpips.load_vgg_params()`; needed when lambda_lpips > 0.
+
+  Returns:
+    (loss [], terms) with terms "rgb", "ssim", "visibility", "lpips" (those that are on), "loss",
+    and "psnr" (of clipped images, no gradient; for logging).
+  """
+  terms = {"rgb": rgb_loss(pred_rgb, target_rgb, config.rgb_loss)}
+  loss = config.lambda_rgb * terms["rgb"]
+  if config.lambda_ssim > 0:
+    terms["ssim"] = ssim_loss(pred_rgb, target_rgb)
+    loss = loss + config.lambda_ssim * terms["ssim"]
+  if config.lambda_vis > 0:
+    if means is None or world_to_camera is None or intrinsics is None:
+      raise ValueError("lambda_vis > 0 needs means, world_to_camera and intrinsics")
+    height, width = pred_rgb.shape[-3], pred_rgb.shape[-2]
+    terms["visibility"] = jnp.mean(visibility_loss(
+        means, world_to_camera, intrinsics, height, width,
+        threshold=config.visibility_threshold, near=config.near))
+    loss = loss + config.lambda_vis * terms["visibility"]
+  if config.lambda_lpips > 0:
+    if lpips_params is None:
+      raise ValueError("lambda_lpips > 0 needs lpips_params (tokengs_jax.lpips.load_vgg_params())")
+    from tokengs_jax import lpips as lpips_lib  # VGG code only when the term is on
+
+    terms["lpips"] = jnp.mean(lpips_lib.lpips_distance(lpips_params, pred_rgb, target_rgb))
+    loss = loss + config.lambda_lpips * terms["lpips"]
+  terms["loss"] = loss
+  terms["psnr"] = jnp.mean(metrics.psnr(jax.lax.stop_gradient(pred_rgb), target_rgb))
+  return loss, terms
+
+
+def add_dynamic_aux(
+    loss: jax.Array,
+    terms: dict[str, jax.Array],
+    dynamic_loss: jax.Array,
+    step: jax.Array | int,
+    config: LossConfig,
+) -> tuple[jax.Array, dict[str, jax.Array]]:
+  """Adds the dynamic-only auxiliary loss with its scheduled weight.
+
+  As the official Kubric models: `dynamic_loss` is `render_loss` of a render of the dynamic
+  Gaussians alone (the last num_dynamic_tokens * patch^2 of them, visibility on their means),
+  against the same targets. Returns (loss + weight * dynamic_loss, terms + "dyn_aux",
+  "dyn_aux_weight").
+  """
+  weight = dynamic_aux_weight(step, config)
+  terms = dict(terms, dyn_aux=jax.lax.stop_gradient(dynamic_loss), dyn_aux_weight=weight)
+  loss = loss + weight * dynamic_loss
+  terms["loss"] = loss
+  return loss, terms

