@@ -1,0 +1,377 @@
+"""Kubric-4D reader: conventions (OpenGL -> OpenCV, quaternions, intrinsics), tar round trips of
+generated scenes, index sampling, time normalisation, pointmap scale and assembled examples."""
+
+import io
+import json
+import tarfile
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from tokengs_jax import camera
+from tokengs_jax.data import kubric
+from tokengs_jax.data.synthetic import generate
+from tokengs_jax.data.synthetic.scenes import random_rotation
+
+H, W, FRAMES, CAMERAS = 16, 16, 6, 3
+
+
+@pytest.fixture(scope="module")
+def kubric_root(tmp_path_factory):
+  root = tmp_path_factory.mktemp("kubric")
+  config = generate.KubricLikeConfig(supersample=1)
+  generate.generate_kubric_like(root, 2, H, W, FRAMES, CAMERAS, seed=4, config=config)
+  return root, config
+
+
+def _tiny_config(root, **overrides):
+  fields = dict(
+    root=str(root), num_context=2, num_views=4, image_shape=(H, W), min_gap=2, max_gap=5
+  )
+  fields.update(overrides)
+  return kubric.KubricConfig(**fields)
+
+
+def test_quaternion_conversions_invert_each_other_and_follow_hamilton():
+  rng = np.random.default_rng(0)
+  rotations = np.stack([random_rotation(rng) for _ in range(50)])
+  quats = kubric.rotation_to_quat_wxyz(rotations)
+  np.testing.assert_allclose(np.linalg.norm(quats, axis=-1), 1.0, atol=1e-12)
+  np.testing.assert_allclose(kubric.quat_wxyz_to_rotation(quats), rotations, atol=1e-12)
+  # Hamilton: (cos 45, 0, 0, sin 45) turns +x into +y
+  quarter_turn_z = np.array([np.cos(np.pi / 4), 0.0, 0.0, np.sin(np.pi / 4)])
+  np.testing.assert_allclose(
+    kubric.quat_wxyz_to_rotation(quarter_turn_z) @ [1, 0, 0], [0, 1, 0], atol=1e-12
+  )
+  # 180-degree turns (trace -1) are where trace-based conversions break
+  half_turn = np.diag([1.0, -1.0, -1.0])
+  np.testing.assert_allclose(
+    kubric.quat_wxyz_to_rotation(kubric.rotation_to_quat_wxyz(half_turn)), half_turn, atol=1e-12
+  )
+
+
+def _write_handmade_view(path, position, quaternion, height=H, width=W):
+  """A tar with metadata written by hand (not through our pose conversion)."""
+  metadata = {
+    "metadata": {"resolution": [height, width]},
+    "camera": {
+      "focal_length": 35.0,
+      "sensor_width": 32.0,
+      "positions": [list(position)] * 2,
+      "quaternions": [list(quaternion)] * 2,
+    },
+  }
+  images = np.zeros((2, height, width, 3), np.uint8)
+  generate.write_kubric_view(path, metadata, images, np.ones((2, height, width), np.float32))
+
+
+def test_opengl_camera_projects_known_points_through_the_opencv_pose(tmp_path):
+  # Kubric/Blender camera with identity rotation: looks down world -z, image up is world +y.
+  position = np.array([1.0, 2.0, 3.0])
+  _write_handmade_view(tmp_path / "output_000.tar", position, [1.0, 0.0, 0.0, 0.0])
+  view = kubric.read_kubric_view(tmp_path / "output_000.tar", [1])
+  fx, fy, cx, cy = view["intrinsics"][0]
+  np.testing.assert_allclose([fx, fy, cx, cy], [35.0 * W / 32.0, 35.0 * H / 32.0, W / 2, H / 2])
+  points = position + np.array(
+    [
+      [0.0, 0.0, -4.0],  # straight ahead
+      [1.0, 0.0, -4.0],  # to the right
+      [0.0, 1.0, -2.0],
+    ]
+  )  # above
+  w2c = np.linalg.inv(view["c2w"][0])[None]
+  uv, depth = camera.project_points(
+    jnp.asarray(points, jnp.float32), jnp.asarray(w2c), jnp.asarray(view["intrinsics"])
+  )
+  np.testing.assert_allclose(np.asarray(depth[0]), [4.0, 4.0, 2.0], rtol=1e-6)
+  np.testing.assert_allclose(
+    np.asarray(uv[0]), [[cx, cy], [cx + fx / 4.0, cy], [cx, cy - fy / 2.0]], rtol=1e-5
+  )
+
+
+def test_rotated_opengl_camera_matches_a_look_at_pose(tmp_path):
+  # A Blender camera turned 90 degrees about +y looks down world -x.
+  quat = [np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0]
+  _write_handmade_view(tmp_path / "output_000.tar", [0.0, 0.0, 0.0], quat)
+  c2w = kubric.read_kubric_view(tmp_path / "output_000.tar", [0], load_images=False)["c2w"][0]
+  np.testing.assert_allclose(c2w[:3, 2], [-1.0, 0.0, 0.0], atol=1e-6)  # OpenCV forward
+  np.testing.assert_allclose(c2w[:3, 1], [0.0, -1.0, 0.0], atol=1e-6)  # OpenCV down
+
+
+def test_generated_tars_round_trip_frames_cameras_and_depth(kubric_root):
+  root, config = kubric_root
+  expected = generate.render_kubric_like_scene(4, 1, H, W, FRAMES, CAMERAS, config)
+  scene_dir = root / "v0" / "scene_000001"
+  with tarfile.open(scene_dir / "output_002.tar") as tar:
+    names = tar.getnames()
+  assert (
+    names[0] == "./metadata.json" and "./rgba_00005.png" in names and "./depth_00000.tiff" in names
+  )
+  view = kubric.read_kubric_view(scene_dir / "output_002.tar", [4, 1], load_depth=True)
+  assert view["num_frames"] == FRAMES and (view["height"], view["width"]) == (H, W)
+  np.testing.assert_array_equal(view["images"], expected["images"][2, [4, 1]])  # PNG is lossless
+  np.testing.assert_array_equal(view["depths"], expected["depths"][2, [4, 1]])
+  np.testing.assert_allclose(view["c2w"], expected["c2w"][2, [4, 1]], atol=1e-6)
+  np.testing.assert_allclose(view["intrinsics"][0], expected["intrinsics"], rtol=1e-6)
+  # the scene is dynamic: the same camera sees different images over time
+  assert not np.array_equal(expected["images"][0, 0], expected["images"][0, -1])
+
+
+def test_rendered_depth_unprojects_to_the_same_point_in_another_camera(kubric_root):
+  """Cross-view geometry through the reader's cameras: a pixel's depth point from camera 0,
+  projected into camera 1 at the same frame, lands where camera 1's depth agrees (if visible)."""
+  root, _ = kubric_root
+  scene_dir = root / "v0" / "scene_000000"
+  views = [
+    kubric.read_kubric_view(scene_dir / f"output_{c:03d}.tar", [3], load_depth=True) for c in (0, 1)
+  ]
+  fx, fy, cx, cy = views[0]["intrinsics"][0]
+  rows, cols = np.mgrid[0:H, 0:W]
+  z = views[0]["depths"][0]
+  cam_points = np.stack([(cols + 0.5 - cx) / fx * z, (rows + 0.5 - cy) / fy * z, z], -1).reshape(
+    -1, 3
+  )
+  world = cam_points @ views[0]["c2w"][0, :3, :3].T + views[0]["c2w"][0, :3, 3]
+  uv, depth = camera.project_points(
+    jnp.asarray(world, jnp.float32),
+    jnp.asarray(np.linalg.inv(views[1]["c2w"][0]))[None],
+    jnp.asarray(views[1]["intrinsics"][:1]),
+  )
+  uv, depth = np.asarray(uv[0]), np.asarray(depth[0])
+  inside = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H) & (depth > 0)
+  # Inverse depth of a plane is affine in pixel coordinates: interpolating it between the four
+  # nearest pixel centres is exact inside one surface, so agreement is tight where not occluded.
+  x, y = (uv[inside] - 0.5).T
+  x0, y0 = np.clip(np.floor(x), 0, W - 2).astype(int), np.clip(np.floor(y), 0, H - 2).astype(int)
+  fx_, fy_ = x - x0, y - y0
+  inverse = 1.0 / views[1]["depths"][0]
+  seen = 1.0 / (
+    (1 - fy_) * ((1 - fx_) * inverse[y0, x0] + fx_ * inverse[y0, x0 + 1])
+    + fy_ * ((1 - fx_) * inverse[y0 + 1, x0] + fx_ * inverse[y0 + 1, x0 + 1])
+  )
+  relative = np.abs(seen - depth[inside]) / depth[inside]
+  assert inside.sum() > 50
+  assert np.mean(relative < 1e-3) > 0.5  # interior of shared surfaces; the rest: edges, occlusion
+
+
+def test_sample_dynamic_indices_properties():
+  for seed in range(30):
+    frames, views = kubric.sample_dynamic_indices(np.random.default_rng(seed), 24, 9, 4, 3, 23)
+    context, target = frames[:-1], frames[-1]
+    assert len(frames) == 5 and np.all(np.diff(context) > 0)
+    assert 3 <= context[-1] - context[0] <= 23 and context[0] <= target <= context[-1]
+    assert len(set(views.tolist())) == 4 and views.max() < 9
+    again = kubric.sample_dynamic_indices(np.random.default_rng(seed), 24, 9, 4, 3, 23)
+    np.testing.assert_array_equal(frames, again[0])
+    fixed, _ = kubric.sample_dynamic_indices(
+      np.random.default_rng(seed), 24, 9, 4, 3, 23, interp_target=False
+    )
+    assert fixed[-1] in fixed[:-1]
+  _, cycled = kubric.sample_dynamic_indices(np.random.default_rng(0), 24, 2, 4)
+  assert sorted(cycled.tolist()) == [0, 0, 1, 1]
+  with pytest.raises(ValueError, match="fewer than"):
+    kubric.sample_dynamic_indices(np.random.default_rng(0), 3, 9, 4)
+
+
+def test_normalize_times_is_min_max_over_the_example():
+  np.testing.assert_allclose(
+    kubric.normalize_times(np.array([5, 9, 7, 13, 9])), [0, 0.5, 0.25, 1, 0.5]
+  )
+  with pytest.raises(ValueError):
+    kubric.normalize_times(np.array([3, 3]))
+
+
+def test_pointmap_scale_is_the_mean_distance_of_depth_points():
+  # 1x2 depth map, fx = fy = 1, principal point at the origin pixel: points (0,0,2) and (3,0,3)
+  depths = np.array([[[2.0, 3.0]]], np.float32)
+  intrinsics = np.array([[1.0, 1.0, 0.0, 0.0]])
+  pose = np.eye(4)
+  pose[:3, 3] = [0.0, 0.0, 1.0]
+  expected = (3.0 + np.linalg.norm([3.0, 0.0, 4.0])) / 2
+  assert kubric.pointmap_scale(depths, pose[None], intrinsics) == pytest.approx(expected)
+  assert kubric.pointmap_scale(np.zeros_like(depths), pose[None], intrinsics) == 1.0
+
+
+def test_example_pairs_cameras_frames_and_times_as_official(kubric_root):
+  root, _ = kubric_root
+  config = _tiny_config(root)
+  source = kubric.KubricSource(config, seed=3, training=False)
+  assert len(source) == 2
+  example = source[1]
+  vc, vt = 2, 2
+  shapes = {
+    "context_images": (vc, H, W, 3),
+    "context_c2w": (vc, 4, 4),
+    "context_intrinsics": (vc, 4),
+    "context_times": (vc,),
+    "target_images": (vt, H, W, 3),
+    "target_c2w": (vt, 4, 4),
+    "target_intrinsics": (vt, 4),
+    "target_times": (vt,),
+    "scene_index": (),
+  }
+  assert {k: v.shape for k, v in example.items()} == shapes
+  for key, value in source[1].items():  # deterministic per (seed, epoch, index)
+    np.testing.assert_array_equal(value, example[key])
+
+  # Replay the draws: context v = camera v at frame v, target v = camera v at the target frame.
+  frames, views = kubric.sample_dynamic_indices(
+    np.random.default_rng([3, 0, 1]), FRAMES, CAMERAS, 2, 2, 5
+  )
+  scene_dir = root / "v0" / "scene_000001"
+  raw = [
+    kubric.read_kubric_view(scene_dir / f"output_{views[v]:03d}.tar", [f])
+    for v, f in [(0, frames[0]), (1, frames[1]), (0, frames[2]), (1, frames[2])]
+  ]
+  images = np.concatenate([example["context_images"], example["target_images"]])
+  np.testing.assert_allclose(images, np.concatenate([r["images"] for r in raw]) / 255.0, atol=1e-6)
+  times = np.concatenate([example["context_times"], example["target_times"]])
+  np.testing.assert_allclose(times, kubric.normalize_times(frames[[0, 1, 2, 2]]))
+  assert times.min() == 0.0 and times.max() == 1.0
+
+  # Normalised cameras are a similarity of the raw ones: same relative rotations, translations
+  # scaled by one factor; mean_cam puts the context cameras' mean position at the origin.
+  c2w = np.concatenate([example["context_c2w"], example["target_c2w"]]).astype(np.float64)
+  raw_c2w = np.concatenate([r["c2w"] for r in raw]).astype(np.float64)
+  np.testing.assert_allclose(c2w[:vc, :3, 3].mean(0), 0.0, atol=1e-5)
+  relative = np.linalg.inv(c2w[0]) @ c2w
+  raw_relative = np.linalg.inv(raw_c2w[0]) @ raw_c2w
+  np.testing.assert_allclose(relative[:, :3, :3], raw_relative[:, :3, :3], atol=1e-5)
+  ratio = np.linalg.norm(relative[1:, :3, 3], axis=-1) / np.linalg.norm(
+    raw_relative[1:, :3, 3], axis=-1
+  )
+  np.testing.assert_allclose(ratio, ratio[0], rtol=1e-4)
+
+
+def test_pointmap_scale_makes_the_mean_context_point_distance_one(kubric_root):
+  root, _ = kubric_root
+  example = kubric.KubricSource(
+    _tiny_config(root, num_context=3, num_views=5), seed=1, training=False
+  )[0]
+  # Depth scales with the translations, so re-measuring on the normalised cameras gives base_scale.
+  frames, views = kubric.sample_dynamic_indices(
+    np.random.default_rng([1, 0, 0]), FRAMES, CAMERAS, 3, 2, 5
+  )
+  scene_dir = root / "v0" / "scene_000000"
+  depths = np.concatenate(
+    [
+      kubric.read_kubric_view(
+        scene_dir / f"output_{views[v]:03d}.tar", [frames[v]], load_images=False, load_depth=True
+      )["depths"]
+      for v in range(3)
+    ]
+  )
+  raw_c2w = np.concatenate(
+    [
+      kubric.read_kubric_view(
+        scene_dir / f"output_{views[v]:03d}.tar", [frames[v]], load_images=False
+      )["c2w"]
+      for v in range(3)
+    ]
+  )
+  scale = np.linalg.norm(
+    example["context_c2w"][1, :3, 3] - example["context_c2w"][0, :3, 3]
+  ) / np.linalg.norm(raw_c2w[1, :3, 3] - raw_c2w[0, :3, 3])
+  measured = kubric.pointmap_scale(
+    depths * scale, example["context_c2w"], example["context_intrinsics"]
+  )
+  assert measured == pytest.approx(1.0, rel=1e-4)
+
+
+def test_training_examples_flip_some_scenes(kubric_root):
+  root, _ = kubric_root
+  config = _tiny_config(root)
+  plain = kubric.KubricSource(config, seed=0, training=False)
+  flipped_any = False
+  for epoch in range(6):
+    train = kubric.KubricSource(config, seed=0, epoch=epoch, training=True)
+    example = train[0]
+    reference = kubric.KubricSource(config, seed=0, epoch=epoch, training=False)[0]
+    if not np.array_equal(example["context_images"], reference["context_images"]):
+      np.testing.assert_array_equal(
+        example["context_images"], reference["context_images"][:, :, ::-1]
+      )
+      flipped_any = True
+  assert flipped_any and len(plain) == 2
+
+
+def test_bad_kubric_files_name_the_file(tmp_path):
+  broken = tmp_path / "output_000.tar"
+  broken.write_bytes(b"not a tar at all")
+  with pytest.raises(kubric.KubricError, match="output_000.tar"):
+    kubric.read_kubric_view(broken)
+  _write_handmade_view(tmp_path / "output_001.tar", [0, 0, 0], [1, 0, 0, 0])
+  with pytest.raises(kubric.KubricError, match=r"output_001.tar.*outside"):
+    kubric.read_kubric_view(tmp_path / "output_001.tar", [7])
+  no_meta = tmp_path / "output_002.tar"
+  with tarfile.open(no_meta, "w"):
+    pass
+  with pytest.raises(kubric.KubricError, match="metadata.json"):
+    kubric.read_kubric_view(no_meta)
+  with tarfile.open(tmp_path / "output_003.tar", "w") as tar:
+    data = json.dumps(
+      {
+        "camera": {
+          "positions": [[0, 0, float("nan")]],
+          "quaternions": [[1, 0, 0, 0]],
+          "focal_length": 35,
+          "sensor_width": 32,
+        },
+        "metadata": {"resolution": [4, 4]},
+      }
+    ).encode()
+    info = tarfile.TarInfo("./metadata.json")
+    info.size = len(data)
+
+    tar.addfile(info, io.BytesIO(data))
+  with pytest.raises(kubric.KubricError, match="NaN"):
+    kubric.read_kubric_view(tmp_path / "output_003.tar")
+  with pytest.raises(kubric.KubricError, match="no Kubric scenes"):
+    kubric.list_kubric_scenes(tmp_path / "empty")
+
+
+def test_scene_records_batch_through_the_generic_pipeline(kubric_root):
+  from tokengs_jax.data.pipeline import ExampleConfig, InputPipeline
+
+  root, config = kubric_root
+  source = kubric.KubricSceneSource(root)
+  record = source[0]
+  assert len(record["images"]) == record["c2w"].shape[0] == CAMERAS * FRAMES
+  selector = kubric.kubric_view_selector(num_context=2, num_targets=1, min_gap=2, max_gap=5)
+  example_config = ExampleConfig(
+    image_shape=(H, W), translation_scale=0.1, normalization="mean_cam", random_flip=False
+  )
+  pipeline = InputPipeline(
+    source,
+    example_config,
+    batch_size=2,
+    seed=0,
+    shuffle=False,
+    num_epochs=1,
+    shard_index=0,
+    shard_count=1,
+    select_views=selector,
+  )
+  batch = next(iter(pipeline))
+  assert batch["context_images"].shape == (2, 2, H, W, 3) and batch["target_images"].shape == (
+    2,
+    1,
+    H,
+    W,
+    3,
+  )
+  assert batch["context_times"].shape == (2, 2) and batch["target_times"].shape == (2, 1)
+  times = np.concatenate([batch["context_times"], batch["target_times"]], axis=1)
+  np.testing.assert_array_equal(times.min(1), 0.0)
+  np.testing.assert_array_equal(times.max(1), 1.0)
+  # Every view of the first example is some (camera, frame) of the scene, and the example's times
+  # are those frames min-max normalised.
+  rendered = generate.render_kubric_like_scene(4, 0, H, W, FRAMES, CAMERAS, config)["images"]
+  views = np.concatenate([batch["context_images"][0], batch["target_images"][0]])
+  frames = []
+  for image in views:
+    matches = np.argwhere(np.all(np.abs(rendered / 255.0 - image) < 1e-6, axis=(2, 3, 4)))
+    assert len(matches) >= 1
+    frames.append(matches[0][1])
+  np.testing.assert_allclose(times[0], kubric.normalize_times(np.array(frames)), atol=1e-6)

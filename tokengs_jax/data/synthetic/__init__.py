@@ -1,0 +1,68 @@
+"""Offline synthetic scenes: an independent numpy ray tracer and writers of the real data formats.
+
+from tokengs_jax.data.synthetic import generate_re10k_like, generate_kubric_like
+generate_re10k_like("data/synthetic_re10k", num_train=256, num_test=32, height=64, width=64)
+generate_kubric_like("data/synthetic_kubric", num_scenes=16)
+"""
+
+from tokengs_jax.data.synthetic.cameras import (
+  WalkConfig,
+  forward_walk,
+  look_at,
+  orbit_cameras,
+  pinhole_intrinsics,
+)
+from tokengs_jax.data.synthetic.generate import (
+  KubricLikeConfig,
+  Re10kLikeConfig,
+  generate_kubric_like,
+  generate_re10k_like,
+  render_kubric_like_scene,
+  render_re10k_like_scene,
+  write_kubric_view,
+)
+from tokengs_jax.data.synthetic.raytrace import (
+  Box,
+  Plane,
+  RenderOutput,
+  Scene,
+  Sphere,
+  Texture,
+  render,
+  trace,
+)
+from tokengs_jax.data.synthetic.scenes import (
+  DynamicConfig,
+  DynamicScene,
+  RoomConfig,
+  sample_dynamic_scene,
+  sample_room_scene,
+)
+
+__all__ = [
+  "Box",
+  "DynamicConfig",
+  "DynamicScene",
+  "KubricLikeConfig",
+  "Plane",
+  "Re10kLikeConfig",
+  "RenderOutput",
+  "RoomConfig",
+  "Scene",
+  "Sphere",
+  "Texture",
+  "WalkConfig",
+  "forward_walk",
+  "generate_kubric_like",
+  "generate_re10k_like",
+  "look_at",
+  "orbit_cameras",
+  "pinhole_intrinsics",
+  "render",
+  "render_kubric_like_scene",
+  "render_re10k_like_scene",
+  "sample_dynamic_scene",
+  "sample_room_scene",
+  "trace",
+  "write_kubric_view",
+]

@@ -1,0 +1,292 @@
+"""Writers of synthetic datasets in the real on-disk formats, so the real loaders read them.
+
+- `generate_re10k_like`: static rooms + RE10K-like walks -> pixelSplat chunks
+  `{train,test}/NNNNNN.torch` (JPEG frames, normalised intrinsics, w2c rows) + `index.json`.
+- `generate_kubric_like`: dynamic scenes seen by a 9-camera rig -> the Kubric-4D layout
+  `<root>/<subset>/<scene>/output_{view:03d}.tar`, each tar holding `metadata.json`,
+  `rgba_{frame:05d}.png` and `depth_{frame:05d}.tiff` (camera z-depth, float32).
+
+Every scene is a pure function of (seed, split, index): `np.random.default_rng([seed, split_id,
+index])`. That makes generation deterministic, lets scenes be generated in any order or in
+parallel, and lets a test regenerate a single scene to compare with what was written.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import io
+import json
+import os
+import pathlib
+import tarfile
+from typing import Sequence
+
+import numpy as np
+import tifffile
+from PIL import Image
+
+from tokengs_jax.data import chunks, kubric
+from tokengs_jax.data.synthetic import cameras, scenes
+from tokengs_jax.data.synthetic.raytrace import render
+
+_SPLIT_IDS = {"train": 0, "test": 1}
+_RE10K_FPS = 30  # RE10K timestamps are microseconds of the source video
+
+
+@dataclasses.dataclass(frozen=True)
+class Re10kLikeConfig:
+  """Options of `generate_re10k_like` beyond the sizes."""
+
+  fov_x_degrees: tuple[float, float] = (55.0, 75.0)  # sampled per scene (all frames share it)
+  supersample: int = 2  # sub-pixel samples per axis (anti-aliasing, as downscaled video has)
+  jpeg_quality: int = 95
+  scenes_per_chunk: int = 16
+  room: scenes.RoomConfig = scenes.RoomConfig()
+
+
+def scene_rng(seed: int, split: str, index: int) -> np.random.Generator:
+  """The generator from which scene `index` of `split` is drawn."""
+  return np.random.default_rng([seed, _SPLIT_IDS[split], index])
+
+
+def scene_key(seed: int, split: str, index: int) -> str:
+  return f"synthetic{seed}_{split}_{index:06d}"
+
+
+def render_re10k_like_scene(
+  seed: int,
+  split: str,
+  index: int,
+  height: int,
+  width: int,
+  frames: int,
+  config: Re10kLikeConfig = Re10kLikeConfig(),
+) -> dict:
+  """One scene as `write_chunk` takes it: `key`, `url`, `timestamps [F]`, `c2w [F, 4, 4]`,
+  `intrinsics [F, 4]` (pixels) and `images` uint8 [F, H, W, 3], plus `depths` [F, H, W] (not
+  written to chunks; for checks)."""
+  rng = scene_rng(seed, split, index)
+  scene, c2w = scenes.sample_room_scene(rng, frames, config.room)
+  fov_x = np.deg2rad(rng.uniform(*config.fov_x_degrees))
+  intrinsics = cameras.pinhole_intrinsics(height, width, fov_x)
+  outputs = [render(scene, pose, intrinsics, height, width, config.supersample) for pose in c2w]
+  images = np.stack([np.round(o.rgb * 255.0).astype(np.uint8) for o in outputs])
+  return {
+    "key": scene_key(seed, split, index),
+    "url": "",
+    "timestamps": np.arange(frames, dtype=np.int64) * (1_000_000 // _RE10K_FPS),
+    "c2w": c2w.astype(np.float32),
+    "intrinsics": np.broadcast_to(intrinsics, (frames, 4)).astype(np.float32),
+    "images": images,
+    "depths": np.stack([o.depth for o in outputs]),
+  }
+
+
+def _write_re10k_chunk(
+  path: str,
+  seed: int,
+  split: str,
+  indices: Sequence[int],
+  height: int,
+  width: int,
+  frames: int,
+  config: Re10kLikeConfig,
+) -> list[str]:
+  rendered = [
+    render_re10k_like_scene(seed, split, i, height, width, frames, config) for i in indices
+  ]
+  chunks.write_chunk(path, rendered, jpeg_quality=config.jpeg_quality)
+  return [scene["key"] for scene in rendered]
+
+
+def _run_jobs(function, jobs: list[tuple], workers: int) -> list:
+  """Runs `function(*job)` for every job, in worker processes when `workers > 1`."""
+  if workers <= 1:
+    return [function(*job) for job in jobs]
+  with concurrent.futures.ProcessPoolExecutor(workers) as pool:
+    return list(pool.map(function, *zip(*jobs)))
+
+
+def generate_re10k_like(
+  root: str | os.PathLike,
+  num_train: int,
+  num_test: int,
+  height: int = 64,
+  width: int = 64,
+  frames: int = 32,
+  seed: int = 0,
+  *,
+  config: Re10kLikeConfig = Re10kLikeConfig(),
+  workers: int = 1,
+) -> dict:
+  """Writes an RE10K-format dataset of synthetic rooms.
+
+  Layout: `<root>/{train,test}/NNNNNN.torch` chunks of `config.scenes_per_chunk` scenes and, per
+  split, `index.json` mapping each scene key to its chunk file name (as pixelSplat's).
+
+  Returns:
+    {split: {key: chunk file name}}, the contents of the index files.
+  """
+  root = pathlib.Path(root)
+  indexes = {}
+  for split, count in (("train", num_train), ("test", num_test)):
+    directory = root / split
+    directory.mkdir(parents=True, exist_ok=True)
+    groups = [
+      list(range(start, min(start + config.scenes_per_chunk, count)))
+      for start in range(0, count, config.scenes_per_chunk)
+    ]
+    names = [f"{number:06d}.torch" for number in range(len(groups))]
+    jobs = [
+      (str(directory / name), seed, split, group, height, width, frames, config)
+      for name, group in zip(names, groups)
+    ]
+    keys = _run_jobs(_write_re10k_chunk, jobs, workers)
+    indexes[split] = {key: name for name, chunk_keys in zip(names, keys) for key in chunk_keys}
+    (directory / "index.json").write_text(json.dumps(indexes[split], indent=1))
+  return indexes
+
+
+# ----------------------------------------------------------------------------------------------
+# Kubric-like dynamic scenes
+
+
+@dataclasses.dataclass(frozen=True)
+class KubricLikeConfig:
+  """Options of `generate_kubric_like` (defaults: Kubric's 35 mm lens on a 32 mm sensor)."""
+
+  focal_length: float = 35.0
+  sensor_width: float = 32.0
+  supersample: int = 2
+  camera_drift: float = 0.15  # radians each camera orbits over the sequence
+  dynamic: scenes.DynamicConfig = scenes.DynamicConfig()
+
+
+def render_kubric_like_scene(
+  seed: int,
+  index: int,
+  height: int,
+  width: int,
+  frames: int,
+  num_cameras: int,
+  config: KubricLikeConfig = KubricLikeConfig(),
+) -> dict:
+  """Renders one dynamic scene from every camera at every frame.
+
+  Returns:
+    dict with `images` uint8 [C, F, H, W, 3], `depths` float32 [C, F, H, W] (z-depth),
+    `c2w` [C, F, 4, 4] (OpenCV), `intrinsics` [4] (pixels, the values the Kubric reader derives
+    from the metadata) and `metadata` [C] (the per-camera `metadata.json` dicts).
+  """
+  rng = scene_rng(seed, "train", index)
+  dynamic = scenes.sample_dynamic_scene(rng, config.dynamic)
+  c2w = cameras.orbit_cameras(
+    rng, num_cameras, frames, target=np.array([0.0, 0.5, 0.0]), drift=config.camera_drift
+  )
+  intrinsics = kubric.intrinsics_from_metadata(
+    config.focal_length, config.sensor_width, height, width
+  )
+  images = np.zeros((num_cameras, frames, height, width, 3), np.uint8)
+  depths = np.zeros((num_cameras, frames, height, width), np.float32)
+  for frame in range(frames):
+    scene = dynamic.at(frame / config.dynamic.frame_rate)
+    for camera in range(num_cameras):
+      output = render(scene, c2w[camera, frame], intrinsics, height, width, config.supersample)
+      images[camera, frame] = np.round(output.rgb * 255.0)
+      depths[camera, frame] = output.depth
+  metadata = []
+  for camera in range(num_cameras):
+    positions, quaternions = kubric.opencv_to_kubric_pose(c2w[camera])
+    metadata.append(
+      {
+        "metadata": {
+          "resolution": [height, width],
+          "num_frames": frames,
+          "frame_rate": config.dynamic.frame_rate,
+        },
+        "camera": {
+          "focal_length": config.focal_length,
+          "sensor_width": config.sensor_width,
+          "positions": positions.tolist(),
+          "quaternions": quaternions.tolist(),
+        },
+      }
+    )
+  return {
+    "images": images,
+    "depths": depths,
+    "c2w": c2w,
+    "intrinsics": intrinsics,
+    "metadata": metadata,
+  }
+
+
+def _add_member(tar: tarfile.TarFile, name: str, data: bytes) -> None:
+  info = tarfile.TarInfo(name)
+  info.size = len(data)
+  tar.addfile(info, io.BytesIO(data))
+
+
+def write_kubric_view(
+  path: str | os.PathLike, metadata: dict, images: np.ndarray, depths: np.ndarray
+) -> None:
+  """Writes one camera's tar: images uint8 [F, H, W, 3] as opaque RGBA PNGs, depths [F, H, W] as
+  float32 TIFFs, member names prefixed with './' as in the released data."""
+  with tarfile.open(path, "w") as tar:
+    _add_member(tar, "./metadata.json", json.dumps(metadata).encode())
+    for frame, (image, depth) in enumerate(zip(images, depths)):
+      alpha = np.full(image.shape[:2] + (1,), 255, np.uint8)
+      png = io.BytesIO()
+      Image.fromarray(np.concatenate([image, alpha], -1), "RGBA").save(png, format="PNG")
+      _add_member(tar, f"./rgba_{frame:05d}.png", png.getvalue())
+      tiff = io.BytesIO()
+      tifffile.imwrite(tiff, depth.astype(np.float32))
+      _add_member(tar, f"./depth_{frame:05d}.tiff", tiff.getvalue())
+
+
+def _write_kubric_scene(
+  directory: str,
+  seed: int,
+  index: int,
+  height: int,
+  width: int,
+  frames: int,
+  num_cameras: int,
+  config: KubricLikeConfig,
+) -> None:
+  scene = render_kubric_like_scene(seed, index, height, width, frames, num_cameras, config)
+  os.makedirs(directory, exist_ok=True)
+  for camera in range(num_cameras):
+    write_kubric_view(
+      os.path.join(directory, f"output_{camera:03d}.tar"),
+      scene["metadata"][camera],
+      scene["images"][camera],
+      scene["depths"][camera],
+    )
+
+
+def generate_kubric_like(
+  root: str | os.PathLike,
+  num_scenes: int,
+  height: int = 64,
+  width: int = 64,
+  frames: int = 24,
+  num_cameras: int = 9,
+  seed: int = 0,
+  *,
+  subset: str = "v0",
+  config: KubricLikeConfig = KubricLikeConfig(),
+  workers: int = 1,
+) -> list[pathlib.Path]:
+  """Writes `num_scenes` dynamic scenes as `<root>/<subset>/scene_NNNNNN/output_{view:03d}.tar`.
+
+  Returns the scene directories.
+  """
+  directories = [pathlib.Path(root) / subset / f"scene_{index:06d}" for index in range(num_scenes)]
+  jobs = [
+    (str(d), seed, index, height, width, frames, num_cameras, config)
+    for index, d in enumerate(directories)
+  ]
+  _run_jobs(_write_kubric_scene, jobs, workers)
+  return directories

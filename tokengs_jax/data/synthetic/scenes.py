@@ -1,0 +1,257 @@
+"""Random scene layouts: RE10K-like rooms with a walking camera, and Kubric-like dynamic scenes.
+
+World frame: +y up, floor at y = 0. All randomness comes from the `np.random.Generator` passed in,
+so a scene is a pure function of its seed.
+"""
+
+from __future__ import annotations
+
+import colorsys
+import dataclasses
+
+import numpy as np
+
+from tokengs_jax.data.synthetic import cameras
+from tokengs_jax.data.synthetic.raytrace import Box, Plane, Scene, Sphere, Texture
+
+_PATTERNS = ("checker", "stripes", "gradient", "noise")
+
+
+def random_color(rng: np.random.Generator, saturation=(0.2, 0.8), value=(0.3, 0.95)) -> tuple:
+  return colorsys.hsv_to_rgb(rng.uniform(), rng.uniform(*saturation), rng.uniform(*value))
+
+
+def random_texture(rng: np.random.Generator, frequency=(0.5, 3.0), kinds=_PATTERNS) -> Texture:
+  """A random pattern between two random colours."""
+  return Texture(
+    kind=str(rng.choice(kinds)),
+    color_a=random_color(rng),
+    color_b=random_color(rng),
+    frequency=float(rng.uniform(*frequency)),
+    axis=int(rng.integers(0, 3)),
+    seed=int(rng.integers(0, 2**31)),
+  )
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+  """Uniform random rotation (QR of a Gaussian matrix, sign-fixed).  -> [3, 3]."""
+  q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+  q = q * np.sign(np.diag(r))
+  return q if np.linalg.det(q) > 0 else -q
+
+
+def yaw_rotation(angle: float) -> np.ndarray:
+  c, s = np.cos(angle), np.sin(angle)
+  return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
+  """Rodrigues' formula.  axis: [3] unit -> [3, 3]."""
+  k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+  return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+def room_planes(
+  rng: np.random.Generator, half_width: float, half_depth: float, height: float
+) -> tuple[Plane, ...]:
+  """Floor, ceiling and four walls of an axis-aligned room centred on x = z = 0 (normals inward)."""
+  x, y, z = np.eye(3)
+  specs = [  # (point, inward normal, tangent)
+    (np.zeros(3), y, x),
+    (height * y, -y, x),
+    (-half_width * x, x, z),
+    (half_width * x, -x, z),
+    (-half_depth * z, z, x),
+    (half_depth * z, -z, x),
+  ]
+  return tuple(
+    Plane(point=p, normal=n, tangent=t, texture=random_texture(rng)) for p, n, t in specs
+  )
+
+
+def _random_object(
+  rng: np.random.Generator, center_xz: np.ndarray, size: float, texture: Texture
+) -> Sphere | Box:
+  """A sphere or box of characteristic size `size`, resting on the floor at `center_xz [2]`."""
+  if rng.uniform() < 0.5:
+    center = np.array([center_xz[0], size, center_xz[1]])
+    return Sphere(center=center, radius=size, texture=texture, rotation=random_rotation(rng))
+  half = size * rng.uniform(0.5, 1.2, 3)
+  center = np.array([center_xz[0], half[1], center_xz[1]])
+  return Box(
+    center=center, half_size=half, texture=texture, rotation=yaw_rotation(rng.uniform(0, 2 * np.pi))
+  )
+
+
+@dataclasses.dataclass(frozen=True)
+class RoomConfig:
+  """Ranges for `sample_room_scene` (metres)."""
+
+  half_width: tuple[float, float] = (2.5, 4.5)
+  half_depth: tuple[float, float] = (3.5, 6.0)
+  height: tuple[float, float] = (2.5, 3.5)
+  num_objects: tuple[int, int] = (3, 9)  # [low, high)
+  object_size: tuple[float, float] = (0.2, 0.6)
+  clearance: float = 0.5  # minimum gap between an object and the camera path
+  walk: cameras.WalkConfig = cameras.WalkConfig()
+
+
+def sample_room_scene(
+  rng: np.random.Generator, frames: int, config: RoomConfig = RoomConfig()
+) -> tuple[Scene, np.ndarray]:
+  """A textured room with objects and an RE10K-like walk through it.
+
+  Returns:
+    (scene, c2w [F, 4, 4] OpenCV). The walk starts near one end wall heading into the room; objects
+    keep `clearance` from the path so the camera never passes through one.
+  """
+  half_w, half_d = rng.uniform(*config.half_width), rng.uniform(*config.half_depth)
+  height = rng.uniform(*config.height)
+  planes = room_planes(rng, half_w, half_d, height)
+  end = rng.choice([-1.0, 1.0])  # which end wall the walk starts from
+  start = np.array([rng.uniform(-0.4, 0.4) * half_w, 0.0, end * (half_d - 1.0)])
+  heading = (0.0 if end < 0 else np.pi) + rng.uniform(-0.3, 0.3)
+  c2w = cameras.forward_walk(rng, frames, start, heading, config.walk)
+  # Keep the camera inside the room even when the heading drifts strongly.
+  margin = 0.3
+  c2w[:, 0, 3] = np.clip(c2w[:, 0, 3], -half_w + margin, half_w - margin)
+  c2w[:, 2, 3] = np.clip(c2w[:, 2, 3], -half_d + margin, half_d - margin)
+
+  path_xz = c2w[:, [0, 2], 3]
+  objects = []
+  num_objects = rng.integers(*config.num_objects)
+  for _ in range(200):  # rejection sampling of object positions; bounded attempts
+    if len(objects) >= num_objects:
+      break
+    size = rng.uniform(*config.object_size)
+    center = rng.uniform(
+      [-half_w + 2 * size, -half_d + 2 * size], [half_w - 2 * size, half_d - 2 * size]
+    )
+    if np.min(np.linalg.norm(path_xz - center, axis=-1)) < config.clearance + 1.5 * size:
+      continue
+    if any(
+      np.linalg.norm(np.asarray(o.center)[[0, 2]] - center) < 2.5 * size + _extent(o)
+      for o in objects
+    ):
+      continue
+    objects.append(_random_object(rng, center, size, random_texture(rng)))
+  light = np.array([rng.uniform(-0.5, 0.5), 1.0, rng.uniform(-0.5, 0.5)])
+  scene = Scene(
+    planes=planes,
+    objects=tuple(objects),
+    light_direction=tuple(light),
+    ambient=float(rng.uniform(0.3, 0.5)),
+  )
+  return scene, c2w
+
+
+def _extent(obj: Sphere | Box) -> float:
+  return (
+    float(obj.radius) if isinstance(obj, Sphere) else float(np.linalg.norm(obj.half_size[[0, 2]]))
+  )
+
+
+@dataclasses.dataclass(frozen=True)
+class DynamicConfig:
+  """Ranges for `sample_dynamic_scene` (metres, seconds)."""
+
+  arena: float = 3.0  # objects start within [-arena, arena]^2 on the floor
+  room: float = 20.0  # half size of the enclosing backdrop (floor + walls, no ceiling)
+  num_objects: tuple[int, int] = (3, 7)
+  object_size: tuple[float, float] = (0.3, 0.8)
+  speed: tuple[float, float] = (0.5, 2.0)  # floor speed (m/s)
+  bounce_height: tuple[float, float] = (0.0, 1.5)
+  spin: tuple[float, float] = (0.0, 3.0)  # angular speed (rad/s)
+  frame_rate: float = 12.0
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class DynamicScene:
+  """Static backdrop plus objects moving on analytic trajectories.
+
+  Object k at time s (seconds): floor position p0 + v s (reflected at the arena bounds), lifted by
+  a bouncing |sin| arc, and turned by `spin` about its spin axis.
+  """
+
+  backdrop: tuple[Plane, ...]
+  objects: tuple[Sphere | Box, ...]  # poses at time 0
+  velocity: np.ndarray  # [K, 2] floor velocity (x, z)
+  bounce_height: np.ndarray  # [K]
+  bounce_period: np.ndarray  # [K] seconds
+  spin_axis: np.ndarray  # [K, 3]
+  spin: np.ndarray  # [K] rad/s
+  arena: float
+  light_direction: tuple[float, float, float]
+  ambient: float
+
+  def at(self, time: float) -> Scene:
+    """The static `Scene` at `time` seconds."""
+    moved = []
+    for k, obj in enumerate(self.objects):
+      start = np.asarray(obj.center)
+      xz = _reflect(start[[0, 2]] + self.velocity[k] * time, self.arena)
+      lift = self.bounce_height[k] * np.abs(np.sin(np.pi * time / self.bounce_period[k]))
+      center = np.array([xz[0], start[1] + lift, xz[1]])
+      rotation = axis_angle(self.spin_axis[k], self.spin[k] * time) @ np.asarray(obj.rotation)
+      moved.append(dataclasses.replace(obj, center=center, rotation=rotation))
+    return Scene(
+      planes=self.backdrop,
+      objects=tuple(moved),
+      light_direction=self.light_direction,
+      ambient=self.ambient,
+    )
+
+
+def _reflect(x: np.ndarray, bound: float) -> np.ndarray:
+  """Fold x into [-bound, bound] as a ball bouncing between walls would move."""
+  period = 4.0 * bound
+  y = np.mod(x + bound, period)
+  return np.where(y <= 2 * bound, y, period - y) - bound
+
+
+def sample_dynamic_scene(
+  rng: np.random.Generator, config: DynamicConfig = DynamicConfig()
+) -> DynamicScene:
+  """A Kubric-like scene: a textured floor and far walls, several objects moving and spinning."""
+  x, y, z = np.eye(3)
+  half = config.room
+  specs = [
+    (np.zeros(3), y, x),
+    (-half * x, x, z),
+    (half * x, -x, z),
+    (-half * z, z, x),
+    (half * z, -z, x),
+  ]
+  backdrop = tuple(
+    Plane(point=p, normal=n, tangent=t, texture=random_texture(rng, frequency=(0.3, 1.5)))
+    for p, n, t in specs
+  )
+  count = int(rng.integers(*config.num_objects))
+  objects = []
+  for _ in range(count):
+    size = rng.uniform(*config.object_size)
+    center = rng.uniform(-config.arena, config.arena, 2)
+    obj = _random_object(rng, center, size, random_texture(rng))
+    # Boxes also get a full random orientation so their spin shows all faces.
+    if isinstance(obj, Box):
+      obj = dataclasses.replace(
+        obj,
+        rotation=random_rotation(rng),
+        center=np.array([center[0], float(np.max(obj.half_size)) * 1.8, center[1]]),
+      )
+    objects.append(obj)
+  angle = rng.uniform(0, 2 * np.pi, count)
+  speed = rng.uniform(*config.speed, count)
+  axes = rng.normal(size=(count, 3))
+  return DynamicScene(
+    backdrop=backdrop,
+    objects=tuple(objects),
+    velocity=np.stack([np.cos(angle), np.sin(angle)], -1) * speed[:, None],
+    bounce_height=rng.uniform(*config.bounce_height, count),
+    bounce_period=rng.uniform(0.5, 2.0, count),
+    spin_axis=axes / np.linalg.norm(axes, axis=-1, keepdims=True),
+    spin=rng.uniform(*config.spin, count),
+    arena=config.arena,
+    light_direction=(float(rng.uniform(-0.6, 0.6)), 1.0, float(rng.uniform(-0.6, 0.6))),
+    ambient=float(rng.uniform(0.3, 0.45)),
+  )
