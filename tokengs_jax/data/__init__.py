@@ -3,6 +3,9 @@
     from tokengs_jax.data import ChunkedSceneSource, InputPipeline, DATASET_PRESETS
     source = ChunkedSceneSource("datasets/re10k/train", skip_bad=True)
     for batch in InputPipeline(source, DATASET_PRESETS["re10k"], batch_size=8, num_workers=8): ...
+
+DL3DV in the official TokenGS layout (`transforms.json` + `images_4/` per scene zip) comes from
+`DL3DVSceneSource(root)`; it yields the same scene records, so the rest is shared.
 """
 
 from tokengs_jax.data.chunked import ChunkedSceneSource, SceneEntry
@@ -16,6 +19,14 @@ from tokengs_jax.data.chunks import (
     read_chunk,
     save_tensor_archive,
     write_chunk,
+)
+from tokengs_jax.data.dl3dv import (
+    DL3DVError,
+    DL3DVSceneSource,
+    list_dl3dv_scenes,
+    nerfstudio_to_opencv_c2w,
+    opencv_to_nerfstudio_c2w,
+    read_dl3dv_cameras,
 )
 from tokengs_jax.data.pipeline import (
     DATASET_PRESETS,

@@ -467,13 +467,15 @@ class KubricSource:
 
 
 class _TarFrames:
-  """Lazy length-(C*F) sequence of PNG bytes, camera-major: item c * F + f is camera c, frame f.
+  """Lazy length-(C*F) sequence of one per-frame tar member's bytes, camera-major: item c * F + f
+  is camera c, frame f. `member` is a format string of the frame, e.g. "rgba_{:05d}.png".
 
-  The pipeline decodes only the items it picks; PIL's decoder reads PNG as well as JPEG.
+  The pipeline decodes only the items it picks (PIL reads the PNGs, tifffile the depth TIFFs).
   """
 
-  def __init__(self, scene_dir: pathlib.Path, num_cameras: int, num_frames: int):
+  def __init__(self, scene_dir: pathlib.Path, num_cameras: int, num_frames: int, member: str):
     self.scene_dir, self.num_cameras, self.num_frames = scene_dir, num_cameras, num_frames
+    self.member = member
 
   def __len__(self) -> int:
     return self.num_cameras * self.num_frames
@@ -484,7 +486,7 @@ class _TarFrames:
     camera, frame = divmod(int(index), self.num_frames)
     path = str(self.scene_dir / f"output_{camera:03d}.tar")
     with tarfile.open(path, "r") as tar:
-      return _member(tar, f"rgba_{frame:05d}.png", path)
+      return _member(tar, self.member.format(frame), path)
 
 
 class KubricSceneSource:
@@ -495,8 +497,8 @@ class KubricSceneSource:
   pipeline min-max normalises times per example, as official), plus `num_cameras`, `num_frames`
   for `kubric_view_selector`. Only metadata is read up front; pixels are read per sample.
 
-  The pipeline's camera scaling is `constant` / `distance` / `bound`; the official Kubric preset's
-  depth-based "pointmap" scale is in `make_kubric_example` / `KubricSource`.
+  `depths` (lazy TIFF bytes, same indexing) feed the pipeline's depth-based "pointmap" camera
+  scale, which the official Kubric preset uses (`DATASET_PRESETS["kubric"]`).
   """
 
   def __init__(self, root: str | os.PathLike, subsets: Sequence[str] = DEFAULT_SUBSETS):
@@ -528,7 +530,8 @@ class KubricSceneSource:
       "intrinsics": np.concatenate([r["intrinsics"] for r in read]),
       "height": read[0]["height"],
       "width": read[0]["width"],
-      "images": _TarFrames(scene_dir, len(read), num_frames),
+      "images": _TarFrames(scene_dir, len(read), num_frames, "rgba_{:05d}.png"),
+      "depths": _TarFrames(scene_dir, len(read), num_frames, "depth_{:05d}.tiff"),
       "times": np.tile(np.arange(num_frames, dtype=np.float64), len(read)),
       "num_cameras": len(read),
       "num_frames": num_frames,

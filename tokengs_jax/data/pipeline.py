@@ -4,6 +4,9 @@ Source-agnostic: any random-access sequence of scene records (see `tokengs_jax.d
 the record fields) works. Per example: pick views (bounded sampler, an evaluation index, or a
 caller's `select_views`), decode only those frames, resize-then-centre-crop, normalise cameras
 (first_cam/mean_cam + translation scale), randomly flip, and convert images to float32 in [0, 1].
+The "pointmap" scale (official Kubric preset) also reads the context views' depth maps from the
+record's optional `depths` (a length-F sequence of float32 z-depth `[H, W]` arrays, TIFF bytes or
+`LazyTensor`s, at the stored resolution).
 
 Batches are dicts of numpy arrays (notes/INTERFACES.md): `context_images [B, Vc, H, W, 3]`,
 `context_c2w [B, Vc, 4, 4]`, `context_intrinsics [B, Vc, 4]`, the same for `target_*`,
@@ -14,22 +17,38 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import io
 from typing import Callable, Literal, Sequence
 
 import grain
 import numpy as np
+from PIL import Image
 
 from tokengs_jax.data.chunks import ChunkError, LazyTensor, decode_jpeg
-from tokengs_jax.data.sampler import (SAMPLER_PRESETS, BoundedSamplerConfig, MissingIndexEntryError,
-                                      NotEnoughFramesError, evaluation_views, sample_bounded)
-from tokengs_jax.data.transforms import (flip_horizontal, normalize_cameras, resize_and_center_crop,
-                                         translation_scale)
+from tokengs_jax.data.dl3dv import DL3DVError
+from tokengs_jax.data.kubric import KubricConfig, KubricError, pointmap_scale
+from tokengs_jax.data.sampler import (
+  SAMPLER_PRESETS,
+  BoundedSamplerConfig,
+  MissingIndexEntryError,
+  NotEnoughFramesError,
+  evaluation_views,
+  sample_bounded,
+)
+from tokengs_jax.data.transforms import (
+  flip_horizontal,
+  normalize_cameras,
+  resize_and_center_crop,
+  translation_scale,
+)
 
 __all__ = ["ExampleConfig", "DATASET_PRESETS", "TRANSLATION_SCALES", "make_example",
            "InputPipeline", "BadExampleError"]
 
-# Paper, training details: camera translations scaled so that mean depths are roughly 1.
-TRANSLATION_SCALES = {"re10k": 0.25, "dl3dv": 0.15, "kubric": 0.1}
+# Paper, training details: camera translations scaled so that mean depths are roughly 1. The
+# synthetic RE10K-like rooms have a median depth of ~3.8 m (measured, notes/data.md), so RE10K's
+# 0.25 also brings them to ~1.
+TRANSLATION_SCALES = {"re10k": 0.25, "dl3dv": 0.15, "kubric": 0.1, "synthetic": 0.25}
 
 
 class BadExampleError(ValueError):
@@ -43,9 +62,12 @@ class ExampleConfig:
   Attributes:
     image_shape: (H, W) of every output view.
     sampler: bounded view sampling (ignored when an evaluation index or `select_views` is given).
-    translation_scale: base camera translation scale (RE10K 0.25, DL3DV 0.15, Kubric 0.1).
+    translation_scale: base camera translation scale (RE10K 0.25, DL3DV 0.15, Kubric 0.1; the
+      official Kubric preset uses 1.0 with `pointmap`).
     normalization: `first_cam` (official default) or `mean_cam`.
-    scale_method: `constant` (official default), `distance` or `bound`.
+    scale_method: `constant` (official default), `distance`, `bound`, or `pointmap`
+      (`translation_scale` / mean distance from the origin of the context views' depth points,
+      official Kubric; needs the record's `depths`).
     random_flip: flip each example left-right with probability 1/2 (training).
     deterministic: pixelSplat's test-stage sampling, no flip (validation without an index).
   """
@@ -53,15 +75,29 @@ class ExampleConfig:
   sampler: BoundedSamplerConfig = SAMPLER_PRESETS["depthsplat_re10k"]
   translation_scale: float = TRANSLATION_SCALES["re10k"]
   normalization: Literal["first_cam", "mean_cam"] = "first_cam"
-  scale_method: Literal["constant", "distance", "bound"] = "constant"
+  scale_method: Literal["constant", "distance", "bound", "pointmap"] = "constant"
   random_flip: bool = True
   deterministic: bool = False
 
 
+_KUBRIC = KubricConfig()  # the official Kubric preset's camera handling, shared with `KubricSource`
+
 DATASET_PRESETS = {
     "re10k": ExampleConfig((256, 256), SAMPLER_PRESETS["depthsplat_re10k"], TRANSLATION_SCALES["re10k"]),
     "dl3dv": ExampleConfig((256, 448), SAMPLER_PRESETS["tokengs_dl3dv"], TRANSLATION_SCALES["dl3dv"]),
+    # the embedded default (`tokengs_jax.data.synthetic`, generated at 64x64 by default)
+    "synthetic": ExampleConfig((64, 64), SAMPLER_PRESETS["synthetic"], TRANSLATION_SCALES["synthetic"]),
+    # official Kubric: pass `kubric_view_selector(4, 4)` as `select_views` (the bounded sampler,
+    # here only a record of the official view counts and gaps, would mix cameras); needs `depths`
+    "kubric": ExampleConfig(
+        _KUBRIC.image_shape,
+        BoundedSamplerConfig(_KUBRIC.num_context, _KUBRIC.num_views - _KUBRIC.num_context, _KUBRIC.min_gap,
+                             _KUBRIC.max_gap, 0, 0, _KUBRIC.min_gap, _KUBRIC.max_gap),
+        _KUBRIC.base_scale, _KUBRIC.normalization, _KUBRIC.scale_method, _KUBRIC.random_flip),
 }
+
+# Errors that mean "this scene cannot make an example" (raised, or skipped with `skip_bad`).
+_DATA_ERRORS = (ChunkError, DL3DVError, KubricError, NotEnoughFramesError, MissingIndexEntryError)
 
 ViewSelector = Callable[[dict, np.random.Generator, int], tuple[np.ndarray, np.ndarray]]
 
@@ -78,6 +114,27 @@ def _frame(record: dict, index: int) -> np.ndarray:
   if isinstance(frame, np.ndarray) and frame.ndim == 3:
     return frame
   return decode_jpeg(frame, where=f"{_where(record)} frame {index}")
+
+
+def _depth(record: dict, index: int) -> np.ndarray:
+  """Depth map `index` of a record as float32 [H, W] (TIFF bytes read with PIL, as official)."""
+  if "depths" not in record:
+    raise BadExampleError(f"{_where(record)}: scale_method 'pointmap' needs depth maps, and the "
+                          "record has no 'depths'")
+  depth = record["depths"][index]
+  if isinstance(depth, LazyTensor):
+    depth = depth.load()
+  if not isinstance(depth, np.ndarray):
+    try:
+      with Image.open(io.BytesIO(bytes(depth))) as image:
+        depth = np.asarray(image, np.float32)
+    except (OSError, SyntaxError, ValueError) as error:
+      raise BadExampleError(f"{_where(record)} depth {index}: corrupt depth image ({error})") from error
+  depth = depth[..., 0] if depth.ndim == 3 else depth
+  if depth.shape != (record["height"], record["width"]):
+    raise BadExampleError(f"{_where(record)} depth {index}: {depth.shape}, frames are "
+                          f"{(record['height'], record['width'])}")
+  return depth.astype(np.float32)
 
 
 def make_example(record: dict, config: ExampleConfig, rng: np.random.Generator, *, step: int = 0,
@@ -100,15 +157,22 @@ def make_example(record: dict, config: ExampleConfig, rng: np.random.Generator, 
     if not (np.isfinite(c2w).all() and np.isfinite(intrinsics).all()):
       raise BadExampleError(f"{where}: NaN/inf in the cameras of frames {frames.tolist()}")
     images = np.stack([_frame(record, int(i)) for i in frames])
-  except (NotEnoughFramesError, MissingIndexEntryError, ChunkError) as error:
+    depths = (np.stack([_depth(record, int(i)) for i in context])
+              if config.scale_method == "pointmap" else None)
+  except _DATA_ERRORS as error:
     raise BadExampleError(f"{where}: {error}") from error
   if images.shape[1:3] != (record.get("height", images.shape[1]), record.get("width", images.shape[2])):
     raise BadExampleError(f"{where}: frames are {images.shape[1:3]}, cameras are for "
                           f"{(record['height'], record['width'])}")
+  raw_intrinsics = intrinsics
   images, intrinsics = resize_and_center_crop(images, intrinsics, config.image_shape)
   num_context = len(context)
   c2w = normalize_cameras(c2w, num_context, config.normalization)
-  scale = translation_scale(c2w, num_context, config.translation_scale, config.scale_method)
+  if config.scale_method == "pointmap":  # official: stored-resolution depth, normalised cameras
+    scale = config.translation_scale / pointmap_scale(depths, c2w[:num_context],
+                                                      raw_intrinsics[:num_context])
+  else:
+    scale = translation_scale(c2w, num_context, config.translation_scale, config.scale_method)
   if config.random_flip and not config.deterministic and rng.random() < 0.5:
     images, c2w, intrinsics = flip_horizontal(images, c2w, intrinsics)
   c2w[:, :3, 3] *= scale
@@ -151,7 +215,7 @@ class _BuildExample:
       elif self.select_views is not None:
         views = self.select_views(record, rng, step)
       example = make_example(record, self.config, rng, step=step, views=views)
-    except (BadExampleError, ChunkError, NotEnoughFramesError, MissingIndexEntryError) as error:
+    except (BadExampleError, *_DATA_ERRORS) as error:
       if not self.skip_bad:
         raise
       return _Skipped(type(error).__name__, str(error))

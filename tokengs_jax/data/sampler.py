@@ -4,7 +4,8 @@
 and a maximum that warm up linearly with the training step; targets inside the context span), with
 the official TokenGS extension to more than two context views (the extra ones drawn at random,
 sorted, strictly inside the span). `evaluation_views` reads the fixed context/target frames of the
-published evaluation index JSONs.
+published evaluation index JSONs (pixelSplat/MVSplat/DepthSplat key -> {context, target} maps, and
+the Long-LRM list format the official TokenGS DL3DV benchmark uses).
 """
 
 from __future__ import annotations
@@ -72,6 +73,10 @@ SAMPLER_PRESETS = {
     "depthsplat_dl3dv": BoundedSamplerConfig(2, 4, 20, 50, 0, 10_000, 15, 30),
     # official TokenGS registry "dl3dv" (min_gap 10, max_gap 40; num_views 8 = 4 context + 4 target)
     "tokengs_dl3dv": BoundedSamplerConfig(4, 4, 10, 40, 0, 0, 10, 40),
+    # ours, for the 32-frame synthetic RE10K-like walks (tokengs_jax.data.synthetic, 3-8 cm per
+    # frame, median depth ~3.8 m): gaps 8-24 give context baselines of ~0.11-0.34 x the median
+    # depth (measured, notes/data.md); the warm-up starts at 4-12. Fits 32 frames (max gap 31).
+    "synthetic": BoundedSamplerConfig(2, 4, 8, 24, 0, 5_000, 4, 12),
 }
 
 
@@ -130,34 +135,90 @@ def sample_bounded(config: BoundedSamplerConfig, num_frames: int, rng: np.random
   return context, target
 
 
-def load_evaluation_index(path: str | os.PathLike) -> dict[str, tuple[tuple[int, ...], tuple[int, ...]]]:
-  """Reads a pixelSplat/MVSplat/DepthSplat evaluation index JSON.
+# Long-LRM / official TokenGS DL3DV benchmark list entries: context frames under this key.
+_LIST_CONTEXT_KEY = "fold_8_kmeans_{}_input"
 
-  The file maps scene key -> {"context": [...], "target": [...]} or null; null entries (scenes the
-  benchmark leaves out) are dropped. Returns key -> (context frames, target frames).
+
+def load_evaluation_index(path: str | os.PathLike, *, num_context: int | None = None
+                          ) -> dict[str, tuple[tuple[int, ...], tuple[int, ...] | None]]:
+  """Reads an evaluation index JSON: fixed context/target frames per scene.
+
+  Two formats:
+  - pixelSplat/MVSplat/DepthSplat (e.g. `evaluation_index_re10k.json`,
+    `dl3dv_start_0_distance_50_ctx_6v_tgt_8v.json`): scene key -> {"context": [...],
+    "target": [...]} or null; null entries (scenes the benchmark leaves out) are dropped.
+  - Long-LRM list (official TokenGS `DL3DVEval` with a list JSON): [{"scene_name": key,
+    "fold_8_kmeans_16_input": [...], "fold_8_kmeans_32_input": [...]}, ...]; the context is the
+    `fold_8_kmeans_{num_context}_input` list and the targets are every frame of the scene (as
+    official), returned as `None` and expanded by `evaluation_views`.
+
+  Args:
+    num_context: which context list of the list format to read (16 or 32 in the released file);
+      required for that format, ignored for the other.
+
+  Returns:
+    key -> (context frames, target frames or None = all frames), in file order.
   """
   with open(path) as handle:
     raw = json.load(handle)
-  if not isinstance(raw, dict):
-    raise ValueError(f"{path}: an evaluation index maps scene keys to entries, found {type(raw).__name__}")
+  if isinstance(raw, dict):
+    return _read_keyed_index(path, raw)
+  if isinstance(raw, list):
+    return _read_list_index(path, raw, num_context)
+  raise ValueError(f"{path}: an evaluation index is a key -> entry map or a list of scene entries, "
+                   f"found {type(raw).__name__}")
+
+
+def _frame_list(path, key: str, field: str, value) -> tuple[int, ...]:
+  if not (isinstance(value, list) and all(isinstance(i, int) and not isinstance(i, bool) for i in value)):
+    raise ValueError(f"{path}: entry for scene '{key}' needs '{field}' as a list of frame numbers")
+  return tuple(value)
+
+
+def _read_keyed_index(path, raw: dict) -> dict:
   index = {}
   for key, entry in raw.items():
     if entry is None:
       continue
-    if not (isinstance(entry, dict) and isinstance(entry.get("context"), list)
-            and isinstance(entry.get("target"), list)):
+    if not isinstance(entry, dict):
       raise ValueError(f"{path}: entry for scene '{key}' needs 'context' and 'target' lists")
-    index[key] = (tuple(int(i) for i in entry["context"]), tuple(int(i) for i in entry["target"]))
+    index[key] = (_frame_list(path, key, "context", entry.get("context")),
+                  _frame_list(path, key, "target", entry.get("target")))
+  return index
+
+
+def _read_list_index(path, raw: list, num_context: int | None) -> dict:
+  if num_context is None:
+    raise ValueError(f"{path}: a list-format (Long-LRM) index needs num_context to pick "
+                     f"'{_LIST_CONTEXT_KEY.format('N')}'")
+  field = _LIST_CONTEXT_KEY.format(num_context)
+  index = {}
+  for position, entry in enumerate(raw):
+    if entry is None:
+      continue
+    if not (isinstance(entry, dict) and isinstance(entry.get("scene_name"), str)):
+      raise ValueError(f"{path}: list entry {position} needs a 'scene_name' string")
+    key = entry["scene_name"]
+    if field not in entry:
+      raise ValueError(f"{path}: entry for scene '{key}' has no '{field}' "
+                       f"(has {sorted(k for k in entry if k != 'scene_name')})")
+    index[key] = (_frame_list(path, key, field, entry[field]), None)
   return index
 
 
 def evaluation_views(index: dict, key: str, num_frames: int) -> tuple[np.ndarray, np.ndarray]:
-  """The index's (context [Vc], target [Vt]) frames of scene `key`, checked against its length."""
+  """The index's (context [Vc], target [Vt]) frames of scene `key`, checked against its length.
+
+  A `None` target (list-format index) means every frame of the scene, as official.
+  """
   if key not in index:
     raise MissingIndexEntryError(f"scene '{key}' has no entry in the evaluation index")
-  context, target = (np.asarray(v, np.int64) for v in index[key])
+  context, target = index[key]
+  context = np.asarray(context, np.int64)
+  target = np.arange(num_frames, dtype=np.int64) if target is None else np.asarray(target, np.int64)
   frames = np.concatenate([context, target])
   if frames.size and (frames.min() < 0 or frames.max() >= num_frames):
+    bad = int(frames.max()) if frames.max() >= num_frames else int(frames.min())
     raise NotEnoughFramesError(
-        f"evaluation index asks for frame {int(frames.max())} of a {num_frames}-frame scene")
+        f"evaluation index asks for frame {bad} of a {num_frames}-frame scene")
   return context, target

@@ -24,7 +24,13 @@ _REFLECT_X = np.diag([-1.0, 1.0, 1.0, 1.0])
 
 
 def rigid_inverse(pose: np.ndarray) -> np.ndarray:
-  """Inverse of rigid transforms, computed in float64.  pose: [..., 4, 4] -> [..., 4, 4]."""
+  """Inverse of rigid transforms, computed in float64.  pose: [..., 4, 4] -> [..., 4, 4].
+
+  The numpy twin of `tokengs_jax.camera.invert_rigid`, kept because it runs on the host inside
+  the grain input workers: those must not import or dispatch to JAX (a forked process must not
+  touch the parent's JAX runtime, and a per-example 4x4 op would pay dispatch costs), and the
+  camera normalisation wants float64 while JAX runs in float32 unless x64 is enabled globally.
+  """
   pose = np.asarray(pose, np.float64)
   rot_t = np.swapaxes(pose[..., :3, :3], -1, -2)
   inverse = np.zeros_like(pose)

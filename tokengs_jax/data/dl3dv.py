@@ -1,0 +1,290 @@
+"""DL3DV-10K in the official TokenGS layout: one nerfstudio `transforms.json` + image folder per scene.
+
+Layouts read (official `tokengs/data/static/dl3dv.py`, `registry.py`, `data/DATA.md`):
+- training (DL3DV-ALL-960P): `<root>/<subset>/<scene>.zip` (subsets `1K` ... `11K`) holding
+  `<scene>/transforms.json` and `<scene>/<image folder>/<name>`;
+- benchmark (DL3DV-10K-Benchmark, official subset "140"): `<root>/<scene>.zip` holding
+  `<scene>/gaussian_splat/transforms.json` and `<scene>/gaussian_splat/<image folder>/<name>`;
+- the same trees unpacked: `<scene>/` directories in place of the zips.
+The image folder is `images_4` (official resolution "960p") or `images` ("960p_images", the
+registry's training setting). A frame's image is the base name of its `file_path`, looked up in
+that folder, as official.
+
+`transforms.json` (nerfstudio): `fl_x, fl_y, cx, cy` in pixels of the `w` x `h` capture, and
+`frames[i].transform_matrix`, a camera-to-world in OpenGL camera axes (+y up, looking down -z) and
+nerfstudio's world (COLMAP's with x and y swapped and z negated). Conversion, as official
+`load_cameras`: undo the world change (rows: x <- y, y <- x, z <- -z; a proper rotation) and turn
+the camera axes to OpenCV (negate the y and z columns). Intrinsics are rescaled from `w` x `h` to
+the stored images, as official (which assumes 540 x 960; here the size of the scene's first
+image, or `resolution` when given).
+
+`DL3DVSceneSource` yields the data area's scene records (see `tokengs_jax.data.chunked`), so
+`InputPipeline`, the evaluation indexes and everything after the source are shared with the chunk
+format.
+"""
+
+from __future__ import annotations
+
+import collections
+import io
+import json
+import os
+import pathlib
+import zipfile
+from collections.abc import Iterable, Sequence
+
+import numpy as np
+from PIL import Image
+
+from tokengs_jax.data.chunks import _open_archive
+from tokengs_jax.data.sampler import MissingIndexEntryError
+
+__all__ = [
+    "DL3DVError",
+    "DL3DVSceneSource",
+    "list_dl3dv_scenes",
+    "nerfstudio_to_opencv_c2w",
+    "opencv_to_nerfstudio_c2w",
+    "read_dl3dv_cameras",
+]
+
+DEFAULT_IMAGE_FOLDER = "images_4"
+_BENCHMARK_PREFIX = "gaussian_splat"
+# nerfstudio world -> COLMAP world (official `load_cameras` row operations): x <- y, y <- x, z <- -z.
+_WORLD_NERFSTUDIO_TO_COLMAP = np.array(
+    [[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+# OpenGL camera axes (x right, y up, -z forward) -> OpenCV (x right, y down, z forward).
+_CAMERA_GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+class DL3DVError(ValueError):
+  """A DL3DV scene is malformed; the message names the file and scene."""
+
+
+def nerfstudio_to_opencv_c2w(transform_matrix: np.ndarray) -> np.ndarray:
+  """DL3DV `transform_matrix` (nerfstudio world, OpenGL camera) -> OpenCV c2w, as official.
+
+  transform_matrix: [..., 4, 4] -> [..., 4, 4] float64.
+  """
+  return _WORLD_NERFSTUDIO_TO_COLMAP @ np.asarray(transform_matrix, np.float64) @ _CAMERA_GL_TO_CV
+
+
+def opencv_to_nerfstudio_c2w(c2w: np.ndarray) -> np.ndarray:
+  """Inverse of `nerfstudio_to_opencv_c2w` (for writing test scenes); both factors are orthogonal.
+
+  c2w: [..., 4, 4] -> [..., 4, 4] float64.
+  """
+  return _WORLD_NERFSTUDIO_TO_COLMAP.T @ np.asarray(c2w, np.float64) @ _CAMERA_GL_TO_CV
+
+
+class _SceneFiles:
+  """Reads files of one scene, whether it is a zip or a directory (picklable: holds paths only)."""
+
+  def __init__(self, path: pathlib.Path):
+    self.path = path
+    self.key = path.stem if path.suffix == ".zip" else path.name
+    nested = f"{_BENCHMARK_PREFIX}/transforms.json"  # the benchmark nests the scene one level deeper
+    if path.suffix == ".zip":
+      is_nested = f"{self.key}/{nested}" in _open_archive(str(path)).namelist()
+    else:
+      is_nested = (path / nested).is_file()
+    self.prefix = _BENCHMARK_PREFIX + "/" if is_nested else ""
+
+  def where(self, name: str) -> str:
+    inner = f"{self.prefix}{name}"
+    return f"{self.path}:{self.key}/{inner}" if self.path.suffix == ".zip" else str(self.path / inner)
+
+  def read(self, name: str) -> bytes:
+    try:
+      if self.path.suffix == ".zip":
+        return _open_archive(str(self.path)).read(f"{self.key}/{self.prefix}{name}")
+      return (self.path / self.prefix / name).read_bytes()
+    except KeyError as error:  # zipfile: no such member
+      raise DL3DVError(f"{self.where(name)}: missing (scene '{self.key}')") from error
+    except (OSError, zipfile.BadZipFile) as error:
+      raise DL3DVError(f"{self.where(name)}: cannot read ({error}; scene '{self.key}')") from error
+
+
+class _SceneImages:
+  """Lazy length-F sequence of one scene's encoded images (PNG/JPEG bytes), read on access."""
+
+  def __init__(self, files: _SceneFiles, folder: str, names: Sequence[str]):
+    self.files, self.folder, self.names = files, folder, tuple(names)
+
+  def __len__(self) -> int:
+    return len(self.names)
+
+  def __getitem__(self, index: int) -> bytes:
+    if not 0 <= index < len(self.names):
+      raise IndexError(f"{self.files.path}: frame {index} of {len(self.names)}")
+    return self.files.read(f"{self.folder}/{self.names[index]}")
+
+
+def _scene_files(path: pathlib.Path) -> _SceneFiles:
+  try:
+    return _SceneFiles(path)
+  except (OSError, zipfile.BadZipFile) as error:
+    raise DL3DVError(f"{path}: not a readable scene zip ({error})") from error
+
+
+def read_dl3dv_cameras(transforms: dict, where: str
+                       ) -> tuple[np.ndarray, np.ndarray, tuple[float, float], list[str]]:
+  """Cameras of a parsed `transforms.json`; `where` (file and scene) is named in errors.
+
+  Returns:
+    (c2w [F, 4, 4] float32 OpenCV, intrinsics [F, 4] float64 fx, fy, cx, cy in pixels of the
+    capture, capture size (h, w), image file base names [F]).
+  """
+  try:
+    fx, fy, cx, cy, width, height = (float(transforms[k]) for k in ("fl_x", "fl_y", "cx", "cy", "w", "h"))
+  except KeyError as error:
+    raise DL3DVError(f"{where}: no '{error.args[0]}' (needs fl_x, fl_y, cx, cy, w, h)") from error
+  except (TypeError, ValueError) as error:
+    raise DL3DVError(f"{where}: intrinsics are not numbers ({error})") from error
+  frames = transforms.get("frames")
+  if not isinstance(frames, list) or not frames:
+    raise DL3DVError(f"{where}: 'frames' must be a non-empty list")
+  matrices, names = [], []
+  for number, frame in enumerate(frames):
+    try:
+      matrix = np.asarray(frame["transform_matrix"], np.float64)
+      names.append(str(frame["file_path"]).split("/")[-1])  # base name, as official
+    except (KeyError, TypeError, ValueError) as error:
+      raise DL3DVError(f"{where}: frame {number} needs 'transform_matrix' and 'file_path' "
+                       f"({type(error).__name__}: {error})") from error
+    if matrix.shape != (4, 4):
+      raise DL3DVError(f"{where}: frame {number} transform_matrix is {list(matrix.shape)}, not [4, 4]")
+    matrices.append(matrix)
+  matrices = np.stack(matrices)
+  if not np.isfinite(matrices).all():
+    bad = sorted({int(i) for i in np.nonzero(~np.isfinite(matrices))[0]})
+    raise DL3DVError(f"{where}: NaN/inf in transform_matrix of frames {bad}")
+  intrinsics = np.array([fx, fy, cx, cy])
+  if not (np.isfinite(intrinsics).all() and fx > 0 and fy > 0 and width > 0 and height > 0):
+    raise DL3DVError(f"{where}: bad intrinsics fl_x={fx}, fl_y={fy}, w={width}, h={height}")
+  c2w = nerfstudio_to_opencv_c2w(matrices).astype(np.float32)
+  return c2w, np.tile(intrinsics, (len(matrices), 1)), (height, width), names
+
+
+def _is_scene_dir(path: pathlib.Path) -> bool:
+  return (path / "transforms.json").is_file() or (path / _BENCHMARK_PREFIX / "transforms.json").is_file()
+
+
+def _scenes_in(directory: pathlib.Path) -> tuple[list[pathlib.Path], list[pathlib.Path]]:
+  """(scene zips/directories directly in `directory`, other subdirectories), each sorted."""
+  scenes, others = [], []
+  for entry in sorted(directory.iterdir()):
+    if entry.suffix == ".zip" and entry.is_file() or entry.is_dir() and _is_scene_dir(entry):
+      scenes.append(entry)
+    elif entry.is_dir():
+      others.append(entry)
+  return scenes, others
+
+
+def list_dl3dv_scenes(root: str | os.PathLike, subsets: Sequence[str] | None = None) -> list[pathlib.Path]:
+  """Scene zips / directories under `root`.
+
+  subsets: read `<root>/<subset>` for each, in order (official training: `1K` ... `11K`);
+    None: the scenes directly in `root` (the benchmark layout) followed by those one level down
+    (every subset directory found). Missing subset directories are an error.
+  """
+  root = pathlib.Path(root)
+  if not root.is_dir():
+    raise DL3DVError(f"{root}: no such DL3DV directory")
+  if subsets is not None:
+    missing = [s for s in subsets if not (root / s).is_dir()]
+    if missing:
+      raise DL3DVError(f"{root}: subset directories {missing} not found")
+    return [scene for s in subsets for scene in _scenes_in(root / s)[0]]
+  scenes, others = _scenes_in(root)
+  return scenes + [scene for directory in others for scene in _scenes_in(directory)[0]]
+
+
+class DL3DVSceneSource:
+  """Random-access source of DL3DV scenes in the official layout, as scene records.
+
+  Only the scene list is built up front; `[i]` parses that scene's `transforms.json` (cached per
+  process) and returns lazy images, so a sample reads just the frames it uses.
+
+  Args:
+    root: dataset root (see the module docstring for the layouts).
+    subsets: subset directories to read (default: discover, see `list_dl3dv_scenes`).
+    image_folder: `images_4` (official "960p") or `images` (official "960p_images").
+    resolution: (H, W) the intrinsics are rescaled to; default: the size of the scene's first
+      image (the official code assumes (540, 960)). The pipeline checks every frame it decodes
+      against it, so a scene with mixed sizes is reported, not silently mis-calibrated.
+    keys: only these scenes (e.g. an evaluation index's keys), in this order.
+    skip_bad: drop and count (`skipped`, `skip_messages`) requested keys that are absent, instead
+      of raising `MissingIndexEntryError`. Malformed scenes raise `DL3DVError` on access; the
+      pipeline's `skip_bad` drops those.
+  """
+
+  def __init__(self, root: str | os.PathLike, *, subsets: Sequence[str] | None = None,
+               image_folder: str = DEFAULT_IMAGE_FOLDER, resolution: tuple[int, int] | None = None,
+               keys: Iterable[str] | None = None, skip_bad: bool = False):
+    self.root = pathlib.Path(root)
+    self.image_folder, self.resolution = image_folder, resolution
+    self.skipped: collections.Counter = collections.Counter()
+    self.skip_messages: list[str] = []
+    scenes = list_dl3dv_scenes(self.root, subsets)
+    by_key = {}
+    for path in scenes:
+      by_key.setdefault(path.stem if path.suffix == ".zip" else path.name, path)
+    if keys is None:
+      self.scenes = list(by_key.values())
+    else:
+      self.scenes = []
+      for key in keys:
+        if key in by_key:
+          self.scenes.append(by_key[key])
+          continue
+        error = MissingIndexEntryError(f"{self.root}: scene '{key}' is not in the dataset")
+        if not skip_bad:
+          raise error
+        self.skipped["missing_scene"] += 1
+        self.skip_messages.append(str(error))
+    self._cache: collections.OrderedDict = collections.OrderedDict()
+
+  def __len__(self) -> int:
+    return len(self.scenes)
+
+  def __getitem__(self, index: int) -> dict:
+    path = self.scenes[index]
+    key = (os.getpid(), path)
+    if key not in self._cache:
+      self._cache[key] = self._read_scene(path)
+      while len(self._cache) > 64:
+        self._cache.popitem(last=False)
+    self._cache.move_to_end(key)
+    return dict(self._cache[key])
+
+  def _read_scene(self, path: pathlib.Path) -> dict:
+    files = _scene_files(path)
+    where = f"{files.where('transforms.json')} (scene '{files.key}')"
+    try:
+      transforms = json.loads(files.read("transforms.json"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+      raise DL3DVError(f"{where}: not valid JSON ({error})") from error
+    if not isinstance(transforms, dict):
+      raise DL3DVError(f"{where}: expected a JSON object, found {type(transforms).__name__}")
+    c2w, intrinsics, (raw_height, raw_width), names = read_dl3dv_cameras(transforms, where)
+    images = _SceneImages(files, self.image_folder, names)
+    height, width = self.resolution or self._image_size(images, files)
+    # as official: every intrinsic scaled by the stored/capture size ratio of its axis
+    scale = np.array([width / raw_width, height / raw_height] * 2)
+    return {"key": files.key, "source": str(path), "c2w": c2w,
+            "intrinsics": (intrinsics * scale).astype(np.float32),
+            "height": int(height), "width": int(width), "images": images}
+
+  def _image_size(self, images: _SceneImages, files: _SceneFiles) -> tuple[int, int]:
+    """(H, W) from the first image's header (PIL reads no pixels for `.size`)."""
+    name = f"{self.image_folder}/{images.names[0]}"
+    try:
+      with Image.open(io.BytesIO(images[0])) as image:
+        width, height = image.size
+    except (OSError, SyntaxError, ValueError) as error:
+      raise DL3DVError(f"{files.where(name)}: not an image ({error}; scene '{files.key}')") from error
+    return height, width
+
+  def __getstate__(self):  # workers rebuild their own cache
+    return {**self.__dict__, "_cache": collections.OrderedDict()}
