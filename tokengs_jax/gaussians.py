@@ -1,0 +1,53 @@
+"""The Gaussian scene representation shared by the model, the renderer and the exporters."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+# Channel layout of the official flat tensor: [xyz 3, opacity 1, scale 3, quat 4 (wxyz), rgb 3].
+FLAT_SPLITS = (3, 4, 7, 11)
+FLAT_CHANNELS = 14
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Gaussians:
+  """A set of 3D Gaussians with activated parameters (a pytree: jit, vmap and grad see every field).
+
+  Attributes:
+    means: [..., N, 3] world-space centres.
+    opacities: [..., N] in [0, 1].
+    scales: [..., N, 3] linear standard deviations along the local axes.
+    quats: [..., N, 4] rotations (w, x, y, z); need not be normalised (the renderer normalises).
+    colors: [..., N, 3] linear RGB.
+  """
+
+  means: jax.Array
+  opacities: jax.Array
+  scales: jax.Array
+  quats: jax.Array
+  colors: jax.Array
+
+  @classmethod
+  def from_flat(cls, flat: jax.Array) -> "Gaussians":
+    """From the official flat layout.  flat: [..., N, 14] -> Gaussians with batch shape [...]."""
+    if flat.shape[-1] != FLAT_CHANNELS:
+      raise ValueError(f"expected {FLAT_CHANNELS} channels, got shape {flat.shape}")
+    means, opacities, scales, quats, colors = jnp.split(flat, FLAT_SPLITS, axis=-1)
+    return cls(means=means, opacities=opacities[..., 0], scales=scales, quats=quats, colors=colors)
+
+  def to_flat(self) -> jax.Array:
+    """To the official flat layout.  -> [..., N, 14]."""
+    return jnp.concatenate(
+        [self.means, self.opacities[..., None], self.scales, self.quats, self.colors], axis=-1)
+
+  @property
+  def num_gaussians(self) -> int:
+    return self.means.shape[-2]
+
+  @property
+  def batch_shape(self) -> tuple[int, ...]:
+    return self.means.shape[:-2]

@@ -1,0 +1,108 @@
+"""EWA projection of 3D Gaussians into one pinhole camera (gsplat 1.5.3 semantics, matrix form)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from tokengs_jax import math as tmath
+
+# Culling codes, in the order gsplat tests them (the first rule that fires is recorded).
+VISIBLE, CULLED_DEPTH, CULLED_DEGENERATE, CULLED_OPACITY, CULLED_FRUSTUM = range(5)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Projected:
+  """Per-Gaussian screen-space quantities for one camera.
+
+  Attributes:
+    means2d: [N, 2] pixel coordinates of the centres.
+    conics: [N, 3] (a, b, c) of the inverse blurred 2D covariance; sigma = a dx²/2 + b dx dy + c dy²/2.
+    depths: [N] camera z of the centres.
+    radii: [N, 2] float pixel radii (integers as floats), 0 where culled.
+    cull_code: [N] int32, VISIBLE or the first culling rule that fired.
+  """
+
+  means2d: jax.Array
+  conics: jax.Array
+  depths: jax.Array
+  radii: jax.Array
+  cull_code: jax.Array
+
+
+def covariances_3d(quats: jax.Array, scales: jax.Array) -> jax.Array:
+  """World covariance R S S^T R^T.  quats: [..., 4] wxyz, scales: [..., 3] -> [..., 3, 3]."""
+  basis = tmath.quat_to_rotmat(quats) * scales[..., None, :]  # R @ diag(s)
+  return basis @ jnp.swapaxes(basis, -1, -2)
+
+
+def project_gaussians(means, quats, scales, opacities, world_to_camera, intrinsics, *, height, width,
+                      near, far, eps2d, radius_sigmas, alpha_threshold) -> Projected:
+  """Projects N Gaussians into one camera.
+
+  Args:
+    means: [N, 3]; quats: [N, 4]; scales: [N, 3]; opacities: [N].
+    world_to_camera: [4, 4] (OpenCV); intrinsics: [4] (fx, fy, cx, cy) pixels.
+    height, width: image size; near, far: centre-depth culling planes; eps2d, radius_sigmas,
+    alpha_threshold: see RenderConfig.
+
+  Returns:
+    Projected. Every value and gradient is finite for finite inputs, culled or not: the maths of a
+    culled Gaussian runs on a safe stand-in and its outputs are masked.
+  """
+  rot, trans = world_to_camera[:3, :3], world_to_camera[:3, 3]
+  means_cam = means @ rot.T + trans
+  cov_cam = rot @ covariances_3d(quats, scales) @ rot.T
+  x, y, z = means_cam[:, 0], means_cam[:, 1], means_cam[:, 2]
+  fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+
+  in_depth = (z >= near) & (z <= far)
+  # Means2d are wanted (visibility loss) even for culled centres: safe_div keeps them finite.
+  means2d = jnp.stack([fx * tmath.safe_div(x, z) + cx, fy * tmath.safe_div(y, z) + cy], axis=-1)
+
+  # Jacobian of the perspective map, with the centre clamped to 1.3x the field of view (gsplat).
+  z_safe = jnp.where(in_depth, z, 1.0)
+  inv_z = 1.0 / z_safe
+  lim_x = 0.3 * 0.5 * width / fx
+  lim_y = 0.3 * 0.5 * height / fy
+  tx = z_safe * jnp.clip(x * inv_z, -(cx / fx + lim_x), (width - cx) / fx + lim_x)
+  ty = z_safe * jnp.clip(y * inv_z, -(cy / fy + lim_y), (height - cy) / fy + lim_y)
+  zeros = jnp.zeros_like(z)
+  jac = jnp.stack([
+      jnp.stack([fx * inv_z, zeros, -fx * tx * inv_z * inv_z], axis=-1),
+      jnp.stack([zeros, fy * inv_z, -fy * ty * inv_z * inv_z], axis=-1),
+  ], axis=-2)  # [N, 2, 3]
+  cov2d = jac @ cov_cam @ jnp.swapaxes(jac, -1, -2) + eps2d * jnp.eye(2, dtype=means.dtype)
+  a, b, c = cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]
+  det = a * c - b * b
+  good_det = in_depth & (det > 0)
+  det_safe = jnp.where(good_det, det, 1.0)
+  conics = jnp.stack([c / det_safe, -b / det_safe, a / det_safe], axis=-1)
+
+  # Opacity-aware extent: beyond sqrt(2 ln(o / threshold)) sigmas alpha is below the threshold.
+  opaque_enough = opacities >= alpha_threshold
+  log_ratio = jnp.log(jnp.where(opaque_enough, opacities / alpha_threshold, 1.0))
+  extent = jnp.minimum(radius_sigmas, jnp.sqrt(2.0 * log_ratio))
+  var_x = jnp.where(good_det, a, 1.0)
+  var_y = jnp.where(good_det, c, 1.0)
+  radii = jax.lax.stop_gradient(jnp.ceil(extent[:, None] * jnp.sqrt(jnp.stack([var_x, var_y], -1))))
+  nonzero_radius = (radii[:, 0] > 0) | (radii[:, 1] > 0)
+  mx, my = jax.lax.stop_gradient(means2d[:, 0]), jax.lax.stop_gradient(means2d[:, 1])
+  in_image = ((mx + radii[:, 0] > 0) & (mx - radii[:, 0] < width)
+              & (my + radii[:, 1] > 0) & (my - radii[:, 1] < height))
+
+  cull_code = jnp.select(
+      [~in_depth, ~good_det, ~opaque_enough, ~nonzero_radius, ~in_image],
+      [CULLED_DEPTH, CULLED_DEGENERATE, CULLED_OPACITY, CULLED_DEGENERATE, CULLED_FRUSTUM],
+      VISIBLE).astype(jnp.int32)
+  visible = cull_code == VISIBLE
+  return Projected(
+      means2d=means2d,
+      conics=conics,
+      depths=z,
+      radii=jnp.where(visible[:, None], radii, 0.0),
+      cull_code=cull_code,
+  )

@@ -1,0 +1,226 @@
+"""Tiled front-to-back alpha compositing with per-tile early stop and a recomputing backward.
+
+All tiles advance together, one chunk of `chunk_size` sorted Gaussians per loop step: a step
+evaluates [tiles, tile pixels, chunk] alphas, turns them into transmittances with a prefix sum of
+log(1 - alpha) (a small triangular matmul), and composites with one batched matmul. The loop stops
+as soon as no tile has both Gaussians left and a pixel that is not saturated, so empty tiles cost
+nothing beyond the first step and saturated scenes stop after a few chunks.
+
+The backward (custom_vjp) replays the same steps front to back and needs only the forward's final
+per-pixel sums, so its memory is one step's [tiles, pixels, chunk] block, never pixels x Gaussians.
+For the cotangent of colour F = sum_k w_k f_k with w_k = alpha_k T_{k-1} and T_final = prod (1 -
+alpha_k):  dL/dalpha_k = T_{k-1} <f_k, gF> - (sum_{m>k} w_m <f_m, gF> + gT T_final) / (1 - alpha_k),
+where the suffix sum is the total minus the running prefix (known from the forward's output).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+# Columns of the per-Gaussian attribute matrix fed to the compositor.
+MEAN_X, MEAN_Y, CONIC_A, CONIC_B, CONIC_C, OPACITY = range(6)
+NUM_GEOMETRY = 6  # the columns after these are the composited features (rgb, depth)
+
+
+class Tiling(NamedTuple):
+  """Static description of the tile grid and of the compositing rule (hashable)."""
+
+  height: int
+  width: int
+  tile_size: int
+  tiles_x: int
+  tiles_y: int
+  chunk_size: int
+  tiles_per_step: int
+  max_alpha: float
+  alpha_threshold: float
+  transmittance_stop: float
+
+
+def tile_pixel_centers(tiling: Tiling, dtype):
+  """Pixel centres of every tile (plus one empty padding tile) and whether they are in the image.
+
+  -> (centres [T + 1, P, 2] (u, v), inside [T + 1, P] bool), T = tiles_y * tiles_x, P = tile_size².
+  """
+  ts = tiling.tile_size
+  tile_y, tile_x = jnp.divmod(jnp.arange(tiling.tiles_x * tiling.tiles_y + 1), tiling.tiles_x)
+  pix_y, pix_x = jnp.divmod(jnp.arange(ts * ts), ts)
+  col = tile_x[:, None] * ts + pix_x[None, :]
+  row = tile_y[:, None] * ts + pix_y[None, :]
+  inside = (col < tiling.width) & (row < tiling.height)
+  centres = jnp.stack([col, row], axis=-1).astype(dtype) + 0.5
+  return centres, inside
+
+
+class _Chunk(NamedTuple):
+  gaussian_ids: jax.Array  # [S, K]
+  slot_valid: jax.Array  # [S, K]
+  attrs: jax.Array  # [S, K, D]
+  dx: jax.Array  # [S, P, K] mean - pixel centre
+  dy: jax.Array
+  vis: jax.Array  # exp(-sigma)
+  raw_alpha: jax.Array  # opacity * vis (before the cap)
+  alpha: jax.Array  # capped, 0 where skipped
+  keep: jax.Array  # a valid slot not skipped by the sigma / threshold rules
+
+
+def _load_chunk(chunk_index, attrs, gaussian_ids, tile_starts, tile_ends, centres, tiling) -> _Chunk:
+  """Evaluates chunk `chunk_index [S]` of S tiles (ranges [S], centres [S, P, 2]) at their pixels."""
+  positions = (tile_starts + chunk_index * tiling.chunk_size)[:, None] + jnp.arange(tiling.chunk_size)
+  slot_valid = positions < tile_ends[:, None]
+  ids = gaussian_ids[jnp.minimum(positions, gaussian_ids.shape[0] - 1)]
+  data = attrs[ids]
+  dx = data[:, None, :, MEAN_X] - centres[:, :, None, 0]
+  dy = data[:, None, :, MEAN_Y] - centres[:, :, None, 1]
+  sigma = (0.5 * (data[:, None, :, CONIC_A] * dx * dx + data[:, None, :, CONIC_C] * dy * dy)
+           + data[:, None, :, CONIC_B] * dx * dy)
+  vis = jnp.exp(-jnp.maximum(sigma, 0.0))
+  raw_alpha = data[:, None, :, OPACITY] * vis
+  alpha = jnp.minimum(tiling.max_alpha, raw_alpha)
+  keep = slot_valid[:, None, :] & (sigma >= 0) & (alpha >= tiling.alpha_threshold)
+  return _Chunk(ids, slot_valid, data, dx, dy, vis, raw_alpha, jnp.where(keep, alpha, 0.0), keep)
+
+
+class _Transmittance(NamedTuple):
+  before: jax.Array  # [S, P, K] T just before each Gaussian
+  weight: jax.Array  # [S, P, K] alpha * T_before where composited, else 0
+  include: jax.Array  # [S, P, K] composited
+  transmittance: jax.Array  # [S, P] after the chunk
+  done: jax.Array  # [S, P] pixel stopped
+
+
+def _transmittance(chunk: _Chunk, transmittance, done, tiling) -> _Transmittance:
+  k = tiling.chunk_size
+  strict_upper = jnp.triu(jnp.ones((k, k), chunk.alpha.dtype), 1)  # [i, j] = i < j: exclusive prefix
+  log_keep = jnp.log1p(-chunk.alpha)
+  before = transmittance[..., None] * jnp.exp(log_keep @ strict_upper)
+  after = before * (1.0 - chunk.alpha)
+  # T only decreases, so once a Gaussian would take T to <= stop every later one would too: this
+  # mask is exactly gsplat's "stop before the Gaussian that saturates the pixel".
+  saturating = chunk.keep & (after <= tiling.transmittance_stop)
+  include = chunk.keep & ~saturating & ~done[..., None]
+  weight = jnp.where(include, chunk.alpha * before, 0.0)
+  new_t = transmittance * jnp.exp(jnp.sum(jnp.where(include, log_keep, 0.0), axis=-1))
+  return _Transmittance(before, weight, include, new_t, done | jnp.any(saturating, axis=-1))
+
+
+def _select_tiles(active, tiling):
+  """Indices [S] of the first S active tiles, padded with the empty tile T (compacted work list)."""
+  return jnp.nonzero(active, size=tiling.tiles_per_step, fill_value=active.shape[0] - 1)[0]
+
+
+def _pad_ranges(tile_starts, tile_ends):
+  zero = jnp.zeros((1,), tile_starts.dtype)
+  return jnp.concatenate([tile_starts, zero]), jnp.concatenate([tile_ends, zero])
+
+
+def _forward(attrs, gaussian_ids, tile_starts, tile_ends, tiling):
+  centres, inside = tile_pixel_centers(tiling, attrs.dtype)
+  starts, ends = _pad_ranges(tile_starts, tile_ends)
+  num_features = attrs.shape[-1] - NUM_GEOMETRY
+
+  def active(chunk_index, done):
+    return (starts + chunk_index * tiling.chunk_size < ends) & ~jnp.all(done, axis=-1)
+
+  def cond(state):
+    chunk_index, _, done, _ = state
+    return jnp.any(active(chunk_index, done))
+
+  def body(state):
+    chunk_index, transmittance, done, accum = state
+    sel = _select_tiles(active(chunk_index, done), tiling)
+    chunk = _load_chunk(chunk_index[sel], attrs, gaussian_ids, starts[sel], ends[sel], centres[sel],
+                        tiling)
+    trans = _transmittance(chunk, transmittance[sel], done[sel], tiling)
+    summed = accum[sel] + jnp.einsum("spk,skf->spf", trans.weight, chunk.attrs[..., NUM_GEOMETRY:])
+    return (chunk_index.at[sel].set(chunk_index[sel] + 1), transmittance.at[sel].set(trans.transmittance),
+            done.at[sel].set(trans.done), accum.at[sel].set(summed))
+
+  init = (jnp.zeros(starts.shape, jnp.int32), jnp.ones(inside.shape, attrs.dtype), ~inside,
+          jnp.zeros(inside.shape + (num_features,), attrs.dtype))
+  chunks, transmittance, _, accum = jax.lax.while_loop(cond, body, init)
+  return accum[:-1], transmittance[:-1], chunks[:-1]
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(4,))
+def rasterize_tiles(attrs, gaussian_ids, tile_starts, tile_ends, tiling: Tiling):
+  """Composites every tile front to back, stopping each tile when its pixels are saturated.
+
+  Args:
+    attrs: [N, 6 + F] per Gaussian: mean x, mean y, conic a, b, c, opacity, then F features.
+    gaussian_ids: [B] tile-sorted intersection list; tile_starts, tile_ends: [T] its tile ranges.
+    tiling: static grid and compositing constants.
+
+  Returns:
+    (accumulated features [T, P, F], final transmittance [T, P], chunks composited per tile [T]).
+  """
+  return _forward(attrs, gaussian_ids, tile_starts, tile_ends, tiling)
+
+
+def _rasterize_fwd(attrs, gaussian_ids, tile_starts, tile_ends, tiling):
+  out = _forward(attrs, gaussian_ids, tile_starts, tile_ends, tiling)
+  return out, (attrs, gaussian_ids, tile_starts, tile_ends) + out
+
+
+def _rasterize_bwd(tiling, residuals, cotangents):
+  attrs, gaussian_ids, tile_starts, tile_ends, accum, final_t, num_chunks = residuals
+  g_accum, g_final_t, _ = cotangents
+  centres, inside = tile_pixel_centers(tiling, attrs.dtype)
+  starts, ends = _pad_ranges(tile_starts, tile_ends)
+  pad = lambda x: jnp.concatenate([x, jnp.zeros_like(x[:1])])
+  g_accum, num_chunks = pad(g_accum), pad(num_chunks)
+  g_total = jnp.sum(pad(accum) * g_accum, axis=-1)  # [T + 1, P]
+  # T_final's own cotangent enters every alpha's gradient as -gT T_final / (1 - alpha).
+  g_through_final = pad(g_final_t * final_t)
+  strict_upper = jnp.triu(jnp.ones((tiling.chunk_size,) * 2, attrs.dtype), 1)
+
+  def cond(state):
+    return jnp.any(state[0] < num_chunks)
+
+  def body(state):
+    chunk_index, transmittance, done, g_prefix, grads = state
+    sel = _select_tiles(chunk_index < num_chunks, tiling)
+    chunk = _load_chunk(chunk_index[sel], attrs, gaussian_ids, starts[sel], ends[sel], centres[sel],
+                        tiling)
+    trans = _transmittance(chunk, transmittance[sel], done[sel], tiling)
+    g_out = g_accum[sel]
+    g_feat = jnp.einsum("skf,spf->spk", chunk.attrs[..., NUM_GEOMETRY:], g_out)
+    contrib = trans.weight * g_feat
+    g_before = g_prefix[sel]
+    # suffix_k = sum over later composited Gaussians (this chunk and the rest) of w <f, gF>
+    g_suffix = g_total[sel][..., None] - g_before[..., None] - contrib @ strict_upper - contrib
+    v_alpha = jnp.where(
+        trans.include,
+        trans.before * g_feat - (g_suffix + g_through_final[sel][..., None]) / (1.0 - chunk.alpha),
+        0.0)
+    v_raw = jnp.where(chunk.raw_alpha <= tiling.max_alpha, v_alpha, 0.0)  # the cap has no slope
+    v_sigma = -v_raw * chunk.raw_alpha
+    conic = chunk.attrs[:, None, :, CONIC_A:CONIC_C + 1]
+    dx, dy = chunk.dx, chunk.dy
+    v_geometry = jnp.stack([
+        jnp.sum(v_sigma * (conic[..., 0] * dx + conic[..., 1] * dy), axis=1),
+        jnp.sum(v_sigma * (conic[..., 1] * dx + conic[..., 2] * dy), axis=1),
+        jnp.sum(v_sigma * 0.5 * dx * dx, axis=1),
+        jnp.sum(v_sigma * dx * dy, axis=1),
+        jnp.sum(v_sigma * 0.5 * dy * dy, axis=1),
+        jnp.sum(v_raw * chunk.vis, axis=1),
+    ], axis=-1)  # [S, K, 6]
+    v_features = jnp.einsum("spk,spf->skf", trans.weight, g_out)
+    rows = jnp.concatenate([v_geometry, v_features], axis=-1)
+    rows = jnp.where(chunk.slot_valid[..., None], rows, 0.0)
+    grads = grads.at[chunk.gaussian_ids.reshape(-1)].add(rows.reshape(-1, rows.shape[-1]))
+    return (chunk_index.at[sel].set(chunk_index[sel] + 1),
+            transmittance.at[sel].set(trans.transmittance), done.at[sel].set(trans.done),
+            g_prefix.at[sel].set(g_before + jnp.sum(contrib, axis=-1)), grads)
+
+  init = (jnp.zeros(starts.shape, jnp.int32), jnp.ones(inside.shape, attrs.dtype), ~inside,
+          jnp.zeros(inside.shape, attrs.dtype), jnp.zeros_like(attrs))
+  grads = jax.lax.while_loop(cond, body, init)[-1]
+  return grads, None, None, None
+
+
+rasterize_tiles.defvjp(_rasterize_fwd, _rasterize_bwd)
