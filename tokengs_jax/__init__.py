@@ -26,6 +26,9 @@ _PUBLIC = {
     "init_params": "tokengs_jax.model",
     "config_from_official": "tokengs_jax.model",
     "load_official_checkpoint": "tokengs_jax.model",
+    "tune": "tokengs_jax.tuning",
+    "TuningConfig": "tokengs_jax.tuning",
+    "evaluate": "tokengs_jax.tuning",
 }
 _SUBMODULES = ("camera", "math", "gaussians", "splatting", "model", "losses", "metrics", "data",
                "train", "tuning", "export")

@@ -1,0 +1,106 @@
+"""Test-time tuning on the tiny preset (every real-model case compiles the renderer: slow)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from tokengs_jax.gaussians import Gaussians
+from tokengs_jax.tuning import TuningConfig, _constrained, _offset, _unconstrained, tune
+
+HEIGHT = WIDTH = 32
+
+
+def scene(num_views=2, seed=0):
+  rng = np.random.default_rng(seed)
+  images = rng.random((1, num_views, HEIGHT, WIDTH, 3)).astype(np.float32)
+  c2w = np.tile(np.eye(4, dtype=np.float32), (1, num_views, 1, 1))
+  c2w[0, :, 0, 3] = np.linspace(-0.1, 0.1, num_views)
+  intrinsics = np.tile(np.array([32, 32, 16, 16], np.float32), (1, num_views, 1))
+  return images, c2w, intrinsics
+
+
+def test_gaussian_offsets_round_trip():
+  key = jax.random.PRNGKey(0)
+  g = Gaussians(means=jax.random.normal(key, (5, 3)), opacities=jnp.linspace(0.1, 0.9, 5),
+                scales=jnp.linspace(0.01, 0.07, 15).reshape(5, 3),
+                quats=jax.random.normal(key, (5, 4)),
+                colors=jnp.linspace(0.05, 0.95, 15).reshape(5, 3))
+
+  def assert_close(a, b):
+    jax.tree.map(lambda x, y: np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6), a, b)
+
+  assert_close(_offset(g, jax.tree.map(jnp.zeros_like, g)), g)
+  shifted = _offset(g, jax.tree.map(jnp.ones_like, g))
+  assert np.all((shifted.opacities > 0) & (shifted.opacities < 1)) and np.all(shifted.scales > 0)
+  assert_close(_constrained(_unconstrained(g)), g)
+
+
+@pytest.fixture(scope="module")
+def tiny():
+  from tokengs_jax.model import init_params, preset
+  config = preset("tiny")
+  return config, init_params(jax.random.PRNGKey(0), config)
+
+
+@pytest.mark.slow
+def test_token_tuning_lowers_loss_and_keeps_params(tiny):
+  config, params = tiny
+  before = jax.tree.map(np.array, params)
+  # three input views (context extension: the preset was trained with two); same Gaussian count
+  result = tune(params, *scene(num_views=3), model_config=config,
+                tuning=TuningConfig(target="tokens", steps=5, learning_rate=1e-2))
+  losses = np.asarray(result.losses)
+  assert losses.shape == (6,) and losses[-1] < losses[0]
+  assert np.all(np.diff(losses) <= 0)
+  assert result.gaussians.means.shape == (1, config.num_gaussians, 3)
+  jax.tree.map(np.testing.assert_array_equal, before, jax.tree.map(np.array, params))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("target", ["gaussians", "tokens+gaussians"])
+def test_gaussian_and_joint_tuning_lower_loss(tiny, target):
+  config, params = tiny
+  result = tune(params, *scene(), model_config=config,
+                tuning=TuningConfig(target=target, steps=4, learning_rate=1e-2,
+                                    gaussian_learning_rate=1e-2))
+  losses = np.asarray(result.losses)
+  assert losses[-1] < losses[0]
+
+
+@pytest.mark.slow
+def test_latent_tuning_lowers_loss():
+  from tokengs_jax.model import init_params, preset
+  # decoder LayerScale 1 (official init: 5e-5) so the decoder's output depends visibly on the
+  # latents at initialisation
+  config = preset("tiny", use_latent_bottleneck=True, num_latents=16, latent_cross_attn_depth=1,
+                  dec_init_values=1.0)
+  params = init_params(jax.random.PRNGKey(0), config)
+  result = tune(params, *scene(), model_config=config,
+                tuning=TuningConfig(target="latents", steps=4, learning_rate=1e-2))
+  losses = np.asarray(result.losses)
+  assert losses[-1] < losses[0]
+
+
+def test_latent_tuning_needs_latent_model(tiny):
+  config, params = tiny
+  with pytest.raises(ValueError, match="latent-bottleneck"):
+    jax.eval_shape(lambda p: tune(p, *scene(), model_config=config,
+                                  tuning=TuningConfig(target="latents", steps=1)), params)
+
+
+@pytest.mark.slow
+def test_evaluate_reports_scores(tiny):
+  from tokengs_jax.tuning import evaluate
+  config, params = tiny
+  images, c2w, intrinsics = scene(num_views=4)
+  batch = {"context_images": images[:, :2], "context_c2w": c2w[:, :2],
+           "context_intrinsics": intrinsics[:, :2], "target_images": images[:, 2:],
+           "target_c2w": c2w[:, 2:], "target_intrinsics": intrinsics[:, 2:]}
+  plain = evaluate(params, batch, model_config=config)
+  tuned = evaluate(params, batch, model_config=config, tuning=TuningConfig(steps=2))
+  for scores in (plain, tuned):
+    assert scores["psnr"].shape == scores["ssim"].shape == scores["lpips"].shape == (1, 2)
+    assert np.all(np.isfinite(scores["psnr"])) and np.all(scores["lpips"] >= 0)
+    assert scores["num_gaussians"] == config.num_gaussians and scores["seconds_per_scene"] > 0
+  assert tuned["tuning_losses"].shape == (3,) and "tuning_losses" not in plain

@@ -1,0 +1,49 @@
+"""TokenGS network (Flax Linen), architecturally identical to the official PyTorch model.
+
+    from tokengs_jax.model import preset, init_params, reconstruct
+"""
+
+from tokengs_jax.model.api import (
+                                   count_params,
+                                   decode,
+                                   decode_tokens,
+                                   encode,
+                                   init_params,
+                                   initial_tokens,
+                                   kv_from_latents,
+                                   normalize_images,
+                                   param_shapes,
+                                   predict_gaussians,
+                                   reconstruct,
+)
+from tokengs_jax.model.configs import PRESETS, ModelConfig, config_from_official, preset
+from tokengs_jax.model.network import EncoderOutput, TokenGS, timestep_embedding
+from tokengs_jax.model.official import (
+                                   load_official_checkpoint,
+                                   params_from_state_dict,
+                                   to_official_state_dict,
+)
+
+__all__ = [
+                                   "PRESETS",
+                                   "EncoderOutput",
+                                   "ModelConfig",
+                                   "TokenGS",
+                                   "config_from_official",
+                                   "count_params",
+                                   "decode",
+                                   "decode_tokens",
+                                   "encode",
+                                   "init_params",
+                                   "initial_tokens",
+                                   "kv_from_latents",
+                                   "load_official_checkpoint",
+                                   "normalize_images",
+                                   "param_shapes",
+                                   "params_from_state_dict",
+                                   "predict_gaussians",
+                                   "preset",
+                                   "reconstruct",
+                                   "timestep_embedding",
+                                   "to_official_state_dict",
+]

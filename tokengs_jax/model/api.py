@@ -1,0 +1,167 @@
+"""Pure-function interface to the TokenGS network: params pytree in, arrays out.
+
+Every function takes the (hashable, frozen) config as an argument, so it can be a static
+argument of `jax.jit` or be closed over; all of them are jit-, vmap- and grad-compatible.
+
+    params = init_params(jax.random.key(0), config)
+    gaussians = reconstruct(params, images, c2w, intrinsics, config=config)
+
+For test-time tuning, encode once and decode many times:
+
+    encoded = encode(params, images_normalised, plucker, config)
+    flat = decode(params, encoded, config, tokens=my_tokens)
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+
+from tokengs_jax.camera import plucker_rays
+from tokengs_jax.gaussians import Gaussians
+from tokengs_jax.model.configs import IMAGE_MEAN, IMAGE_STD, ModelConfig
+from tokengs_jax.model.network import EncoderOutput, TokenGS
+
+Params = dict
+
+
+def _dummy_inputs(config: ModelConfig) -> dict:
+  """Smallest inputs that create every parameter: one view of one patch."""
+  p = config.patch_size
+  inputs = {"images": jnp.zeros((1, 1, p, p, 3)), "plucker": jnp.zeros((1, 1, p, p, 6))}
+  if config.time_embedding:
+    inputs.update(times=jnp.zeros((1, 1)), target_times=jnp.zeros((1,)))
+  return inputs
+
+
+def init_params(key: jax.Array, config: ModelConfig) -> Params:
+  """Freshly initialised parameters (float32), initialised as the official model.
+
+  Args:
+    key: a PRNG key.
+    config: the architecture.
+
+  Returns:
+    The params pytree (nested dicts of float32 arrays).
+  """
+  return _jitted_init(key, config)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _jitted_init(key: jax.Array, config: ModelConfig) -> Params:
+  # One compiled program instead of hundreds of eagerly dispatched initialiser ops.
+  return TokenGS(config).init(key, **_dummy_inputs(config))["params"]
+
+
+def param_shapes(config: ModelConfig) -> Params:
+  """The params pytree as jax.ShapeDtypeStruct leaves, without allocating anything."""
+  return jax.eval_shape(functools.partial(init_params, config=config), jax.random.key(0))
+
+
+def count_params(config: ModelConfig) -> int:
+  """Number of parameters (no allocation)."""
+  return sum(leaf.size for leaf in jax.tree_util.tree_leaves(param_shapes(config)))
+
+
+def normalize_images(images: jax.Array) -> jax.Array:
+  """[0, 1] RGB -> the encoder's input (ImageNet mean/std, as the official data provider).
+
+  images: [..., 3] -> [..., 3].
+  """
+  images = jnp.asarray(images)
+  mean = jnp.asarray(IMAGE_MEAN, images.dtype)
+  std = jnp.asarray(IMAGE_STD, images.dtype)
+  return (images - mean) / std
+
+
+def encode(params: Params, images: jax.Array, plucker: jax.Array, config: ModelConfig,
+           times: jax.Array | None = None) -> EncoderOutput:
+  """Encoder: normalised images + Plücker rays -> shared keys/values.
+
+  Args:
+    params: the params pytree.
+    images: [B, V, H, W, 3] normalised RGB (see `normalize_images`); H, W divisible by p.
+    plucker: [B, V, H, W, 6] Plücker rays (`tokengs_jax.camera.plucker_rays`).
+    config: the architecture.
+    times: [B, V] normalised input-view times (time-embedding models only).
+
+  Returns:
+    EncoderOutput (keys/values [B, heads, V * H * W / p², head_dim]; latents if any).
+  """
+  return TokenGS(config).apply({"params": params}, images, plucker, times,
+                               method=TokenGS.encode)
+
+
+def kv_from_latents(params: Params, latents: jax.Array, config: ModelConfig) -> EncoderOutput:
+  """Latent-bottleneck models: scene latents [B, L, C] -> EncoderOutput (scene-latent tuning)."""
+  return TokenGS(config).apply({"params": params}, latents, method=TokenGS.kv_from_latents)
+
+
+def initial_tokens(params: Params, config: ModelConfig, batch_size: int) -> jax.Array:
+  """The learnt Gaussian tokens [B, T, C] ([static, dynamic]); token tuning starts from them."""
+  return TokenGS(config).apply({"params": params}, batch_size, method=TokenGS.initial_tokens)
+
+
+def decode_tokens(params: Params, encoded: EncoderOutput, config: ModelConfig,
+                  tokens: jax.Array | None = None, times: jax.Array | None = None) -> jax.Array:
+  """Gaussian tokens after the last decoder block, [B, T, C] (the head's input)."""
+  return TokenGS(config).apply({"params": params}, encoded, tokens, times,
+                               method=TokenGS.decode_tokens)
+
+
+def decode(params: Params, encoded: EncoderOutput, config: ModelConfig,
+           tokens: jax.Array | None = None, times: jax.Array | None = None) -> jax.Array:
+  """Decoder + head: cached encoder output -> flat Gaussians.
+
+  Args:
+    params: the params pytree.
+    encoded: `encode`'s output (or `kv_from_latents`'s).
+    config: the architecture.
+    tokens: [B, T, C] Gaussian tokens replacing the learnt ones (token tuning); None uses
+      `params["gs_tokens"]` (+ dynamic tokens).
+    times: [B] normalised target time (time-embedding models; None = unconditioned).
+
+  Returns:
+    [B, T * dec_patch_size², 14] float32 in the official flat layout
+    [xyz 3, opacity 1, scale 3, quat 4, rgb 3]; static Gaussians first, then dynamic ones
+    (`config.num_static_gaussians` splits them).
+  """
+  return TokenGS(config).apply({"params": params}, encoded, tokens, times,
+                               method=TokenGS.decode)
+
+
+def predict_gaussians(params: Params, images: jax.Array, plucker: jax.Array,
+                      config: ModelConfig, times: jax.Array | None = None,
+                      target_times: jax.Array | None = None) -> jax.Array:
+  """The network alone: normalised images [B, V, H, W, 3] + Plücker [B, V, H, W, 6] -> [B, N, 14].
+
+  N = config.num_gaussians whatever V, H and W are. `times` [B, V] and `target_times` [B] are for
+  time-embedding models.
+  """
+  return TokenGS(config).apply({"params": params}, images, plucker, times, target_times)
+
+
+def reconstruct(params: Params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array, *,
+                config: ModelConfig, times: jax.Array | None = None,
+                target_times: jax.Array | None = None) -> Gaussians:
+  """Images in [0, 1] and cameras -> Gaussians (normalisation + Plücker rays + network).
+
+  Args:
+    params: the params pytree.
+    images: [B, V, H, W, 3] RGB in [0, 1].
+    c2w: [B, V, 4, 4] camera-to-world (OpenCV), already normalised as the data pipeline does.
+    intrinsics: [B, V, 4] fx, fy, cx, cy in pixels.
+    config: the architecture (static).
+    times: [B, V] normalised context times (dynamic models).
+    target_times: [B] normalised time at which to decode the dynamic Gaussians.
+
+  Returns:
+    `tokengs_jax.gaussians.Gaussians` with N = config.num_gaussians Gaussians per scene.
+  """
+  height, width = images.shape[-3:-1]
+  plucker = plucker_rays(c2w, intrinsics, height, width)
+  flat = predict_gaussians(params, normalize_images(images), plucker, config, times,
+                           target_times)
+  return Gaussians.from_flat(flat)

@@ -1,0 +1,69 @@
+"""Process setup, the device mesh, and placing host data on it (single- or multi-host).
+
+Launch on N hosts (each with its local accelerators): run the same command on every host with
+
+    TOKENGS_COORDINATOR=host0:1234 TOKENGS_NUM_PROCESSES=N TOKENGS_PROCESS_ID=i \
+        python experiments/...
+
+(or nothing at all on Cloud TPU / SLURM, where `jax.distributed.initialize()` discovers them).
+Every process then builds the same mesh over all global devices, reads its own shard of the data
+(`process_index` / `process_count` pick the shard), and turns its local batch into one global
+array with `shard_batch`. Each process's local batch is `global_batch / process_count` examples.
+"""
+
+from __future__ import annotations
+
+import os
+
+import jax
+import numpy as np
+from jax.sharding import AxisType, Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+
+def initialize() -> None:
+  """Calls `jax.distributed.initialize` when a multi-process run is configured, else nothing.
+
+  Reads TOKENGS_COORDINATOR / TOKENGS_NUM_PROCESSES / TOKENGS_PROCESS_ID when set; on managed
+  clusters (TPU pods, SLURM) set TOKENGS_DISTRIBUTED=1 to let JAX auto-detect. Must run before any
+  other JAX call.
+  """
+  coordinator = os.environ.get("TOKENGS_COORDINATOR")
+  if coordinator is not None:
+    jax.distributed.initialize(coordinator_address=coordinator,
+                               num_processes=int(os.environ["TOKENGS_NUM_PROCESSES"]),
+                               process_id=int(os.environ["TOKENGS_PROCESS_ID"]))
+  elif os.environ.get("TOKENGS_DISTRIBUTED") == "1":
+    jax.distributed.initialize()
+
+
+def make_mesh(data: int | None = None, model: int = 1, devices=None) -> Mesh:
+  """A ("data", "model") mesh with Auto axes (GSPMD propagation; jax 0.10 defaults to Explicit).
+
+  Args:
+    data: size of the data axis; default all devices / model.
+    model: size of the model axis (1 until parameters are sharded).
+    devices: devices to use; default `jax.devices()` (all processes).
+  """
+  devices = jax.devices() if devices is None else list(devices)
+  data = len(devices) // model if data is None else data
+  return jax.make_mesh((data, model), ("data", "model"), axis_types=(AxisType.Auto,) * 2,
+                       devices=devices[:data * model])
+
+
+def shard_batch(local_batch: dict, mesh: Mesh) -> dict:
+  """Global arrays sharded over "data" from each process's local examples `[B_local, ...]`."""
+  sharding = NamedSharding(mesh, P("data"))
+  return jax.tree.map(
+      lambda x: jax.make_array_from_process_local_data(sharding, np.asarray(x)), local_batch)
+
+
+def replicate(tree, mesh: Mesh):
+  """Places a host pytree (identical on every process) replicated over `mesh`."""
+  sharding = NamedSharding(mesh, P())
+
+  def place(x):
+    x = np.asarray(x)
+    return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
+
+  return jax.tree.map(place, tree)

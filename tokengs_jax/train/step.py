@@ -1,0 +1,107 @@
+"""One jitted, sharded training step around a model-agnostic `loss_fn(params, batch, key)`.
+
+Sharding is GSPMD over a `jax.make_mesh` mesh with axes ("data", "model"): the batch is split over
+"data" along its leading axis, the state is replicated (a `state_sharding` pytree can put
+parameters on "model" later without touching this code). The gradient all-reduce that makes the
+multi-device step equal to the single-device one is inserted by the partitioner because the loss
+is a mean over the global batch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import optax
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from tokengs_jax.train.optim import current_learning_rate
+from tokengs_jax.train.state import TrainState
+
+LossFn = Callable[[Any, dict, jax.Array], tuple[jax.Array, dict]]
+
+
+@dataclasses.dataclass(frozen=True)
+class Precision:
+  """Mixed-precision policy: float32 master parameters, `compute_dtype` inside the loss.
+
+  The step casts floating parameters to `compute_dtype` before calling the loss; the cast's
+  transpose returns float32 gradients, so the optimiser and its state stay float32. The loss
+  function decides what else runs in higher precision. The default is no cast: the TokenGS
+  network has its own policy (`ModelConfig.dtype="bfloat16"`: bf16 matmuls, float32 parameters
+  and norms) and its objective renders in float32; use `Precision(jnp.bfloat16)` for models
+  without one.
+  """
+
+  compute_dtype: Any = jnp.float32
+
+
+def cast_floating(tree, dtype):
+  """Casts every floating leaf of `tree` to `dtype`; integer and key leaves are left alone."""
+  def cast(leaf):
+    return leaf.astype(dtype) if jnp.issubdtype(jnp.result_type(leaf), jnp.floating) else leaf
+  return jax.tree.map(cast, tree)
+
+
+def all_finite(tree) -> jax.Array:
+  """True iff no floating leaf of `tree` holds a NaN or an infinity (bool scalar)."""
+  checks = [jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(tree)
+            if jnp.issubdtype(jnp.result_type(leaf), jnp.floating)]
+  return jnp.all(jnp.stack(checks)) if checks else jnp.array(True)
+
+
+def train_step_fn(loss_fn: LossFn, optimizer: optax.GradientTransformation,
+                  precision: Precision = Precision()):
+  """The unjitted step `(state, batch, key) -> (state, metrics)`.
+
+  The step key is `fold_in(key, state.step)`. When the loss or any gradient is non-finite the
+  returned state is the input state (update skipped, step not advanced) and `metrics["finite"]`
+  is False; the loop turns that into a loud stop.
+  """
+  def step(state: TrainState, batch: dict, key: jax.Array):
+    step_key = jax.random.fold_in(key, state.step)
+
+    def compute_loss(params):
+      loss, aux = loss_fn(cast_floating(params, precision.compute_dtype), batch, step_key)
+      return loss.astype(jnp.float32), aux
+
+    (loss, aux), grads = jax.value_and_grad(compute_loss, has_aux=True)(state.params)
+    finite = jnp.isfinite(loss) & all_finite(grads)
+    updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
+    stepped = state.replace(params=optax.apply_updates(state.params, updates),
+                            opt_state=opt_state, step=state.step + 1)
+    new_state = jax.tree.map(lambda new, old: jnp.where(finite, new, old), stepped, state)
+    metrics = {"loss": loss, "grad_norm": optax.tree.norm(grads), "finite": finite,
+               "learning_rate": current_learning_rate(opt_state), **aux}
+    return new_state, metrics
+
+  return step
+
+
+def make_train_step(loss_fn: LossFn, optimizer: optax.GradientTransformation, mesh: Mesh, *,
+                    precision: Precision = Precision(), state_sharding=None, donate: bool = True):
+  """Jits the step with shardings over `mesh` and the state buffers donated.
+
+  Args:
+    loss_fn: `(params, batch, key) -> (scalar loss, aux dict of scalars)`, a mean over the batch.
+    optimizer: from `make_optimizer`.
+    mesh: a mesh with a "data" axis (see `distributed.make_mesh`).
+    precision: compute-dtype policy.
+    state_sharding: sharding (or pytree prefix of shardings) for the state; default replicated.
+    donate: donate the input state's buffers (the caller must not reuse the passed state).
+
+  Returns:
+    `train_step(state, batch, key) -> (state, metrics)`; batch leaves `[B, ...]` with B divisible
+    by the "data" axis size; metrics are replicated scalars.
+  """
+  replicated = NamedSharding(mesh, P())
+  batch_sharding = NamedSharding(mesh, P("data"))
+  state_sharding = replicated if state_sharding is None else state_sharding
+  return jax.jit(train_step_fn(loss_fn, optimizer, precision),
+                 in_shardings=(state_sharding, batch_sharding, replicated),
+                 out_shardings=(state_sharding, replicated),
+                 donate_argnums=(0,) if donate else ())
