@@ -1,0 +1,88 @@
+"""Test-time scaling: PSNR vs number of input views (context extension) and vs tuning steps, for
+token tuning, Gaussian tuning and joint tuning.
+
+Every point uses the same targets: the evenly spaced frames of the evaluation span. Context
+extension keeps the span's two end frames and adds evenly spaced frames between them; the
+Gaussian count does not change. The tuning curves start from the 2-view reconstruction.
+
+    python -m experiments.studies.test_time_scaling [--views 2 3 4 6] [--steps 10 25 50]
+
+Writes `test_time_scaling.{json,md}`, `views.png` and `tuning_steps.png` to
+`<output_dir>/test_time_scaling/`. Each (target, steps) pair compiles its own tuning program.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+
+import numpy as np
+import tyro
+
+from experiments import common, plot
+from experiments.studies import StudySettings, psnr_of, trained_tokengs, write_table
+
+
+@dataclasses.dataclass(frozen=True)
+class TestTimeScaling(StudySettings):
+  views: tuple[int, ...] = (2, 3, 4, 6)
+  steps: tuple[int, ...] = (10, 25, 50)
+  targets: tuple[str, ...] = ("tokens", "gaussians", "tokens+gaussians")
+  learning_rate: float = 1e-4  # token rate (paper); Gaussian offsets use the library default
+
+
+def spaced_views(num_context: int, gap: int, num_targets: int):
+  """(record, position) -> (context, target): `num_context` frames evenly over [0, gap], and
+  `num_targets` targets evenly strictly inside it (the same for every context size)."""
+  def views(record, position):
+    context = np.linspace(0, gap, num_context).round().astype(np.int64)
+    target = np.linspace(1, gap - 1, num_targets).round().astype(np.int64)
+    return context, target
+  return views
+
+
+def main(settings: TestTimeScaling) -> list[dict]:
+  out = pathlib.Path(settings.output_dir) / "test_time_scaling"
+  config, params = trained_tokengs(settings)
+  e = settings.experiment.eval
+  scorer = common.Scorer(use_lpips=False)
+  rows = []
+  view_curve = ([], [])
+  for count in settings.views:
+    experiment = dataclasses.replace(settings.experiment, num_context_views=count)
+    examples = common.evaluation_examples(
+        experiment, views=spaced_views(count, e.context_gap, e.num_target_views))
+    scores, seconds = psnr_of(common.feed_forward(params, config), examples, scorer)
+    rows.append({"axis": "input views", "value": count, "psnr": float(np.mean(scores)),
+                 "seconds_per_scene": seconds})
+    view_curve[0].append(count)
+    view_curve[1].append(float(np.mean(scores)))
+  examples = common.evaluation_examples(
+      settings.experiment, views=spaced_views(2, e.context_gap, e.num_target_views))
+  base, base_seconds = psnr_of(common.feed_forward(params, config), examples, scorer)
+  step_curves = {}
+  for target in settings.targets:
+    xs, ys = [0], [float(np.mean(base))]
+    for steps in settings.steps:
+      scores, seconds = psnr_of(common.tuned(params, config, steps, settings.learning_rate, target),
+                                examples, scorer)
+      rows.append({"axis": f"{target} tuning steps", "value": steps, "psnr": float(np.mean(scores)),
+                   "seconds_per_scene": seconds})
+      xs.append(steps)
+      ys.append(float(np.mean(scores)))
+    step_curves[target] = (xs, ys)
+  rows.insert(len(settings.views), {"axis": "no tuning (2 views)", "value": 0,
+                                    "psnr": float(np.mean(base)), "seconds_per_scene": base_seconds})
+  write_table(out, "test_time_scaling", "Test-time scaling (PSNR dB, seconds per scene)", rows,
+              ["axis", "value", "psnr", "seconds_per_scene"],
+              notes=[(f"{len(examples)} held-out scenes, span {e.context_gap} frames, "
+                     f"{e.num_target_views} targets inside it; token lr {settings.learning_rate}.")])
+  plot.line_plot(out / "views.png", {"TokenGS (feed-forward)": view_curve},
+                 title="Context extension", xlabel="input views", ylabel="PSNR (dB)")
+  plot.line_plot(out / "tuning_steps.png", step_curves, title="Test-time tuning",
+                 xlabel="tuning steps", ylabel="PSNR (dB)", dashed=("gaussians",))
+  return rows
+
+
+if __name__ == "__main__":
+  main(tyro.cli(TestTimeScaling))

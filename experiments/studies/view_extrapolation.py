@@ -1,0 +1,94 @@
+"""View extrapolation: PSNR of targets inside the context span and at growing distances outside it.
+
+Each held-out scene gets context frames (s, s + gap), s = `start`, and one target per offset: the
+frame `s + gap + offset` (offset > 0: beyond the last input view, extrapolation) or `s + offset`
+(offset <= 0 would be before the first one; offsets inside are reported as "inside"). The camera
+normalisation is the example's own (first context camera), so every target of a scene is scored
+in one reconstruction.
+
+    python -m experiments.studies.view_extrapolation [--offsets 1 2 4 6 8]
+
+Writes `view_extrapolation.{json,md,png}` to `<output_dir>/view_extrapolation/`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+
+import numpy as np
+import tyro
+
+from experiments import common, plot
+from experiments.studies import StudySettings, trained_tokengs, write_table
+
+
+@dataclasses.dataclass(frozen=True)
+class ViewExtrapolation(StudySettings):
+  gap: int = 8  # frames between the two input views
+  start: int = 2  # first input frame (leaves room for targets before it)
+  offsets: tuple[int, ...] = (1, 2, 4, 6, 8)  # frames beyond the span (both ends)
+  with_tuning: bool = True  # also score after token tuning (experiment.eval settings)
+
+
+def target_frames(settings: ViewExtrapolation, num_frames: int) -> dict[str, int]:
+  """Label -> frame: the span's midpoint ("inside") and each offset before / after the span."""
+  first, last = settings.start, settings.start + settings.gap
+  frames = {"inside": first + settings.gap // 2}
+  for offset in settings.offsets:
+    if last + offset < num_frames:
+      frames[f"+{offset}"] = last + offset
+    if first - offset >= 0:
+      frames[f"-{offset}"] = first - offset
+  return frames
+
+
+def main(settings: ViewExtrapolation) -> list[dict]:
+  out = pathlib.Path(settings.output_dir) / "view_extrapolation"
+  config, params = trained_tokengs(settings)
+  labels: list[str] = []
+
+  def views(record, position):
+    frames = target_frames(settings, len(record["images"]))
+    labels[:] = list(frames)  # scenes of one set share a length, hence the same labels
+    return (np.array([settings.start, settings.start + settings.gap]),
+            np.array(list(frames.values())))
+
+  examples = common.evaluation_examples(settings.experiment, views=views)
+  methods = {"TokenGS": common.feed_forward(params, config)}
+  if settings.with_tuning:
+    e = settings.experiment.eval
+    methods["TokenGS + token tuning"] = common.tuned(params, config, e.tuning_steps,
+                                                     e.tuning_learning_rate)
+  scorer = common.Scorer(use_lpips=False)
+  per_label = {name: {label: [] for label in labels} for name in methods}
+  for _, batch in examples:
+    height, width = batch["target_images"].shape[-3:-1]
+    for name, method in methods.items():
+      rgb, _, _ = common.render_views(method(batch), batch["target_c2w"], batch["target_intrinsics"],
+                                      height, width)
+      scores = scorer(rgb[0], batch["target_images"][0])["psnr"]
+      for label, score in zip(labels, scores):
+        per_label[name][label].append(float(score))
+  rows, curves = [], {}
+  for label in labels:
+    distance = 0 if label == "inside" else int(label[1:])
+    rows.append({"target": label, "frames_outside_span": distance,
+                 **{name: float(np.mean(per_label[name][label])) for name in methods}})
+  for name in methods:
+    by_distance = {}
+    for row in rows:
+      by_distance.setdefault(row["frames_outside_span"], []).append(row[name])
+    xs = sorted(by_distance)
+    curves[name] = (xs, [float(np.mean(by_distance[x])) for x in xs])
+  write_table(out, "view_extrapolation", "PSNR (dB) of targets inside vs outside the input span",
+              rows, ["target", "frames_outside_span"] + list(methods),
+              notes=[(f"{len(examples)} held-out scenes; inputs at frames {settings.start} and "
+                     f"{settings.start + settings.gap}; '+k' after the last, '-k' before the first.")])
+  plot.line_plot(out / "view_extrapolation.png", curves, title="View extrapolation",
+                 xlabel="frames outside the input span (0 = inside)", ylabel="PSNR (dB)")
+  return rows
+
+
+if __name__ == "__main__":
+  main(tyro.cli(ViewExtrapolation))

@@ -1,0 +1,133 @@
+"""experiments/: command-line parsing, baselines, results writing, plots, and the entry point end to end."""
+
+import json
+import math
+import pathlib
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from experiments import common, plot, re10k
+from tokengs_jax import export
+
+REPO = pathlib.Path(__file__).resolve().parent.parent
+
+
+def test_parse_defaults_to_run_with_default_preset():
+  command, experiment = common.parse([], re10k.PRESETS, "synthetic-tiny", "prog")
+  assert command == "run"
+  assert experiment == re10k.PRESETS["synthetic-tiny"]
+
+
+def test_parse_command_preset_and_overrides():
+  command, experiment = common.parse(
+      ["eval", "--preset", "paper", "--data-dir", "/x", "--train.steps", "7",
+       "--official-checkpoint", "w.safetensors", "--model-overrides", "enc_depth=1"],
+      re10k.PRESETS, "synthetic-tiny", "prog")
+  assert command == "eval"
+  assert experiment.data_dir == "/x" and experiment.train.steps == 7
+  assert experiment.official_checkpoint == "w.safetensors"
+  assert experiment.model == "re10k"  # from the preset, not the default
+  assert common.model_config(experiment).enc_depth == 1
+
+
+def test_parse_rejects_unknown_preset():
+  with pytest.raises(SystemExit):
+    common.parse(["--preset=nope"], re10k.PRESETS, "synthetic-tiny", "prog")
+
+
+def test_mean_colour_baseline_is_the_context_mean():
+  rng = np.random.default_rng(0)
+  batch = {"context_images": rng.uniform(size=(1, 2, 4, 5, 3)),
+           "target_images": np.zeros((1, 3, 4, 5, 3))}
+  images = common.mean_colour_images(batch)
+  assert images.shape == (1, 3, 4, 5, 3)
+  np.testing.assert_allclose(images[0, 2, 1, 1], batch["context_images"][0].mean(axis=(0, 1, 2)))
+
+
+def test_write_metrics_means_over_scenes_and_markdown(tmp_path):
+  result = common.MethodResult("trained", per_scene=[
+      {"key": "a", "psnr": 10.0, "ssim": 0.5}, {"key": "b", "psnr": 20.0, "ssim": 0.7}])
+  base = common.MethodResult("mean_colour", per_scene=[
+      {"key": "a", "psnr": 8.0, "ssim": 0.1}, {"key": "b", "psnr": 9.0, "ssim": 0.2}])
+  results = {"mean_colour": base, "trained": result}
+  info = {"title": "t", "checks": common.score_checks({k: r.summary() for k, r in results.items()})}
+  payload = common.write_metrics(tmp_path, results, info)
+  assert payload["metrics"]["trained"]["mean"]["psnr"] == pytest.approx(15.0)
+  assert json.loads((tmp_path / "metrics.json").read_text())["metrics"]["mean_colour"]["mean"][
+      "ssim"] == pytest.approx(0.15)
+  text = (tmp_path / "metrics.md").read_text()
+  assert "| trained | 15.0000 | 0.6000 |" in text
+  assert "trained beats mean_colour: True (PSNR margin +6.500 dB)" in text
+
+
+def test_line_plot_draws_every_series(tmp_path):
+  path = plot.line_plot(tmp_path / "p.png", {"a": ([1, 2, 4], [1.0, 2.0, 1.5]),
+                                             "b": ([1, 2, 4], [0.5, float("nan"), 3.0])},
+                        title="t", xlabel="x", ylabel="y", log_x=True, dashed=("b",))
+  image = np.asarray(Image.open(path))
+  for color in plot.PALETTE[:2]:
+    assert np.any(np.all(image == np.array(color, np.uint8), axis=-1)), color
+
+
+def test_trajectory_plot_on_background(tmp_path):
+  tracks = np.stack([np.linspace([2, 2], [20, 10], 5), np.linspace([30, 5], [5, 30], 5)])
+  path = plot.trajectory_plot(tmp_path / "t.png", tracks, title="flow",
+                              background=np.zeros((32, 32, 3)), size=64)
+  assert Image.open(path).size == (64, 64)
+
+
+@pytest.mark.slow
+def test_entry_point_end_to_end(tmp_path):
+  """`python -m experiments.re10k --preset smoke`: generate, train, evaluate, write every file."""
+  out = tmp_path / "results"
+  completed = subprocess.run(
+      [sys.executable, "-m", "experiments.re10k", "--preset", "smoke", "--output-dir", str(out),
+       "--synthetic-dir", str(tmp_path / "data")],
+      cwd=REPO, capture_output=True, text=True, timeout=600, check=False)
+  assert completed.returncode == 0, completed.stderr[-4000:]
+  payload = json.loads((out / "metrics.json").read_text())
+  assert set(payload["metrics"]) == {"mean_colour", "untrained", "trained", "trained+token_tuning"}
+  for method in payload["metrics"].values():
+    assert len(method["per_scene"]) == 2
+    for value in method["mean"].values():
+      assert math.isfinite(value)
+  for name in ("metrics.md", "flythrough.mp4", "gaussians.ply", "params.msgpack",
+               "train_history.json"):
+    assert (out / name).stat().st_size > 0, name
+  assert list((out / "grids").glob("*.png"))
+  assert list((out / "tensorboard").glob("events.out.tfevents.*"))
+  ply = export.read_ply(out / "gaussians.ply")
+  assert ply["means"].shape == (64, 3) and np.isfinite(ply["means"]).all()
+
+
+@pytest.mark.slow
+def test_kubric_entry_point_end_to_end(tmp_path):
+  """`python -m experiments.kubric` on two tiny generated scenes: dynamic pictures and metrics."""
+  out = tmp_path / "results"
+  completed = subprocess.run(
+      [sys.executable, "-m", "experiments.kubric", "--output-dir", str(out),
+       "--synthetic-dir", str(tmp_path / "data"), "--synthetic.num-train", "2",
+       "--synthetic.num-test", "1", "--synthetic.frames", "6", "--synthetic.workers", "1",
+       "--num-cameras", "2", "--max-gap", "4", "--train.steps", "2", "--train.batch-size", "2",
+       "--train.log-every", "1", "--eval.num-scenes", "1", "--eval.video-frames", "2",
+       "--flow-times", "3", "--model-overrides", "dec_patch_size=4", "num_dynamic_gs_tokens=2",
+       "time_embedding=True", "enc_depth=1", "dec_depth=1", "enc_embed_dim=32", "enc_num_heads=2",
+       "num_gs_tokens=4"],
+      cwd=REPO, capture_output=True, text=True, timeout=600, check=False)
+  assert completed.returncode == 0, completed.stderr[-4000:]
+  payload = json.loads((out / "metrics.json").read_text())
+  assert set(payload["metrics"]) == {"mean_colour", "untrained", "trained"}
+  assert math.isfinite(payload["metrics"]["trained"]["mean"]["psnr"])
+  assert math.isfinite(payload["dynamic"]["mean_dynamic_displacement_t0_t1"])
+  for name in ("in_between_times.png", "static_dynamic.png", "scene_flow.png"):
+    assert (out / "dynamic" / name).stat().st_size > 0, name
+
+
+def test_tick_labels_keep_significant_zeros():
+  ticks = np.array([0.0, 10.0, 25.0, 50.0])
+  assert [plot._label(v, ticks) for v in ticks] == ["0", "10", "25", "50"]
+  assert plot._label(19.0, np.array([18.5, 19.0, 19.5])) == "19"
