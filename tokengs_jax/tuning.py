@@ -15,6 +15,12 @@ fixed, and the network parameters are never updated (they are closed over, not o
 - "tokens+gaussians": both at once (the paper leaves joint tuning open): tokens as above plus
   Gaussian offsets on top of the decoded Gaussians, each with its own learning rate.
 
+Dynamic (time-conditioned) models: pass the input views' `times`; each input view is then
+rendered from the Gaussians decoded at its time (`train.objective.time_conditioned_loss`), and
+the result is decoded at `output_times` (evaluation: the target views' times). The official
+`to_ttt()` drops the target time, so its tuning and its tuned output are time-free; that is what
+`times=None` gives here.
+
 Context extension needs nothing here: pass more input views than the model was trained with; the
 Gaussian count stays `config.num_gaussians`.
 
@@ -37,7 +43,12 @@ import optax
 from tokengs_jax import losses, model, splatting
 from tokengs_jax.camera import invert_rigid, plucker_rays
 from tokengs_jax.gaussians import Gaussians
-from tokengs_jax.train.objective import ObjectiveConfig, supervision_loss
+from tokengs_jax.train.objective import (
+    ObjectiveConfig,
+    decode_at_times,
+    supervision_loss,
+    time_conditioned_loss,
+)
 
 Target = Literal["tokens", "latents", "gaussians", "tokens+gaussians"]
 
@@ -101,8 +112,16 @@ def _offset(gaussians: Gaussians, offsets: Gaussians) -> Gaussians:
                                               "render_config", "objective"))
 def tune(params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array, *, model_config,
          tuning: TuningConfig = TuningConfig(), loss_config=None, render_config=None,
-         objective: ObjectiveConfig | None = None) -> TuningResult:
+         objective: ObjectiveConfig | None = None, times: jax.Array | None = None,
+         output_times: jax.Array | None = None) -> TuningResult:
   """Reconstructs a scene from its input views and tunes it on them.
+
+  Time-conditioned models with `times`: the input views are encoded with their times, and the
+  tuning loss renders every input view from the Gaussians decoded at that view's time
+  (`train.objective.time_conditioned_loss`, with the dynamic auxiliary term at its base weight
+  when `loss_config.lambda_dyn_aux > 0`); tokens / latents are shared by all times, Gaussian
+  offsets are time-independent (added to the Gaussians of every time). Without `times` a
+  time-conditioned model decodes time-free (no target-time embedding).
 
   Args:
     params: network parameters (read only).
@@ -114,24 +133,33 @@ def tune(params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array, *, mo
     loss_config: `losses.LossConfig` (default: the training loss).
     render_config: `splatting.RenderConfig`.
     objective: view chunking, background, near/far of the input-view renders (default
-      `ObjectiveConfig()`).
+      `ObjectiveConfig()`; its `decode_times` is ignored: input views have their own times).
+    times: [B, V] normalised input-view times (time-conditioned models).
+    output_times: [B, T] times at which to return the tuned Gaussians (default `times`).
 
   Returns:
-    `TuningResult` (with `tuning.steps == 0`: the feed-forward Gaussians and their loss).
+    `TuningResult` (with `tuning.steps == 0`: the feed-forward Gaussians and their loss); its
+    Gaussians have batch shape [B], or [B, T] (one set per output time) with `times`.
   """
   loss_config = losses.LossConfig() if loss_config is None else loss_config
   render_config = splatting.RenderConfig() if render_config is None else render_config
   objective = ObjectiveConfig() if objective is None else objective
+  timed = times is not None
+  if timed and not model_config.time_embedding:
+    raise ValueError("times given for a model without time embedding")
   height, width = images.shape[-3], images.shape[-2]
   # The encoder runs once; stop_gradient keeps the loop from differentiating into it.
   encoded = jax.lax.stop_gradient(model.encode(
       params, model.normalize_images(images), plucker_rays(c2w, intrinsics, height, width),
-      model_config))
+      model_config, times=times))
   world_to_camera = invert_rigid(c2w)
 
-  def decode(tokens=None, latents=None) -> Gaussians:
+  def decode(tokens=None, latents=None, at_times=None) -> Gaussians:
+    """Gaussians [B] (time-free), or [B, T] at `at_times` [B, T]."""
     source = encoded if latents is None else model.kv_from_latents(params, latents, model_config)
-    return Gaussians.from_flat(model.decode(params, source, model_config, tokens=tokens))
+    if at_times is None:
+      return Gaussians.from_flat(model.decode(params, source, model_config, tokens=tokens))
+    return decode_at_times(params, source, model_config, at_times, tokens=tokens)
 
   target = tuning.target
   variables, learning_rates = {}, {}
@@ -146,18 +174,35 @@ def tune(params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array, *, mo
     learning_rates["latents"] = tuning.learning_rate
   if target in ("gaussians", "tokens+gaussians"):
     feed_forward = jax.lax.stop_gradient(decode())
+    # one offset per Gaussian, shared by every time
     variables["offsets"] = jax.tree.map(jnp.zeros_like, feed_forward)
     learning_rates["offsets"] = tuning.gaussian_learning_rate
   if not variables:
     raise ValueError(f"unknown tuning target {target!r}")
 
-  def gaussians_of(v) -> Gaussians:
+  def gaussians_of(v, at_times=None) -> Gaussians:
     if "offsets" not in v:
-      return decode(tokens=v.get("tokens"), latents=v.get("latents"))
-    base = decode(tokens=v["tokens"]) if "tokens" in v else feed_forward
-    return _offset(base, v["offsets"])
+      return decode(tokens=v.get("tokens"), latents=v.get("latents"), at_times=at_times)
+    if "tokens" in v:
+      base = decode(tokens=v["tokens"], at_times=at_times)
+    elif at_times is None:
+      base = feed_forward
+    else:  # the feed-forward Gaussians at these times (forward only)
+      base = jax.lax.stop_gradient(decode(at_times=at_times))
+    offsets = v["offsets"] if at_times is None else jax.tree.map(lambda x: x[:, None],
+                                                                  v["offsets"])
+    return _offset(base, offsets)
+
+  # the dynamic auxiliary term as official TTT: the loss of a fresh model, i.e. its base weight
+  with_aux = model_config.num_dynamic_gs_tokens > 0 and model_config.num_gs_tokens > 0
+  per_view = dataclasses.replace(objective, decode_times="per_view")
 
   def loss_of(v):
+    if timed:
+      return time_conditioned_loss(
+          lambda t: gaussians_of(v, t), times, images, world_to_camera, intrinsics, loss_config,
+          render_config, per_view,
+          num_static_gaussians=model_config.num_static_gaussians if with_aux else None)[0]
     return supervision_loss(gaussians_of(v), images, world_to_camera, intrinsics, loss_config,
                             render_config, objective)[0]
 
@@ -173,24 +218,39 @@ def tune(params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array, *, mo
 
   (variables, _), step_losses = jax.lax.scan(step, (variables, optimizer.init(variables)), None,
                                              length=tuning.steps)
-  gaussians = gaussians_of(variables)
-  final_loss = supervision_loss(gaussians, images, world_to_camera, intrinsics, loss_config,
-                                render_config, objective)[0]
+  final_loss = loss_of(variables)
+  if timed:
+    gaussians = gaussians_of(variables, times if output_times is None else output_times)
+  else:
+    gaussians = gaussians_of(variables)
   return TuningResult(gaussians=gaussians, losses=jnp.append(step_losses, final_loss))
 
 
 @functools.partial(jax.jit, static_argnames=("model_config",))
-def _feed_forward(params, images, c2w, intrinsics, *, model_config) -> Gaussians:
-  return model.reconstruct(params, images, c2w, intrinsics, config=model_config)
+def _feed_forward(params, images, c2w, intrinsics, times=None, output_times=None, *,
+                  model_config) -> Gaussians:
+  """Gaussians [B], or [B, T] at `output_times` [B, T] (time-conditioned, `times` [B, V])."""
+  if times is None:
+    return model.reconstruct(params, images, c2w, intrinsics, config=model_config)
+  height, width = images.shape[-3], images.shape[-2]
+  encoded = model.encode(params, model.normalize_images(images),
+                         plucker_rays(c2w, intrinsics, height, width), model_config, times=times)
+  return decode_at_times(params, encoded, model_config, output_times)
 
 
 @functools.partial(jax.jit, static_argnames=("height", "width", "render_config", "objective"))
 def _render_targets(gaussians, c2w, intrinsics, *, height, width, render_config, objective):
+  """Target views [B, V] from Gaussians [B] (all views) or [B, V] (one set per view)."""
   gaussians = jax.tree.map(lambda x: x.astype(jnp.float32), gaussians)
-  rendered = splatting.render(gaussians, invert_rigid(c2w), intrinsics, height=height, width=width,
+  world_to_camera = invert_rigid(c2w)
+  per_view = len(gaussians.batch_shape) == world_to_camera.ndim - 2
+  if per_view:  # each set seen by its own view only: a batch [B, V] of single-view renders
+    world_to_camera, intrinsics = world_to_camera[:, :, None], intrinsics[:, :, None]
+  rendered = splatting.render(gaussians, world_to_camera, intrinsics, height=height, width=width,
                               background=jnp.asarray(objective.background, jnp.float32),
                               near=objective.near, far=objective.far, config=render_config)
-  return jnp.clip(rendered.rgb, 0.0, 1.0)
+  rgb = rendered.rgb[:, :, 0] if per_view else rendered.rgb
+  return jnp.clip(rgb, 0.0, 1.0)
 
 
 def evaluate(params, batch: dict, *, model_config, tuning: TuningConfig | None = None,
@@ -203,7 +263,9 @@ def evaluate(params, batch: dict, *, model_config, tuning: TuningConfig | None =
 
   Args:
     params: network parameters.
-    batch: the data contract's dict (`context_*`, `target_*`), batch size B.
+    batch: the data contract's dict (`context_*`, `target_*`), batch size B. For a
+      time-conditioned model with `context_times` / `target_times`, every target view is rendered
+      from the Gaussians decoded (and tuned, see `tune`) at its own time.
     model_config, tuning, loss_config, render_config, objective: as `tune`.
     lpips_params: `tokengs_jax.lpips.load_vgg_params()` (loaded here when None).
 
@@ -219,12 +281,18 @@ def evaluate(params, batch: dict, *, model_config, tuning: TuningConfig | None =
   render_config = splatting.RenderConfig() if render_config is None else render_config
   objective = ObjectiveConfig() if objective is None else objective
   context = (batch["context_images"], batch["context_c2w"], batch["context_intrinsics"])
+  # time-conditioned models with timed data: Gaussians decoded at every target view's time
+  times, output_times = ((batch["context_times"], batch["target_times"])
+                         if model_config.time_embedding and "context_times" in batch
+                         else (None, None))
   start = time.perf_counter()
   if tuning is None:
-    gaussians, tuning_losses = _feed_forward(params, *context, model_config=model_config), None
+    gaussians = _feed_forward(params, *context, times, output_times, model_config=model_config)
+    tuning_losses = None
   else:
     result = tune(params, *context, model_config=model_config, tuning=tuning,
-                  loss_config=loss_config, render_config=render_config, objective=objective)
+                  loss_config=loss_config, render_config=render_config, objective=objective,
+                  times=times, output_times=output_times)
     gaussians, tuning_losses = result.gaussians, result.losses
   jax.block_until_ready(gaussians)
   seconds = time.perf_counter() - start

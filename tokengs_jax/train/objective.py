@@ -4,15 +4,25 @@
 processed `chunk_size` at a time in a `lax.scan` whose body is rematerialised, so the backward pass
 recomputes one chunk's render at a time and peak memory holds one chunk's intermediates instead
 of every view's. The gradient is that of the one-shot mean (up to float summation order).
+
+Dynamic (time-conditioned) models: the context is encoded once; the Gaussians are decoded once
+per target view at that view's time (`decode_at_times`, a vmap over times with the keys/values
+shared), inside the view chunks, so the memory-lean path bounds the decoder's activations too;
+each view is rendered from the Gaussians of its own time (`time_conditioned_loss`), plus the
+dynamic auxiliary loss of the official Kubric models (the same loss on a render of the dynamic
+Gaussians alone) weighted by `losses.dynamic_aux_weight(step)`.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
+
+from tokengs_jax.gaussians import Gaussians
 
 
 def mean_over_view_chunks(chunk_loss: Callable, views, chunk_size: int | None):
@@ -53,14 +63,25 @@ class ObjectiveConfig:
 
   Attributes:
     view_chunk_size: target views rendered (and differentiated) together; None: all at once.
+      Time-conditioned models also decode per chunk, so this bounds the decoder's memory too.
     background: RGB behind the Gaussians (official `bg_color` default "grey" = 0.5).
     near, far: renderer depth culling (official znear / zfar).
+    decode_times: time-conditioned models only. "per_view": decode the Gaussians at every target
+      view's own time; "first": decode once, at the first target view's time, and render every
+      target view from it (the official `split_data` reads the target time from that one view;
+      identical results, one decode instead of V, when all target views share a time, as the
+      Kubric sampler's do).
   """
 
   view_chunk_size: int | None = None
   background: tuple[float, float, float] = (0.5, 0.5, 0.5)
   near: float = 0.025
   far: float = 125.0
+  decode_times: Literal["per_view", "first"] = "per_view"
+
+  def __post_init__(self):
+    if self.decode_times not in ("per_view", "first"):
+      raise ValueError(f"decode_times must be 'per_view' or 'first', got {self.decode_times!r}")
 
 
 def supervision_loss(gaussians, images, world_to_camera, intrinsics, loss_config, render_config,
@@ -117,37 +138,196 @@ def supervision_loss(gaussians, images, world_to_camera, intrinsics, loss_config
   return loss, terms
 
 
+def decode_at_times(params, encoded, model_config, times: jax.Array,
+                    tokens: jax.Array | None = None) -> Gaussians:
+  """Gaussians of a time-conditioned model at several times, from one encoding.
+
+  The decoder is vmapped over the times; the encoder's keys/values are closed over, so they are
+  computed once and shared by every decode.
+
+  Args:
+    params: network parameters.
+    encoded: `model.encode(...)` of the context views (or `model.kv_from_latents(...)`).
+    model_config: `model.ModelConfig` with `time_embedding`.
+    times: [B, T] normalised times to decode at.
+    tokens: [B, num_tokens, C] Gaussian tokens replacing the learnt ones (token tuning); None
+      uses the learnt tokens.
+
+  Returns:
+    `Gaussians` with batch shape [B, T] (static Gaussians first, identical at every time).
+  """
+  from tokengs_jax import model
+
+  def decode_one(time):  # time: [B]
+    return model.decode(params, encoded, model_config, tokens=tokens, times=time)
+
+  return Gaussians.from_flat(jax.vmap(decode_one, in_axes=1, out_axes=1)(times))
+
+
+def _slice_gaussians(gaussians: Gaussians, start: int) -> Gaussians:
+  """Gaussians [..., start:] of each scene (the dynamic ones, for start = #static)."""
+  return Gaussians.from_flat(gaussians.to_flat()[..., start:, :])
+
+
+def time_conditioned_loss(gaussians_at: Callable[[jax.Array], Gaussians], times: jax.Array,
+                          images: jax.Array, world_to_camera: jax.Array, intrinsics: jax.Array,
+                          loss_config, render_config, objective: ObjectiveConfig = ObjectiveConfig(),
+                          lpips_params=None, *, num_static_gaussians: int | None = None,
+                          step: jax.Array | int = 0):
+  """Loss of time-conditioned Gaussians against views taken at different times.
+
+  Each view is rendered from `gaussians_at` its own time (or, with `objective.decode_times ==
+  "first"`, every view from the Gaussians at the first view's time) and scored with
+  `losses.render_loss`. The views are processed in rematerialised chunks of
+  `objective.view_chunk_size`, and `gaussians_at` runs inside each chunk, so peak memory holds one
+  chunk's decodes and renders. Visibility: the Gaussians of each view's time are projected into
+  all views (min over views as the official loss, whose single target time this generalises),
+  averaged over the views' times.
+
+  With `num_static_gaussians` set and `loss_config.lambda_dyn_aux > 0`, adds the official dynamic
+  auxiliary loss: the same loss (photometric + visibility) of a render of the Gaussians
+  `[num_static_gaussians:]` alone against the same views, weighted by
+  `losses.dynamic_aux_weight(step)`; it is not evaluated while that weight is 0.
+
+  Args:
+    gaussians_at: `times [B, T] -> Gaussians [B, T]` (e.g. `decode_at_times` closed over params).
+    times: [B, V] normalised time of each supervision view.
+    images: [B, V, H, W, 3] supervision images in [0, 1].
+    world_to_camera: [B, V, 4, 4].
+    intrinsics: [B, V, 4] in pixels.
+    loss_config: `losses.LossConfig`.
+    render_config: `splatting.RenderConfig`.
+    objective: view chunking, background, near/far, decode_times.
+    lpips_params: VGG weights when `loss_config.lambda_lpips > 0`.
+    num_static_gaussians: where the dynamic Gaussians start (`ModelConfig.num_static_gaussians`);
+      None: no auxiliary loss.
+    step: [] int, the training step the auxiliary weight's schedule reads.
+
+  Returns:
+    `(loss, terms)`: as `supervision_loss`, plus "dyn_aux" (the auxiliary loss, 0 while its
+    weight is 0), "dyn_aux_weight" and "dyn_aux_psnr" when the auxiliary loss is on.
+  """
+  from tokengs_jax import losses, splatting
+
+  height, width = images.shape[-3], images.shape[-2]
+  world_to_camera = world_to_camera.astype(jnp.float32)
+  intrinsics = intrinsics.astype(jnp.float32)
+  photometric = dataclasses.replace(loss_config, lambda_vis=0.0)
+  background = jnp.asarray(objective.background, jnp.float32)
+  with_aux = num_static_gaussians is not None and loss_config.lambda_dyn_aux > 0
+  aux_weight = losses.dynamic_aux_weight(step, loss_config)
+
+  def decoded(chunk_times):
+    return jax.tree.map(lambda x: x.astype(jnp.float32), gaussians_at(chunk_times))
+
+  shared = decoded(times[:, :1]) if objective.decode_times == "first" else None
+
+  def scored(gaussians, views):
+    """Loss of Gaussians [B, Vc or 1, N] rendered into the chunk's views [B, Vc]."""
+    rendered = splatting.render(
+        gaussians, views["world_to_camera"][:, :, None], views["intrinsics"][:, :, None],
+        height=height, width=width, background=background, near=objective.near,
+        far=objective.far, config=render_config)
+    loss, terms = losses.render_loss(rendered.rgb[:, :, 0], views["images"], photometric,
+                                     lpips_params=lpips_params)
+    if loss_config.lambda_vis > 0:
+      # the Gaussians of each time against every view: [B, Vc or 1]
+      terms["visibility"] = jnp.mean(losses.visibility_loss(
+          gaussians.means, world_to_camera[:, None], intrinsics[:, None], height, width,
+          threshold=loss_config.visibility_threshold, near=loss_config.near))
+      loss = loss + loss_config.lambda_vis * terms["visibility"]
+      terms["loss"] = loss
+    return loss, terms, rendered.stats
+
+  def chunk_loss(views):
+    gaussians = decoded(views["times"]) if shared is None else shared
+    loss, terms, stats = scored(gaussians, views)
+    terms["render_overflow"] = jnp.mean(stats.overflow.astype(jnp.float32))
+    terms["visible"] = jnp.mean(stats.num_visible.astype(jnp.float32))
+    if with_aux:
+      dynamic = _slice_gaussians(gaussians, num_static_gaussians)
+
+      def dynamic_loss():
+        loss, terms, _ = scored(dynamic, views)
+        return loss, terms["psnr"]
+
+      zero = jnp.zeros((), jnp.float32)
+      # once the schedule has decayed to 0 the second render is skipped, as official
+      dyn_loss, dyn_psnr = jax.lax.cond(aux_weight > 0, dynamic_loss, lambda: (zero, zero))
+      loss, terms = losses.add_dynamic_aux(loss, terms, dyn_loss, step, loss_config)
+      terms["dyn_aux_psnr"] = dyn_psnr
+    return loss, terms
+
+  views = {"world_to_camera": world_to_camera, "intrinsics": intrinsics,
+           "images": images.astype(jnp.float32), "times": jnp.asarray(times, jnp.float32)}
+  return mean_over_view_chunks(chunk_loss, views, objective.view_chunk_size)
+
+
 def tokengs_loss_fn(model_config, loss_config=None, render_config=None,
                     objective: ObjectiveConfig = ObjectiveConfig(), lpips_params=None):
   """The TokenGS training loss `(params, batch, key) -> (loss, terms)` for `train_step`.
 
-  context views -> `model.reconstruct` -> Gaussians -> `supervision_loss` on the target views.
+  Static models: context views -> `model.reconstruct` -> Gaussians -> `supervision_loss` on the
+  target views. Time-conditioned models (`model_config.time_embedding`): context views and
+  `batch["context_times"]` -> `model.encode` once -> `decode_at_times` at `batch["target_times"]`
+  -> `time_conditioned_loss` (each target view rendered from the Gaussians at its time, plus the
+  dynamic auxiliary loss when `loss_config.lambda_dyn_aux > 0` and the model has static and
+  dynamic tokens, as official).
+
+  The auxiliary weight's schedule reads `batch["step"]` ([B] int, every entry the step; the loop
+  in `train.loop` adds it); without it the step is taken as 0, which is refused when the weight
+  decays (`dyn_aux_decay_steps > 0`).
 
   Args:
     model_config: `tokengs_jax.model.ModelConfig` (its `dtype` is the network's compute dtype).
     loss_config: `tokengs_jax.losses.LossConfig` (default: official weights).
     render_config: `tokengs_jax.splatting.RenderConfig` (default: its defaults).
-    objective: view chunking, background, near/far.
+    objective: view chunking, background, near/far, decode_times.
     lpips_params: VGG weights when `loss_config.lambda_lpips > 0`.
 
   Returns:
-    The loss function (see `supervision_loss` for the terms).
+    The loss function (see `supervision_loss` / `time_conditioned_loss` for the terms).
   """
   from tokengs_jax import losses, model, splatting
-  from tokengs_jax.camera import invert_rigid
+  from tokengs_jax.camera import invert_rigid, plucker_rays
 
   loss_config = losses.LossConfig() if loss_config is None else loss_config
   render_config = splatting.RenderConfig() if render_config is None else render_config
-  if model_config.time_embedding:
-    raise ValueError("tokengs_loss_fn covers static models; dynamic (time-conditioned) training "
-                     "needs one decode per target time and is not implemented")
+  # the official model adds the auxiliary loss only when it has both kinds of tokens
+  with_aux = (loss_config.lambda_dyn_aux > 0 and model_config.num_dynamic_gs_tokens > 0
+              and model_config.num_gs_tokens > 0)
 
-  def loss_fn(params, batch, key):
-    del key  # the network is deterministic; augmentation belongs to the data pipeline
+  def static_loss(params, batch):
     gaussians = model.reconstruct(params, batch["context_images"], batch["context_c2w"],
                                   batch["context_intrinsics"], config=model_config)
     return supervision_loss(gaussians, batch["target_images"], invert_rigid(batch["target_c2w"]),
                             batch["target_intrinsics"], loss_config, render_config, objective,
                             lpips_params)
+
+  def dynamic_loss(params, batch):
+    if "step" in batch:
+      step = batch["step"][0]
+    elif with_aux and loss_config.dyn_aux_decay_steps > 0:
+      raise ValueError("the dynamic auxiliary weight decays with the step: the batch needs "
+                       "'step' ([B] int), which `train.loop.train` adds")
+    else:
+      step = 0
+    images = batch["context_images"]
+    height, width = images.shape[-3], images.shape[-2]
+    encoded = model.encode(
+        params, model.normalize_images(images),
+        plucker_rays(batch["context_c2w"], batch["context_intrinsics"], height, width),
+        model_config, times=batch["context_times"])
+    return time_conditioned_loss(
+        lambda times: decode_at_times(params, encoded, model_config, times),
+        batch["target_times"], batch["target_images"], invert_rigid(batch["target_c2w"]),
+        batch["target_intrinsics"], loss_config, render_config, objective, lpips_params,
+        num_static_gaussians=model_config.num_static_gaussians if with_aux else None, step=step)
+
+  def loss_fn(params, batch, key):
+    del key  # the network is deterministic; augmentation belongs to the data pipeline
+    if model_config.time_embedding:
+      return dynamic_loss(params, batch)
+    return static_loss(params, batch)
 
   return loss_fn
