@@ -11,7 +11,7 @@ import pytest
 from conftest import FIXTURES
 
 from tokengs_jax.gaussians import Gaussians
-from tokengs_jax.splatting import RenderConfig, render
+from tokengs_jax.splatting import RenderConfig, binning, render
 from tokengs_jax.splatting.reference import render_dense
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
@@ -236,3 +236,31 @@ def test_means2d_carry_gradient_for_visibility_losses():
   # d u / d x = fx / z for a camera looking down +z.
   z = g.means[:, 2] + 3.0
   np.testing.assert_allclose(grad[:, 0], INTR[0] / z, rtol=1e-5)
+
+
+@hypothesis.settings(max_examples=20, deadline=None, derandomize=True)
+@hypothesis.given(seed=st.integers(0, 2**31 - 1))
+def test_min_sigma_over_tile_is_the_minimum_over_its_pixels(seed):
+  # The ellipse-tile test drops a (Gaussian, tile) pair only if this bound says no pixel centre of
+  # the tile reaches the alpha threshold: it must never exceed the true minimum over the pixels.
+  rng = np.random.default_rng(seed)
+  height, width, tile = 40, 52, 16
+  means = rng.uniform(-30, 80, (64, 2))
+  basis = rng.normal(size=(64, 2, 2)) * np.exp(rng.uniform(-1, 3, (64, 1, 1)))
+  cov = basis @ np.swapaxes(basis, 1, 2) + 0.3 * np.eye(2)
+  inv = np.linalg.inv(cov)
+  conics = np.stack([inv[:, 0, 0], inv[:, 0, 1], inv[:, 1, 1]], -1)
+  tile_x, tile_y = rng.integers(0, 4, 64), rng.integers(0, 3, 64)
+  bound = np.asarray(binning.min_sigma_over_tile(
+      jnp.asarray(means, jnp.float32), jnp.asarray(conics, jnp.float32), jnp.asarray(tile_x),
+      jnp.asarray(tile_y), tile_size=tile, height=height, width=width))
+  for i in range(64):
+    cols = np.arange(tile_x[i] * tile, min(tile_x[i] * tile + tile, width)) + 0.5
+    rows = np.arange(tile_y[i] * tile, min(tile_y[i] * tile + tile, height)) + 0.5
+    dx = means[i, 0] - cols[None, :]
+    dy = means[i, 1] - rows[:, None]
+    sigma = 0.5 * (conics[i, 0] * dx * dx + conics[i, 2] * dy * dy) + conics[i, 1] * dx * dy
+    # float32 rounding only, 10x below the 1e-3 slack binning adds before dropping a pair.
+    assert bound[i] <= sigma.min() * (1 + 1e-4) + 1e-4, i
+    inside = cols[0] <= means[i, 0] <= cols[-1] and rows[0] <= means[i, 1] <= rows[-1]
+    assert (bound[i] == 0) == inside, i  # zero only where the mean lies inside the pixel rectangle

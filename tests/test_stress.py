@@ -264,11 +264,28 @@ def test_budget_overflow_is_reported_and_drops_the_farthest():
   assert_finite(out, grads)
   full, _ = run(g)
   assert bool(out.stats.overflow) and not bool(full.stats.overflow)
+  assert bool(out.stats.truncated) and not bool(full.stats.truncated)
   assert int(out.stats.budget) == 8 and int(out.stats.num_intersections) > 8
   # The nearest Gaussian (all 6 of its tiles within the budget) is intact where nothing else is.
   near_only, _ = run(scene(means=means[:1], opacities=[0.5], scales=[[0.3] * 3]))
   np.testing.assert_allclose(out.rgb[12, 18], near_only.rgb[12, 18], atol=0.2)
   assert float(out.alpha.sum()) < float(full.alpha.sum())
+
+
+def test_budget_cut_behind_saturated_pixels_is_lossless():
+  # Five opaque layers saturate every pixel (T <= 0.1^5 at the corners); the budget then cuts the
+  # far Gaussians' tiles, which is reported as truncation but not as overflow, and changes nothing.
+  near = [[0, 0, 2.0 + 0.01 * i] for i in range(5)]
+  far = [[0.3 * i - 0.6, 0.1, 5.0 + i] for i in range(5)]
+  g = scene(means=near + far, opacities=[1.0] * 5 + [0.8] * 5, scales=[[3.0] * 3] * 5 + [[0.5] * 3] * 5,
+            num=10)
+  cut, grads = run(g, config=RenderConfig(max_intersections=32, chunk_size=8))
+  full, full_grads = run(g)
+  assert_finite(cut, grads)
+  assert bool(cut.stats.truncated) and not bool(cut.stats.overflow)
+  assert not bool(full.stats.truncated) and int(cut.stats.num_intersections) > 32
+  np.testing.assert_array_equal(cut.rgb, full.rgb)
+  np.testing.assert_allclose(grads.means, full_grads.means, atol=1e-6 * np.abs(full_grads.means).max())
 
 
 def test_bfloat16_inputs_compute_in_float32():

@@ -21,12 +21,16 @@ class TileBins:
     tile_starts: [T] first entry of each tile in `gaussian_ids`.
     tile_ends: [T] one past the last entry of each tile.
     num_intersections: [] int32 number of pairs the scene needs (may exceed B).
+    tile_truncated: [T] bool, the budget cut some of this tile's pairs. Cuts go by depth, so a
+      truncated tile still holds a front-to-back prefix of its Gaussians: it loses nothing when its
+      pixels saturate before that prefix runs out.
   """
 
   gaussian_ids: jax.Array
   tile_starts: jax.Array
   tile_ends: jax.Array
   num_intersections: jax.Array
+  tile_truncated: jax.Array
 
 
 def tile_rectangles(means2d, radii, *, tile_size, tiles_x, tiles_y):
@@ -43,21 +47,57 @@ def tile_rectangles(means2d, radii, *, tile_size, tiles_x, tiles_y):
   return lo[:, 0], hi[:, 0], lo[:, 1], hi[:, 1]
 
 
-def bin_gaussians(means2d, radii, depths, visible, *, tile_size, tiles_x, tiles_y, budget) -> TileBins:
+def min_sigma_over_tile(means2d, conics, tile_x, tile_y, *, tile_size, height, width):
+  """Lower bound of sigma = a dx²/2 + b dx dy + c dy²/2 over the pixel centres of a tile.
+
+  The exact minimum of the convex quadratic over the rectangle spanned by the tile's pixel centres
+  (clipped to the image): 0 if the mean is inside, else the least of the four edge minima.
+
+  Args:
+    means2d: [M, 2]; conics: [M, 3] (positive definite); tile_x, tile_y: [M] int32.
+  Returns:
+    [M] minimum sigma.
+  """
+  a, b, c = conics[:, 0], conics[:, 1], conics[:, 2]
+  left = tile_x * tile_size + 0.5
+  top = tile_y * tile_size + 0.5
+  x0, x1 = left - means2d[:, 0], jnp.minimum(left + tile_size - 1, width - 0.5) - means2d[:, 0]
+  y0, y1 = top - means2d[:, 1], jnp.minimum(top + tile_size - 1, height - 0.5) - means2d[:, 1]
+
+  def sigma(dx, dy):
+    return 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+
+  # On a vertical edge dx = x the minimising dy is clip(-b x / c); on a horizontal one likewise.
+  edges = [sigma(x, jnp.clip(-b * x / c, y0, y1)) for x in (x0, x1)]
+  edges += [sigma(jnp.clip(-b * y / a, x0, x1), y) for y in (y0, y1)]
+  inside = (x0 <= 0) & (x1 >= 0) & (y0 <= 0) & (y1 >= 0)
+  return jnp.where(inside, 0.0, jnp.minimum(jnp.minimum(edges[0], edges[1]),
+                                            jnp.minimum(edges[2], edges[3])))
+
+
+def bin_gaussians(means2d, radii, depths, visible, conics, opacities, *, tile_size, tiles_x, tiles_y,
+                  height, width, alpha_threshold, budget) -> TileBins:
   """Builds the per-tile, depth-ordered intersection lists with a fixed budget.
 
   Gaussians are ranked by (depth, index) first and their intersections emitted in rank order, so a
   budget overflow drops the farthest Gaussians' tiles, never a near one. The sort key packs
   (tile, rank) into one int32 when it fits (exact order, one single-key sort), else a two-key sort.
 
+  The budget holds every tile of each radius box (gsplat's rule, what `num_intersections` counts),
+  but a box tile where the Gaussian's alpha stays below `alpha_threshold` at every pixel centre
+  (min sigma over the tile > ln(opacity / threshold)) is sorted behind all tiles: the compositor
+  would skip it at every pixel anyway, so dropping it changes nothing but the work.
+
   Args:
-    means2d: [N, 2]; radii: [N, 2]; depths: [N]; visible: [N] bool.
-    tile_size, tiles_x, tiles_y: tiling; budget: static number of intersection slots B.
+    means2d: [N, 2]; radii: [N, 2]; depths: [N]; visible: [N] bool; conics: [N, 3]; opacities: [N].
+    tile_size, tiles_x, tiles_y, height, width: tiling; alpha_threshold: the compositor's skip rule;
+    budget: static number of intersection slots B.
     N must be at least 1 (`render` handles empty scenes before binning).
   """
   num = depths.shape[0]
   num_tiles = tiles_x * tiles_y
-  means2d, radii, depths = jax.lax.stop_gradient((means2d, radii, depths))
+  means2d, radii, depths, conics, opacities = jax.lax.stop_gradient(
+      (means2d, radii, depths, conics, opacities))
   x0, x1, y0, y1 = tile_rectangles(means2d, radii, tile_size=tile_size, tiles_x=tiles_x, tiles_y=tiles_y)
   counts = jnp.where(visible, (x1 - x0) * (y1 - y0), 0)
 
@@ -75,10 +115,16 @@ def bin_gaussians(means2d, radii, depths, visible, *, tile_size, tiles_x, tiles_
   slot_rank = jax.lax.cummax(marks)
   slot_gauss = order[slot_rank]
   local = slots - starts[slot_rank]
-  width = jnp.maximum(x1 - x0, 1)[slot_gauss]
-  tile_x = x0[slot_gauss] + local % width
-  tile_y = y0[slot_gauss] + local // width
-  slot_tile = jnp.where(slots < total, tile_y * tiles_x + tile_x, num_tiles)  # padding sorts last
+  box_width = jnp.maximum(x1 - x0, 1)[slot_gauss]
+  tile_x = x0[slot_gauss] + local % box_width
+  tile_y = y0[slot_gauss] + local // box_width
+  sigma_floor = min_sigma_over_tile(means2d[slot_gauss], conics[slot_gauss], tile_x, tile_y,
+                                    tile_size=tile_size, height=height, width=width)
+  # Slack far above float rounding: a kept pair only costs work, a wrongly dropped one changes
+  # pixels. Written as "not beyond" so that a NaN bound (a conic entry underflowing to 0) keeps it.
+  reach = jnp.log(jnp.maximum(opacities[slot_gauss], alpha_threshold) / alpha_threshold)
+  touches = ~(sigma_floor > reach * (1.0 + 1e-3) + 1e-3)
+  slot_tile = jnp.where((slots < total) & touches, tile_y * tiles_x + tile_x, num_tiles)  # rest last
 
   if (num_tiles + 1) * num <= _INT32_MAX:
     keys = jnp.sort(slot_tile * num + slot_rank)
@@ -87,10 +133,18 @@ def bin_gaussians(means2d, radii, depths, visible, *, tile_size, tiles_x, tiles_
   else:
     sorted_tile, sorted_rank = jax.lax.sort((slot_tile, slot_rank), num_keys=2)
   gaussian_ids = order[sorted_rank]
+  # Tiles of every Gaussian cut (wholly or partly) by the budget: +-1 at its box corners, then a 2D
+  # prefix sum counts, per tile, the cut boxes covering it (O(N + T), no per-pair work).
+  cut = visible & (jnp.zeros(num, ends.dtype).at[order].set(ends) > budget)
+  corners = jnp.zeros((tiles_y + 1, tiles_x + 1), jnp.int32)
+  for row, col, sign in ((y0, x0, 1), (y0, x1, -1), (y1, x0, -1), (y1, x1, 1)):
+    corners = corners.at[row, col].add(jnp.where(cut, sign, 0))
+  cut_boxes = jnp.cumsum(jnp.cumsum(corners, axis=0), axis=1)[:tiles_y, :tiles_x]
   bounds = jnp.searchsorted(sorted_tile, jnp.arange(num_tiles + 1, dtype=jnp.int32), side="left")
   return TileBins(
       gaussian_ids=gaussian_ids.astype(jnp.int32),
       tile_starts=bounds[:-1].astype(jnp.int32),
       tile_ends=bounds[1:].astype(jnp.int32),
       num_intersections=total.astype(jnp.int32),
+      tile_truncated=cut_boxes.reshape(-1) > 0,
   )

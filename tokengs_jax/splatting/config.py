@@ -28,7 +28,9 @@ class RenderConfig:
       still have work (finished and empty tiles cost nothing); capped at the number of tiles.
     intersections_per_gaussian: default (Gaussian, tile) budget is this times N (at least
       `min_intersections`); exceeding it drops the farthest Gaussians' tiles and sets
-      `stats.overflow`.
+      `stats.truncated`, and `stats.overflow` where that can change a pixel (see RenderStats).
+      Binning cost grows with the budget (one sort of B keys). Dense scenes need little: a tile's
+      list only has to reach its pixels' saturation (notes/render.md has the measurements).
     min_intersections: floor of the default budget (small scenes, few Gaussians, large tiles).
     max_intersections: explicit budget; overrides the two above when set.
   """
@@ -40,8 +42,8 @@ class RenderConfig:
   alpha_threshold: float = 1.0 / 255.0
   transmittance_stop: float = 1e-4
   chunk_size: int = 32
-  tiles_per_step: int = 64
-  intersections_per_gaussian: float = 16.0
+  tiles_per_step: int = 32
+  intersections_per_gaussian: float = 8.0
   min_intersections: int = 4096
   max_intersections: int | None = None
 
@@ -62,9 +64,12 @@ class RenderStats:
   A Gaussian is counted under the first rule that culls it, in gsplat's order: depth (centre z
   outside [near, far]), degenerate (2D covariance determinant <= 0 or zero radius), opacity
   (< alpha_threshold), frustum (its radius box misses the image). `num_visible` are the rest.
-  `num_intersections` is the number of (Gaussian, tile) pairs the scene needs; `budget` the static
-  buffer size; `overflow` is True when the first exceeded the second (the farthest Gaussians lost
-  tiles). `chunk_steps` is the number of compositing loop steps taken (early stop diagnostic).
+  `num_intersections` is the number of (Gaussian, tile) pairs the scene's radius boxes need;
+  `budget` the static buffer size; `truncated` is True when the first exceeded the second (the
+  farthest Gaussians lost tiles). `overflow` is True when that could change the image: some
+  truncated tile ran out of its (depth-ordered) list before all of its pixels saturated. A
+  truncated render without overflow is exact: every cut pair lies behind saturated pixels.
+  `tile_chunks` is the number of (tile, chunk) blocks composited (early stop diagnostic).
   """
 
   num_culled_depth: jax.Array
@@ -74,6 +79,7 @@ class RenderStats:
   num_visible: jax.Array
   num_intersections: jax.Array
   budget: jax.Array
+  truncated: jax.Array
   overflow: jax.Array
   tile_chunks: jax.Array
 

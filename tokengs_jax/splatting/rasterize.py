@@ -34,6 +34,7 @@ class Tiling(NamedTuple):
   tile_size: int
   tiles_x: int
   tiles_y: int
+  num_images: int  # the tile list is num_images grids of tiles_y x tiles_x, one after the other
   chunk_size: int
   tiles_per_step: int
   max_alpha: float
@@ -44,10 +45,13 @@ class Tiling(NamedTuple):
 def tile_pixel_centers(tiling: Tiling, dtype):
   """Pixel centres of every tile (plus one empty padding tile) and whether they are in the image.
 
-  -> (centres [T + 1, P, 2] (u, v), inside [T + 1, P] bool), T = tiles_y * tiles_x, P = tile_size².
+  -> (centres [T + 1, P, 2] (u, v), inside [T + 1, P] bool), T = num_images * tiles_y * tiles_x,
+  P = tile_size².
   """
   ts = tiling.tile_size
-  tile_y, tile_x = jnp.divmod(jnp.arange(tiling.tiles_x * tiling.tiles_y + 1), tiling.tiles_x)
+  grid = tiling.tiles_x * tiling.tiles_y
+  tile = jnp.arange(tiling.num_images * grid + 1) % grid
+  tile_y, tile_x = jnp.divmod(tile, tiling.tiles_x)
   pix_y, pix_x = jnp.divmod(jnp.arange(ts * ts), ts)
   col = tile_x[:, None] * ts + pix_x[None, :]
   row = tile_y[:, None] * ts + pix_y[None, :]
@@ -123,27 +127,30 @@ def _forward(attrs, gaussian_ids, tile_starts, tile_ends, tiling):
   starts, ends = _pad_ranges(tile_starts, tile_ends)
   num_features = attrs.shape[-1] - NUM_GEOMETRY
 
-  def active(chunk_index, done):
-    return (starts + chunk_index * tiling.chunk_size < ends) & ~jnp.all(done, axis=-1)
+  # Per-tile "every pixel stopped" is carried (updated for the selected tiles only) rather than
+  # re-reduced over all pixels of all tiles at every step.
+  def active(chunk_index, tile_done):
+    return (starts + chunk_index * tiling.chunk_size < ends) & ~tile_done
 
   def cond(state):
-    chunk_index, _, done, _ = state
-    return jnp.any(active(chunk_index, done))
+    chunk_index, _, _, tile_done, _ = state
+    return jnp.any(active(chunk_index, tile_done))
 
   def body(state):
-    chunk_index, transmittance, done, accum = state
-    sel = _select_tiles(active(chunk_index, done), tiling)
+    chunk_index, transmittance, done, tile_done, accum = state
+    sel = _select_tiles(active(chunk_index, tile_done), tiling)
     chunk = _load_chunk(chunk_index[sel], attrs, gaussian_ids, starts[sel], ends[sel], centres[sel],
                         tiling)
     trans = _transmittance(chunk, transmittance[sel], done[sel], tiling)
     summed = accum[sel] + jnp.einsum("spk,skf->spf", trans.weight, chunk.attrs[..., NUM_GEOMETRY:])
     return (chunk_index.at[sel].set(chunk_index[sel] + 1), transmittance.at[sel].set(trans.transmittance),
-            done.at[sel].set(trans.done), accum.at[sel].set(summed))
+            done.at[sel].set(trans.done), tile_done.at[sel].set(jnp.all(trans.done, axis=-1)),
+            accum.at[sel].set(summed))
 
   init = (jnp.zeros(starts.shape, jnp.int32), jnp.ones(inside.shape, attrs.dtype), ~inside,
-          jnp.zeros(inside.shape + (num_features,), attrs.dtype))
-  chunks, transmittance, _, accum = jax.lax.while_loop(cond, body, init)
-  return accum[:-1], transmittance[:-1], chunks[:-1]
+          jnp.all(~inside, axis=-1), jnp.zeros(inside.shape + (num_features,), attrs.dtype))
+  chunks, transmittance, _, tile_done, accum = jax.lax.while_loop(cond, body, init)
+  return accum[:-1], transmittance[:-1], chunks[:-1], tile_done[:-1]
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(4,))
@@ -156,7 +163,8 @@ def rasterize_tiles(attrs, gaussian_ids, tile_starts, tile_ends, tiling: Tiling)
     tiling: static grid and compositing constants.
 
   Returns:
-    (accumulated features [T, P, F], final transmittance [T, P], chunks composited per tile [T]).
+    (accumulated features [T, P, F], final transmittance [T, P], chunks composited per tile [T],
+    saturated [T]: every pixel of the tile stopped, so Gaussians behind its list change nothing).
   """
   return _forward(attrs, gaussian_ids, tile_starts, tile_ends, tiling)
 
@@ -167,8 +175,8 @@ def _rasterize_fwd(attrs, gaussian_ids, tile_starts, tile_ends, tiling):
 
 
 def _rasterize_bwd(tiling, residuals, cotangents):
-  attrs, gaussian_ids, tile_starts, tile_ends, accum, final_t, num_chunks = residuals
-  g_accum, g_final_t, _ = cotangents
+  attrs, gaussian_ids, tile_starts, tile_ends, accum, final_t, num_chunks, _ = residuals
+  g_accum, g_final_t, _, _ = cotangents
   centres, inside = tile_pixel_centers(tiling, attrs.dtype)
   starts, ends = _pad_ranges(tile_starts, tile_ends)
   pad = lambda x: jnp.concatenate([x, jnp.zeros_like(x[:1])])
