@@ -7,6 +7,7 @@ import os
 import pathlib
 
 import jax
+import pytest
 
 jax.config.update("jax_num_cpu_devices", 4)
 _CACHE = pathlib.Path(os.environ.get("TOKENGS_JAX_CACHE", pathlib.Path(__file__).parent.parent / ".jax_cache"))
@@ -15,3 +16,11 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 FIXTURES = pathlib.Path(__file__).resolve().parent.parent.parent / "shared" / "fixtures"
+
+
+@pytest.fixture(scope="session")
+def tiny():
+  """(config, params) of the `tiny` model preset, initialised once per test session."""
+  from tokengs_jax.model import init_params, preset
+  config = preset("tiny")
+  return config, init_params(jax.random.PRNGKey(0), config)

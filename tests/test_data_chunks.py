@@ -19,7 +19,7 @@ def _scene(key="s0", frames=3, height=12, width=20, seed=0):
   rng = np.random.default_rng(seed)
   angles = rng.uniform(-0.3, 0.3, (frames, 3))
   c2w = np.tile(np.eye(4), (frames, 1, 1))
-  for f, (a, b, c) in enumerate(angles):
+  for f, (_, b, c) in enumerate(angles):
     rz = np.array([[np.cos(c), -np.sin(c), 0], [np.sin(c), np.cos(c), 0], [0, 0, 1]])
     ry = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
     c2w[f, :3, :3] = rz @ ry

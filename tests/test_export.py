@@ -32,7 +32,8 @@ def test_ply_refuses_non_finite(tmp_path):
 
 
 def test_grid_and_png(tmp_path):
-  a = np.zeros((8, 10, 3)); b = np.ones((6, 4, 3))
+  a = np.zeros((8, 10, 3))
+  b = np.ones((6, 4, 3))
   grid = export.image_grid([[a, b], [b]], pad=2)
   assert grid.dtype == np.uint8 and grid.shape == (2 + 8 + 2 + 6 + 2, 2 + 10 + 2 + 4 + 2, 3)
   assert grid[2, 2].tolist() == [0, 0, 0] and grid[2, 14].tolist() == [255, 255, 255]
@@ -42,7 +43,8 @@ def test_grid_and_png(tmp_path):
 
 def test_colorize_depth_masks_empty_pixels():
   depth = np.linspace(1, 5, 12).reshape(3, 4)
-  alpha = np.ones((3, 4)); alpha[0, 0] = 0
+  alpha = np.ones((3, 4))
+  alpha[0, 0] = 0
   rgb = export.colorize_depth(depth, alpha)
   assert rgb.shape == (3, 4, 3) and np.all(rgb[0, 0] == 0) and np.all(np.isfinite(rgb))
   assert rgb[2, 3].sum() < rgb[0, 1].sum() or rgb[0, 1, 0] > rgb[2, 3, 0]  # near brighter in red
@@ -50,8 +52,10 @@ def test_colorize_depth_masks_empty_pixels():
 
 
 def test_fly_through_passes_through_keyframes():
-  c = np.cos(0.3); s = np.sin(0.3)
-  k0 = np.eye(4); k1 = np.eye(4); k1[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]; k1[:3, 3] = [1, 0, 0]
+  c, s = np.cos(0.3), np.sin(0.3)
+  k0, k1 = np.eye(4), np.eye(4)
+  k1[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+  k1[:3, 3] = [1, 0, 0]
   path = export.fly_through_poses(np.stack([k0, k1]), 5)
   np.testing.assert_allclose(path[0], k0, atol=1e-6)
   np.testing.assert_allclose(path[-1], k1, atol=1e-6)

@@ -36,13 +36,6 @@ def synthetic_batch(batch_size=2, context_views=2, target_views=4, seed=0):
   return batch
 
 
-@pytest.fixture(scope="module")
-def tiny():
-  from tokengs_jax.model import init_params, preset
-  config = preset("tiny")
-  return config, init_params(jax.random.PRNGKey(0), config)
-
-
 @pytest.mark.slow
 def test_chunked_objective_matches_one_shot(tiny):
   config, params = tiny

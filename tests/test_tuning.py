@@ -36,13 +36,6 @@ def test_gaussian_offsets_round_trip():
   assert_close(_constrained(_unconstrained(g)), g)
 
 
-@pytest.fixture(scope="module")
-def tiny():
-  from tokengs_jax.model import init_params, preset
-  config = preset("tiny")
-  return config, init_params(jax.random.PRNGKey(0), config)
-
-
 @pytest.mark.slow
 def test_token_tuning_lowers_loss_and_keeps_params(tiny):
   config, params = tiny
