@@ -185,7 +185,7 @@ def test_dynamic_training_on_generated_kubric_scenes(kubric_batches):
 
   history = []
   steps = 30
-  # the loop adds "step" to each batch; the auxiliary weight reads it
+  # the train step adds "step" to each batch; the auxiliary weight reads it
   train(tokengs_loss_fn(DYNAMIC_CONFIG, loss_config, objective=ObjectiveConfig(view_chunk_size=1)),
         dynamic_params(), batches(),
         OptimConfig(learning_rate=1e-2, schedule="constant", total_steps=steps),

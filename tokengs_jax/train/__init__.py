@@ -8,7 +8,7 @@ from tokengs_jax.train.checkpoint import (
     set_iterator_state,
 )
 from tokengs_jax.train.distributed import initialize, make_mesh, replicate, shard_batch
-from tokengs_jax.train.loop import LoopConfig, NonFiniteError, train, with_step
+from tokengs_jax.train.loop import LoopConfig, NonFiniteError, train
 from tokengs_jax.train.objective import (
     ObjectiveConfig,
     decode_at_times,
@@ -31,7 +31,7 @@ from tokengs_jax.train.tokens import dynamic_tokens_from_static, expand_tokens, 
 
 __all__ = [
     "Checkpointer", "LoopConfig", "data_state_file", "data_state_handler", "decode_at_times",
-    "time_conditioned_loss", "with_step", "NonFiniteError", "ObjectiveConfig", "OptimConfig", "Precision",
+    "time_conditioned_loss", "NonFiniteError", "ObjectiveConfig", "OptimConfig", "Precision",
     "TrainState", "beta1_schedule", "cast_floating", "create_train_state", "current_learning_rate",
     "dynamic_tokens_from_static", "expand_tokens", "initialize", "iterator_state",
     "learning_rate_schedule", "make_mesh", "make_optimizer", "make_train_step",

@@ -54,16 +54,6 @@ def _print_log(step: int, metrics: dict) -> None:
         flush=True)
 
 
-def with_step(local_batch: dict, step: int) -> dict:
-  """The batch plus "step": [B_local] int32, every entry `step` (the micro-step about to run).
-
-  Per example, so it shards over "data" like every other leaf; losses with a step-dependent
-  schedule (the dynamic auxiliary weight) read entry 0. The caller's dict is not modified.
-  """
-  local_size = len(jax.tree.leaves(local_batch)[0])
-  return {**local_batch, "step": np.full((local_size,), step, np.int32)}
-
-
 def train(loss_fn: LossFn, params, batches: Iterator[dict], optim_config: OptimConfig,
           loop_config: LoopConfig, *, mesh: Mesh | None = None, precision: Precision | None = None,
           eval_fn: Callable[[TrainState], dict] | None = None,
@@ -76,7 +66,6 @@ def train(loss_fn: LossFn, params, batches: Iterator[dict], optim_config: OptimC
       a checkpoint is resumed.
     batches: iterator of this process's batches (dicts of `[B_local, ...]` numpy arrays). If it has
       `get_state`/`set_state` (grain), its position is checkpointed and restored (per process).
-      The loop adds "step" to each batch (`with_step`) for step-scheduled loss terms.
     optim_config: optimiser and schedule.
     loop_config: loop settings.
     mesh: device mesh; default all devices on "data".
@@ -140,7 +129,7 @@ def train(loss_fn: LossFn, params, batches: Iterator[dict], optim_config: OptimC
     log_fn(step_now, logged)
 
   while step < loop_config.total_steps:
-    batch = shard_batch(with_step(next(batches), step), mesh)
+    batch = shard_batch(next(batches), mesh)
     state, metrics = train_step(state, batch, key)
     pending.append(metrics)
     step += 1

@@ -274,8 +274,8 @@ def tokengs_loss_fn(model_config, loss_config=None, render_config=None,
   dynamic auxiliary loss when `loss_config.lambda_dyn_aux > 0` and the model has static and
   dynamic tokens, as official).
 
-  The auxiliary weight's schedule reads `batch["step"]` ([B] int, every entry the step; the loop
-  in `train.loop` adds it); without it the step is taken as 0, which is refused when the weight
+  The auxiliary weight's schedule reads `batch["step"]` ([B] int, every entry the step; the
+  train step in `train.step` adds it); without it the step is taken as 0, which is refused when the weight
   decays (`dyn_aux_decay_steps > 0`).
 
   Args:
@@ -309,7 +309,7 @@ def tokengs_loss_fn(model_config, loss_config=None, render_config=None,
       step = batch["step"][0]
     elif with_aux and loss_config.dyn_aux_decay_steps > 0:
       raise ValueError("the dynamic auxiliary weight decays with the step: the batch needs "
-                       "'step' ([B] int), which `train.loop.train` adds")
+                       "'step' ([B] int), which the train step adds")
     else:
       step = 0
     images = batch["context_images"]

@@ -58,12 +58,17 @@ def train_step_fn(loss_fn: LossFn, optimizer: optax.GradientTransformation,
                   precision: Precision = Precision()):
   """The unjitted step `(state, batch, key) -> (state, metrics)`.
 
-  The step key is `fold_in(key, state.step)`. When the loss or any gradient is non-finite the
+  The step key is `fold_in(key, state.step)`; the loss sees the batch plus "step" `[B]` int32
+  (`state.step` in every entry). When the loss or any gradient is non-finite the
   returned state is the input state (update skipped, step not advanced) and `metrics["finite"]`
   is False; the loop turns that into a loud stop.
   """
   def step(state: TrainState, batch: dict, key: jax.Array):
     step_key = jax.random.fold_in(key, state.step)
+    # Step-scheduled loss terms (the dynamic auxiliary weight) read "step": one entry per example,
+    # so it is laid out like every other batch leaf.
+    batch_size = jax.tree.leaves(batch)[0].shape[0]
+    batch = {**batch, "step": jnp.full((batch_size,), state.step, jnp.int32)}
 
     def compute_loss(params):
       loss, aux = loss_fn(cast_floating(params, precision.compute_dtype), batch, step_key)
