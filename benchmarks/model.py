@@ -2,6 +2,7 @@
 
     python benchmarks/model.py      # tiny:8, dl3dv_2view:1, dl3dv_2view:1:128x224:1024
     python benchmarks/model.py --case tiny:8 --repeats 5 --out /tmp/model_bench.json
+    python benchmarks/model.py --case tiny:8 --compare-plain-attention   # A/B vs the old attention
 
 Each case is PRESET:BATCH[:HxW[:TOKENS]]; views come from the preset (--views overrides),
 resolution and Gaussian-token count from the preset unless given.
@@ -15,21 +16,29 @@ For each case it times, after compilation (min over --repeats runs):
               memory analysis) is reported and skipped.
 FLOPs are XLA's cost analysis of the forward program; the train step is counted as 3x forward
 ("model FLOPs": rematerialised recomputation is not credited). GFLOP/s are compared with a
-measured float32 matmul peak (a square matmul of the model's width-sized operands).
+float32 matmul peak (--peak-size square matmul) measured inside the same timing rounds: this
+machine is shared, so every round times the matmul (5 times) and then each stage, and each
+figure is the minimum over rounds (train steps take part in the first max(1, repeats // 2) rounds).
+--compare-plain-attention also compiles every stage with the plain attention that materialises
+all logits (the implementation before the tiled `attend`) and times it in the same rounds.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import json
 import time
+from unittest import mock
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from tokengs_jax.camera import plucker_rays
+from tokengs_jax.model import decoder as model_decoder
+from tokengs_jax.model import layers as model_layers
 from tokengs_jax.model import (
   count_params,
   decode,
@@ -46,19 +55,16 @@ def compile_fn(fn, *args):
   return fn.lower(*args).compile()
 
 
-def best_time(compiled, *args, repeats: int) -> float:
-  """Seconds of the fastest of `repeats` runs of a compiled program."""
-  times = []
-  for _ in range(repeats):
-    start = time.perf_counter()
-    jax.block_until_ready(compiled(*args))
-    times.append(time.perf_counter() - start)
-  return min(times)
+def timed(compiled, *args) -> float:
+  """Seconds of one run of a compiled program."""
+  start = time.perf_counter()
+  jax.block_until_ready(compiled(*args))
+  return time.perf_counter() - start
 
 
-def flop_count(compiled) -> float:
-  """XLA's FLOP count of a compiled program."""
-  analysis = compiled.cost_analysis()
+def flop_count(program) -> float:
+  """XLA's FLOP count of a lowered or compiled program."""
+  analysis = program.cost_analysis()
   if isinstance(analysis, list):  # older jax returned one dict per program
     analysis = analysis[0]
   return float(analysis["flops"])
@@ -70,12 +76,32 @@ def throughput(seconds: float, flops: float, peak_gflops: float) -> dict:
           "fraction_of_peak": gflops / peak_gflops}
 
 
-def matmul_peak(size: int, repeats: int) -> float:
-  """Measured float32 matmul GFLOP/s for [size, size] @ [size, size]."""
+def matmul_program(size: int):
+  """A compiled float32 [size, size] @ [size, size] and its operands."""
   a = jax.random.normal(jax.random.key(0), (size, size), jnp.float32)
   b = jax.random.normal(jax.random.key(1), (size, size), jnp.float32)
-  seconds = best_time(compile_fn(jax.jit(jnp.matmul), a, b), a, b, repeats=repeats)
-  return 2 * size ** 3 / seconds / 1e9
+  return compile_fn(jax.jit(jnp.matmul), a, b), (a, b)
+
+
+def plain_attention(queries, keys, values, mask=None):
+  """The attention before tiling: all [B, H, Nq, Nk] logits at once, autodiff backward."""
+  logits = jnp.einsum("bhqd,bhkd->bhqk", queries, keys.astype(queries.dtype),
+                      preferred_element_type=jnp.float32) * queries.shape[-1] ** -0.5
+  if mask is not None:
+    logits = jnp.where(mask, logits, -jnp.inf)
+  weights = jax.nn.softmax(logits, axis=-1).astype(values.dtype)
+  return jnp.einsum("bhqk,bhkd->bhqd", weights, values)
+
+
+@contextlib.contextmanager
+def attention_variant(name: str):
+  """Traces the model with the tiled `attend` ("tiled") or with `plain_attention` ("plain")."""
+  if name == "tiled":
+    yield
+    return
+  with mock.patch.object(model_layers, "attend", plain_attention), \
+       mock.patch.object(model_decoder, "attend", plain_attention):
+    yield
 
 
 def scene_inputs(batch: int, views: int, height: int, width: int):
@@ -88,8 +114,8 @@ def scene_inputs(batch: int, views: int, height: int, width: int):
   return images, c2w, intrinsics
 
 
-def run_case(case: str, views: int | None, repeats: int, dtype: str, peak: float,
-             max_temp_gb: float) -> dict:
+def run_case(case: str, views: int | None, repeats: int, dtype: str, peak_size: int,
+             max_temp_gb: float, variants: tuple[str, ...]) -> dict:
   name, batch, *rest = case.split(":")
   batch = int(batch)
   config = preset(name, dtype=dtype)
@@ -103,37 +129,60 @@ def run_case(case: str, views: int | None, repeats: int, dtype: str, peak: float
   plucker = plucker_rays(c2w, intrinsics, height, width)
   normalised = normalize_images(images)
 
-  enc = jax.jit(functools.partial(encode, config=config))
-  dec = jax.jit(functools.partial(decode, config=config))
-  rec = jax.jit(functools.partial(reconstruct, config=config))
-
   def loss(p):
     flat = reconstruct(p, images, c2w, intrinsics, config=config).to_flat()
     return jnp.mean(jnp.square(flat - 0.5))
 
-  train = jax.jit(jax.value_and_grad(loss))
-  encoded = jax.eval_shape(enc, params, normalised, plucker)  # decode is compiled for its shape
-  encoded = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), encoded)
   row = {"preset": name, "batch": batch, "views": views, "height": height, "width": width,
          "dtype": dtype, "params_m": count_params(config) / 1e6,
          "gaussians": config.num_gaussians,
          "image_tokens": views * height * width // config.patch_size ** 2}
-  stages = (("encode", enc, (params, normalised, plucker)),
-            ("decode", dec, (params, encoded)),
-            ("reconstruct", rec, (params, images, c2w, intrinsics)))
-  forward_flops = {}
-  for stage, fn, args in (*stages, ("train_step", train, (params,))):
-    compiled = compile_fn(fn, *args)
-    temp_gb = compiled.memory_analysis().temp_size_in_bytes / 1e9
-    # the train step is credited with model FLOPs: 3x the forward
-    flops = 3 * forward_flops["reconstruct"] if stage == "train_step" else flop_count(compiled)
-    forward_flops[stage] = flops
-    if temp_gb > max_temp_gb:
-      row[stage] = {"skipped": f"needs {temp_gb:.1f} GB of temporaries", "gflop": flops / 1e9}
-      continue
-    seconds = best_time(compiled, *args, repeats=repeats if stage != "train_step" else
-                        max(1, repeats // 2))
-    row[stage] = {**throughput(seconds, flops, peak), "temp_gb": temp_gb}
+  encoded = jax.eval_shape(functools.partial(encode, config=config), params, normalised, plucker)
+  encoded = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), encoded)  # decode's input
+  stage_args = {"encode": (params, normalised, plucker), "decode": (params, encoded),
+                "reconstruct": (params, images, c2w, intrinsics), "train_step": (params,)}
+
+  def stage_functions():
+    """Fresh jitted functions (jit caches traces per function object, so one set per variant)."""
+    return {"encode": jax.jit(functools.partial(encode, config=config)),
+            "decode": jax.jit(functools.partial(decode, config=config)),
+            "reconstruct": jax.jit(functools.partial(reconstruct, config=config)),
+            "train_step": jax.jit(jax.value_and_grad(lambda p: loss(p)))}
+
+  # Model FLOPs from the untiled program: XLA's cost analysis counts a loop body once, so the
+  # tiled attention's scans would be under-counted.
+  with attention_variant("plain"):
+    flops = {stage: flop_count(fn.lower(*stage_args[stage]))
+             for stage, fn in stage_functions().items() if stage != "train_step"}
+  flops["train_step"] = 3 * flops["reconstruct"]  # credited with 3x the forward
+  programs = []  # (variant, stage, compiled, args)
+  for variant in variants:
+    row[variant] = {}
+    with attention_variant(variant):
+      for stage, fn in stage_functions().items():
+        args = stage_args[stage]
+        compiled = compile_fn(fn, *args)
+        temp_gb = compiled.memory_analysis().temp_size_in_bytes / 1e9
+        row[variant][stage] = {"gflop": flops[stage] / 1e9, "temp_gb": temp_gb}
+        if temp_gb > max_temp_gb:
+          row[variant][stage]["skipped"] = f"needs {temp_gb:.1f} GB of temporaries"
+        else:
+          jax.block_until_ready(compiled(*args))  # warm-up
+          programs.append((variant, stage, compiled, args))
+
+  matmul, matmul_args = matmul_program(peak_size)
+  best = {"peak": float("inf")}
+  for round_index in range(repeats):
+    # the matmul is cheap: sample it several times per round so that its minimum is as
+    # representative of an unloaded moment as the stages' minima
+    best["peak"] = min(best["peak"], *(timed(matmul, *matmul_args) for _ in range(5)))
+    for variant, stage, compiled, args in programs:
+      if stage != "train_step" or round_index < max(1, repeats // 2):
+        key = (variant, stage)
+        best[key] = min(best.get(key, float("inf")), timed(compiled, *args))
+  row["matmul_peak_gflops"] = peak = 2 * peak_size ** 3 / best["peak"] / 1e9
+  for variant, stage, _, _ in programs:
+    row[variant][stage].update(throughput(best[(variant, stage)], flops[stage], peak))
   return row
 
 
@@ -145,28 +194,33 @@ def main():
   parser.add_argument("--repeats", type=int, default=3)
   parser.add_argument("--dtype", default="float32", choices=["float32", "bfloat16"])
   parser.add_argument("--peak-size", type=int, default=2048)
+  parser.add_argument("--compare-plain-attention", action="store_true",
+                      help="also time every stage with the untiled attention (A/B)")
   parser.add_argument("--out", default=None, help="write the results as JSON here")
   args = parser.parse_args()
   cases = args.case or ["tiny:8", "dl3dv_2view:1", "dl3dv_2view:1:128x224:1024"]
+  variants = ("tiled", "plain") if args.compare_plain_attention else ("tiled",)
 
-  peak = matmul_peak(args.peak_size, args.repeats)
-  print(f"device: {jax.devices()[0].device_kind}  matmul peak ({args.peak_size}^3 f32): "
-        f"{peak:.1f} GFLOP/s")
-  results = {"device": jax.devices()[0].device_kind, "matmul_peak_gflops": peak, "cases": []}
+  results = {"device": jax.devices()[0].device_kind, "cases": []}
+  print(f"device: {results['device']}")
   for case in cases:
-    row = run_case(case, args.views, args.repeats, args.dtype, peak, args.max_temp_gb)
+    row = run_case(case, args.views, args.repeats, args.dtype, args.peak_size, args.max_temp_gb,
+                   variants)
     results["cases"].append(row)
     print(f"\n{row['preset']}  B={row['batch']} V={row['views']} {row['height']}x{row['width']} "
           f"{row['dtype']}  {row['params_m']:.1f} M params, {row['image_tokens']} image tokens "
-          f"-> {row['gaussians']} Gaussians")
-    print(f"  {'stage':<12}{'ms':>10}{'GFLOP':>10}{'GFLOP/s':>10}{'of peak':>9}{'temp GB':>9}")
-    for stage in ("encode", "decode", "reconstruct", "train_step"):
-      s = row[stage]
-      if "skipped" in s:
-        print(f"  {stage:<12}{'-':>10}{s['gflop']:>10.2f}  skipped: {s['skipped']}")
-        continue
-      print(f"  {stage:<12}{s['ms']:>10.1f}{s['gflop']:>10.2f}{s['gflops_per_s']:>10.1f}"
-            f"{s['fraction_of_peak']:>9.0%}{s['temp_gb']:>9.2f}")
+          f"-> {row['gaussians']} Gaussians;  matmul peak ({args.peak_size}^3 f32, same rounds): "
+          f"{row['matmul_peak_gflops']:.1f} GFLOP/s")
+    print(f"  {'attention':<10}{'stage':<12}{'ms':>10}{'GFLOP':>10}{'GFLOP/s':>10}{'of peak':>9}"
+          f"{'temp GB':>9}")
+    for variant in variants:
+      for stage in ("encode", "decode", "reconstruct", "train_step"):
+        s = row[variant][stage]
+        if "skipped" in s:
+          print(f"  {variant:<10}{stage:<12}{'-':>10}{s['gflop']:>10.2f}  skipped: {s['skipped']}")
+          continue
+        print(f"  {variant:<10}{stage:<12}{s['ms']:>10.1f}{s['gflop']:>10.2f}"
+              f"{s['gflops_per_s']:>10.1f}{s['fraction_of_peak']:>9.0%}{s['temp_gb']:>9.2f}")
   if args.out:
     with open(args.out, "w") as f:
       json.dump(results, f, indent=1)

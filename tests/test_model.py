@@ -2,13 +2,14 @@
 
 import functools
 import json
+import struct
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import FIXTURES
-from safetensors.numpy import load_file
+from safetensors.numpy import load_file, save_file
 
 from tokengs_jax.camera import plucker_rays
 from tokengs_jax.gaussians import Gaussians
@@ -33,7 +34,8 @@ from tokengs_jax.model import (
 from tokengs_jax.model.configs import IMAGE_MEAN, IMAGE_STD
 from tokengs_jax.model.decoder import block_causal_mask
 from tokengs_jax.model.head import activate
-from tokengs_jax.model.official import official_name
+from tokengs_jax.model.layers import attend, attention_tiling
+from tokengs_jax.model.official import official_name, read_safetensors
 
 OFFICIAL = FIXTURES / "official_tokengs_tiny"
 # A config small enough that each test compiles in about a second.
@@ -125,6 +127,53 @@ def test_bfloat16_compute_keeps_float32_params_and_stays_close():
   assert 0 < err < 0.05  # bf16 rounding, but no gross error
 
 
+# ----- tiled attention -----------------------------------------------------------------------------
+
+def _plain_attention(queries, keys, values, mask=None):
+  """The textbook formula, materialising all logits (what `attend` must equal)."""
+  logits = jnp.einsum("bhqd,bhkd->bhqk", queries, keys) / np.sqrt(queries.shape[-1])
+  if mask is not None:
+    logits = jnp.where(mask, logits, -jnp.inf)
+  return jnp.einsum("bhqk,bhkd->bhqd", jax.nn.softmax(logits, axis=-1), values)
+
+
+@pytest.mark.parametrize("tile", [1 << 20, 84, 30, 12])
+@pytest.mark.parametrize("masked", [False, True])
+def test_tiled_attention_values_and_gradients_match_plain_attention(tile, masked):
+  batch_heads, num_queries, num_keys = 6, 7, 12
+  keys_ = jax.random.split(jax.random.key(3), 4)
+  queries = jax.random.normal(keys_[0], (2, 3, num_queries, 8))
+  keys = jax.random.normal(keys_[1], (2, 3, num_keys, 8))
+  values = jax.random.normal(keys_[2], (2, 3, num_keys, 8))
+  # causal with two keys of look-ahead: query i sees keys 0..i+2
+  mask = np.tri(num_queries, num_keys, k=2, dtype=bool) if masked else None
+  if masked:
+    assert not mask.all() and mask.any(axis=1).all()  # some masking, no empty row
+  # weight the output so that every output element has a different cotangent
+  weights = jax.random.normal(keys_[3], (2, 3, num_queries, 8))
+
+  def loss(attention):
+    return lambda q, k, v: jnp.sum(weights * attention(q, k, v, mask))
+
+  np.testing.assert_allclose(attend(queries, keys, values, mask, tile),
+                             _plain_attention(queries, keys, values, mask), rtol=0, atol=1e-6)
+  grads = jax.grad(loss(functools.partial(attend, tile=tile)), argnums=(0, 1, 2))(
+      queries, keys, values)
+  reference = jax.grad(loss(_plain_attention), argnums=(0, 1, 2))(queries, keys, values)
+  for got, want in zip(grads, reference):
+    np.testing.assert_allclose(got, want, rtol=0, atol=2e-6)
+  heads_per_step, rows, row_steps = attention_tiling(batch_heads, num_queries, num_keys, tile)
+  assert heads_per_step * rows * num_keys <= max(tile, num_keys) and rows * row_steps >= num_queries
+
+
+def test_attention_tiling_splits_big_problems():
+  assert attention_tiling(32, 128, 128) == (32, 128, 1)  # tiny preset: a single step
+  assert attention_tiling(16, 896, 896) == (1, 896, 1)  # one head at a time
+  heads, rows, steps = attention_tiling(16, 4096, 3584)  # full DL3DV cross-attention
+  assert heads == 1 and rows * 3584 <= 1 << 20 and rows * steps >= 4096
+  assert attention_tiling(6, 7, 12, tile=30) == (1, 2, 4)  # 7 rows -> 4 chunks of 2 (1 padded)
+
+
 # ----- official checkpoints ----------------------------------------------------------------------
 
 def test_config_from_official_options():
@@ -157,6 +206,65 @@ def test_loader_names_missing_unexpected_and_misshapen_tensors():
   # a config with more tokens than the checkpoint is refused too
   with pytest.raises(ValueError, match="gs_tokens"):
     params_from_state_dict(state, config.replace(num_gs_tokens=8))
+
+
+def _bfloat16_bits(values: np.ndarray) -> np.ndarray:
+  """float32 -> bfloat16 bit patterns (uint16), round to nearest even, written out by hand."""
+  bits = np.ascontiguousarray(values, np.float32).view(np.uint32).astype(np.uint64)
+  return ((bits + 0x7FFF + ((bits >> 16) & 1)) >> 16).astype(np.uint16)
+
+
+def _write_bf16_safetensors(path, state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+  """Writes `state` as a BF16 safetensors file byte by byte; returns the float32 values stored."""
+  header, chunks, stored, offset = {"__metadata__": {"format": "pt"}}, [], {}, 0
+  for name, value in state.items():
+    bits = _bfloat16_bits(value)
+    header[name] = {"dtype": "BF16", "shape": list(value.shape),
+                    "data_offsets": [offset, offset + bits.nbytes]}
+    chunks.append(bits.astype("<u2").tobytes())
+    stored[name] = (bits.astype(np.uint32) << 16).view(np.float32).reshape(value.shape)
+    offset += bits.nbytes
+  header_bytes = json.dumps(header).encode()
+  header_bytes += b" " * (-len(header_bytes) % 8)  # the format pads the header to 8 bytes
+  with open(path, "wb") as f:
+    f.write(struct.pack("<Q", len(header_bytes)) + header_bytes + b"".join(chunks))
+  return stored
+
+
+def test_loader_reads_bf16_f16_and_f32_checkpoints(tmp_path):
+  config, params, _ = official_fixture()
+  state = load_file(OFFICIAL / "weights.safetensors")
+  stored_bf16 = _write_bf16_safetensors(tmp_path / "bf16.safetensors", state)
+  save_file({k: v.astype(np.float16) for k, v in state.items()}, tmp_path / "f16.safetensors")
+  save_file(state, tmp_path / "f32.safetensors")
+  raw = read_safetensors(tmp_path / "bf16.safetensors")
+  assert raw.keys() == state.keys() and raw["gs_tokens"].dtype.name == "bfloat16"
+  # bf16 really rounds these weights (so the comparison below is not vacuous), f16 too
+  assert np.abs(stored_bf16["gs_tokens"] - state["gs_tokens"]).max() > 0
+  expected = {
+      "bf16": params_from_state_dict(stored_bf16, config),
+      "f16": params_from_state_dict(
+          {k: v.astype(np.float16).astype(np.float32) for k, v in state.items()}, config),
+      "f32": params,
+  }
+  for name, want in expected.items():
+    loaded = load_official_checkpoint(tmp_path / f"{name}.safetensors", config)
+    assert jax.tree.structure(loaded) == jax.tree.structure(want)
+    for got, ref in zip(jax.tree.leaves(loaded), jax.tree.leaves(want)):
+      assert got.dtype == np.float32 and got.flags.c_contiguous and got.flags.writeable
+      np.testing.assert_array_equal(got, ref, err_msg=name)
+  # the strict checks still apply to bf16 files
+  del stored_bf16["enc_dec_backbone.kv_proj.bias"]
+  _write_bf16_safetensors(tmp_path / "broken.safetensors", stored_bf16)
+  with pytest.raises(ValueError, match="missing \\(1\\): enc_dec_backbone.kv_proj.bias"):
+    load_official_checkpoint(tmp_path / "broken.safetensors", config)
+
+
+def test_safetensors_reader_rejects_bad_byte_ranges(tmp_path):
+  header = json.dumps({"w": {"dtype": "BF16", "shape": [2, 3], "data_offsets": [0, 10]}}).encode()
+  (tmp_path / "bad.safetensors").write_bytes(struct.pack("<Q", len(header)) + header + bytes(12))
+  with pytest.raises(ValueError, match="byte range"):
+    read_safetensors(tmp_path / "bad.safetensors")
 
 
 def test_state_dict_round_trip_is_exact():

@@ -11,6 +11,8 @@ channel order (heads, head_dim) of the official `rearrange(..., "b n (h d) -> b 
 
 from __future__ import annotations
 
+import functools
+
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -46,28 +48,161 @@ def merge_heads(x: jax.Array) -> jax.Array:
   return x.transpose(0, 2, 1, 3).reshape(b, n, h * d)
 
 
-def attend(queries: jax.Array, keys: jax.Array, values: jax.Array,
-           mask: jax.Array | None = None) -> jax.Array:
-  """Scaled dot-product attention (torch SDPA semantics: scale 1/sqrt(d)).
+# Attention runs in tiles of at most this many logits (4 MB in float32). On XLA:CPU, materialising
+# the whole [B, H, Nq, Nk] logits costs more than the matmuls: glibc serves buffers above 32 MB
+# with fresh mmap pages, so every call page-faults them in (about 30 ms per 50 MB here), and the
+# reverse-mode softmax allocates several of them. Tiles this size stay in cache and in the heap
+# (notes/model.md has the measurements).
+ATTENTION_TILE = 1 << 20
 
-  Logits and softmax are computed in float32 whatever the input dtype.
+
+def _largest_divisor_at_most(n: int, cap: int) -> int:
+  cap = max(1, min(n, cap))
+  return max(g for g in range(1, cap + 1) if n % g == 0)
+
+
+def attention_tiling(batch_heads: int, num_queries: int, num_keys: int,
+                     tile: int = ATTENTION_TILE) -> tuple[int, int, int]:
+  """How `attend` splits the work: (heads per step, query rows per step, row steps).
+
+  Whole heads are grouped while one head's logits fit in a tile; otherwise one head at a time,
+  its query rows split into balanced chunks (the last padded) of about tile / num_keys rows.
+  """
+  if num_queries * num_keys <= tile:
+    return _largest_divisor_at_most(batch_heads, tile // (num_queries * num_keys)), num_queries, 1
+  row_steps = -(-num_queries // max(1, tile // num_keys))
+  return 1, -(-num_queries // row_steps), row_steps
+
+
+def _to_row_chunks(x: jax.Array, row_steps: int, rows: int, fill=0) -> jax.Array:
+  """[..., N, X] -> [row_steps, ..., rows, X], padding N up to row_steps * rows with `fill`."""
+  pad = row_steps * rows - x.shape[-2]
+  if pad:
+    x = jnp.pad(x, [(0, 0)] * (x.ndim - 2) + [(0, pad), (0, 0)], constant_values=fill)
+  return jnp.moveaxis(x.reshape(*x.shape[:-2], row_steps, rows, x.shape[-1]), -3, 0)
+
+
+def _from_row_chunks(x: jax.Array, num_rows: int) -> jax.Array:
+  """Inverse of `_to_row_chunks` (drops the padding rows)."""
+  x = jnp.moveaxis(x, 0, -3)
+  return x.reshape(*x.shape[:-3], -1, x.shape[-1])[..., :num_rows, :]
+
+
+def _masked_logits(queries, keys, mask, scale):
+  """[G, q, d], [G, k, d], bool [q, k] or None -> float32 [G, q, k]."""
+  logits = jnp.einsum("gqd,gkd->gqk", queries, keys, preferred_element_type=jnp.float32) * scale
+  return logits if mask is None else jnp.where(mask, logits, -jnp.inf)
+
+
+def _head_groups(x: jax.Array, heads_per_step: int) -> jax.Array:
+  """[B, H, N, X] -> [B * H / heads_per_step, heads_per_step, N, X] (a free reshape)."""
+  return x.reshape(-1, heads_per_step, *x.shape[-2:])
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(4,))
+def _tiled_attention(queries, keys, values, mask, tile):
+  return _tiled_attention_fwd(queries, keys, values, mask, tile)[0]
+
+
+def _tiled_attention_fwd(queries, keys, values, mask, tile):
+  b, h, num_queries, head_dim = queries.shape
+  heads_per_step, rows, row_steps = attention_tiling(b * h, num_queries, keys.shape[2], tile)
+  scale = head_dim ** -0.5
+  # Padded query rows attend everywhere so that their (discarded) softmax stays finite.
+  mask_chunks = None if mask is None else _to_row_chunks(mask, row_steps, rows, True)
+
+  def head_group(_, group):
+    group_queries, group_keys, group_values = group
+
+    def row_chunk(_, chunk):
+      chunk_queries, chunk_mask = chunk
+      logits = _masked_logits(chunk_queries, group_keys, chunk_mask, scale)
+      row_max = jnp.max(logits, axis=-1, keepdims=True)
+      exp = jnp.exp(logits - row_max)
+      row_sum = jnp.sum(exp, axis=-1, keepdims=True)
+      weights = (exp / row_sum).astype(group_values.dtype)
+      out = jnp.einsum("gqk,gkd->gqd", weights, group_values)
+      return None, (out, row_max + jnp.log(row_sum))
+
+    _, (out, log_sum_exp) = jax.lax.scan(
+        row_chunk, None, (_to_row_chunks(group_queries, row_steps, rows), mask_chunks))
+    return None, (_from_row_chunks(out, num_queries), _from_row_chunks(log_sum_exp, num_queries))
+
+  _, (out, log_sum_exp) = jax.lax.scan(head_group, None, tuple(
+      _head_groups(x, heads_per_step) for x in (queries, keys, values)))
+  out = out.reshape(queries.shape)
+  return out, (queries, keys, values, mask, out, log_sum_exp)
+
+
+def _tiled_attention_bwd(tile, residuals, out_grad):
+  """Flash-attention backward: recompute each tile's probabilities from the saved row
+  log-sum-exp instead of storing them; dK, dV accumulate over a head group's row chunks."""
+  queries, keys, values, mask, out, log_sum_exp = residuals
+  b, h, num_queries, head_dim = queries.shape
+  heads_per_step, rows, row_steps = attention_tiling(b * h, num_queries, keys.shape[2], tile)
+  scale = head_dim ** -0.5
+  # d softmax: dlogits = p * (dp - sum_k p dp) and sum_k p dp = sum_d out * dout.
+  out_dot_grad = jnp.sum(out.astype(jnp.float32) * out_grad.astype(jnp.float32), axis=-1,
+                         keepdims=True)
+  mask_chunks = None if mask is None else _to_row_chunks(mask, row_steps, rows, True)
+
+  def head_group(_, group):
+    group_queries, group_keys, group_values, group_out_grad, group_out_dot, group_lse = group
+
+    def row_chunk(carry, chunk):
+      keys_grad, values_grad = carry
+      chunk_queries, chunk_out_grad, chunk_out_dot, chunk_lse, chunk_mask = chunk
+      probs = jnp.exp(_masked_logits(chunk_queries, group_keys, chunk_mask, scale) - chunk_lse)
+      values_grad += jnp.einsum("gqk,gqd->gkd", probs.astype(chunk_out_grad.dtype),
+                                chunk_out_grad, preferred_element_type=jnp.float32)
+      probs_grad = jnp.einsum("gqd,gkd->gqk", chunk_out_grad, group_values,
+                              preferred_element_type=jnp.float32)
+      logits_grad = (probs * (probs_grad - chunk_out_dot) * scale).astype(chunk_queries.dtype)
+      queries_grad = jnp.einsum("gqk,gkd->gqd", logits_grad, group_keys,
+                                preferred_element_type=jnp.float32)
+      keys_grad += jnp.einsum("gqk,gqd->gkd", logits_grad, chunk_queries,
+                              preferred_element_type=jnp.float32)
+      return (keys_grad, values_grad), queries_grad.astype(chunk_queries.dtype)
+
+    zeros = jnp.zeros(group_keys.shape, jnp.float32)
+    chunks = tuple(_to_row_chunks(x, row_steps, rows)
+                   for x in (group_queries, group_out_grad, group_out_dot, group_lse))
+    (keys_grad, values_grad), queries_grad = jax.lax.scan(
+        row_chunk, (zeros, zeros), (*chunks, mask_chunks))
+    return None, (_from_row_chunks(queries_grad, num_queries), keys_grad.astype(group_keys.dtype),
+                  values_grad.astype(group_values.dtype))
+
+  _, (queries_grad, keys_grad, values_grad) = jax.lax.scan(head_group, None, tuple(
+      _head_groups(x, heads_per_step)
+      for x in (queries, keys, values, out_grad, out_dot_grad, log_sum_exp)))
+  return (queries_grad.reshape(queries.shape), keys_grad.reshape(keys.shape),
+          values_grad.reshape(values.shape), None)
+
+
+_tiled_attention.defvjp(_tiled_attention_fwd, _tiled_attention_bwd)
+
+
+def attend(queries: jax.Array, keys: jax.Array, values: jax.Array,
+           mask: jax.Array | None = None, tile: int = ATTENTION_TILE) -> jax.Array:
+  """Scaled dot-product attention (torch SDPA semantics: scale 1/sqrt(d)), tiled.
+
+  Logits and softmax are computed in float32 whatever the input dtype, one tile of at most
+  `tile` logits at a time (`attention_tiling`); each query row's softmax is still
+  computed over all keys at once, so values equal the plain formula up to float rounding. The
+  backward recomputes the probabilities tile by tile (flash-attention style) rather than
+  storing them, so no [B, H, Nq, Nk] array exists in either pass.
 
   Args:
     queries: [B, H, Nq, d].
     keys: [B, H, Nk, d].
     values: [B, H, Nk, d].
     mask: optional bool [Nq, Nk], True where attention is allowed.
+    tile: logits per step (tests use small tiles to exercise the chunking).
 
   Returns:
     [B, H, Nq, d] in the values' dtype.
   """
-  scale = queries.shape[-1] ** -0.5
-  logits = jnp.einsum("bhqd,bhkd->bhqk", queries, keys.astype(queries.dtype),
-                      preferred_element_type=jnp.float32) * scale
-  if mask is not None:
-    logits = jnp.where(mask, logits, -jnp.inf)
-  weights = jax.nn.softmax(logits, axis=-1).astype(values.dtype)
-  return jnp.einsum("bhqk,bhkd->bhqd", weights, values)
+  return _tiled_attention(queries, keys.astype(queries.dtype), values, mask, tile)
 
 
 class LayerScale(nn.Module):

@@ -10,10 +10,13 @@ Our module tree mirrors the official one (see `network.py`), so names map by rul
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import re
 
 import jax
+import ml_dtypes
 import numpy as np
 
 from tokengs_jax.model.api import Params, param_shapes
@@ -96,7 +99,9 @@ def params_from_state_dict(state_dict: dict[str, np.ndarray], config: ModelConfi
       if items:
         lines.append(f"  {title} ({len(items)}): " + ", ".join(items))
     raise ValueError("\n".join(lines))
-  items = {path: np.asarray(_from_torch_layout(path, np.asarray(state_dict[name])), np.float32)
+  # Own C-contiguous float32 copies: no views into (possibly memory-mapped) checkpoint data.
+  items = {path: np.array(_from_torch_layout(path, np.asarray(state_dict[name])), np.float32,
+                          order="C")
            for name, (path, _) in expected.items()}
   return _unflatten(items)
 
@@ -108,8 +113,55 @@ def to_official_state_dict(params: Params, config: ModelConfig) -> dict[str, np.
           for path, value in _flat_paths(params)}
 
 
+# safetensors dtype names -> little-endian numpy dtypes. numpy has no bfloat16, which is why the
+# safetensors numpy API cannot read BF16 checkpoints; ml_dtypes (a jax dependency) supplies it.
+_SAFETENSORS_DTYPES = {
+    "F64": np.dtype("<f8"), "F32": np.dtype("<f4"), "F16": np.dtype("<f2"),
+    "BF16": np.dtype(ml_dtypes.bfloat16), "I64": np.dtype("<i8"), "I32": np.dtype("<i4"),
+    "I16": np.dtype("<i2"), "I8": np.dtype("i1"), "U8": np.dtype("u1"), "BOOL": np.dtype("?"),
+}
+
+
+def read_safetensors(path: str | os.PathLike) -> dict[str, np.ndarray]:
+  """All tensors of a `.safetensors` file as numpy arrays in their stored dtype (BF16 included).
+
+  The format: an 8-byte little-endian header length n, n bytes of JSON mapping each tensor name
+  to {"dtype", "shape", "data_offsets": [begin, end]} (byte offsets into the data that follows
+  the header), and an optional "__metadata__" entry. The file is memory-mapped; arrays are
+  read-only views into it.
+
+  Raises:
+    ValueError: on a malformed header, an unknown dtype or a byte range that does not match the
+      tensor's shape and dtype.
+  """
+  data = np.memmap(path, dtype=np.uint8, mode="r")
+  if data.size < 8:
+    raise ValueError(f"{path}: too short for a safetensors header")
+  header_len = int(data[:8].view("<u8")[0])
+  if header_len > data.size - 8:
+    raise ValueError(f"{path}: header length {header_len} exceeds the file size {data.size}")
+  header = json.loads(bytes(data[8:8 + header_len]))
+  body = data[8 + header_len:]
+  tensors = {}
+  for name, info in header.items():
+    if name == "__metadata__":
+      continue
+    if info["dtype"] not in _SAFETENSORS_DTYPES:
+      raise ValueError(f"{path}: tensor {name} has unsupported dtype {info['dtype']}")
+    dtype = _SAFETENSORS_DTYPES[info["dtype"]]
+    shape = tuple(int(n) for n in info["shape"])
+    begin, end = (int(n) for n in info["data_offsets"])
+    if end - begin != math.prod(shape) * dtype.itemsize or not 0 <= begin <= end <= body.size:
+      raise ValueError(f"{path}: tensor {name} ({info['dtype']} {list(shape)}) has byte range "
+                       f"[{begin}, {end}) in a data section of {body.size} bytes")
+    tensors[name] = body[begin:end].view(dtype).reshape(shape)
+  return tensors
+
+
 def load_official_checkpoint(path: str | os.PathLike, config: ModelConfig) -> Params:
   """Read an official TokenGS `.safetensors` checkpoint into our params pytree.
+
+  Tensors stored as F32, F16 or BF16 are all converted (exactly) to float32.
 
   Args:
     path: the .safetensors file (official parameter names, torch layouts).
@@ -119,8 +171,7 @@ def load_official_checkpoint(path: str | os.PathLike, config: ModelConfig) -> Pa
     The params pytree (float32 numpy arrays; jax.device_put them as needed).
 
   Raises:
-    ValueError: if any tensor is missing, unexpected or of the wrong shape (all are named).
+    ValueError: if any tensor is missing, unexpected or of the wrong shape (all are named), or if
+      the file is not valid safetensors.
   """
-  from safetensors.numpy import load_file
-
-  return params_from_state_dict(load_file(os.fspath(path)), config)
+  return params_from_state_dict(read_safetensors(os.fspath(path)), config)
