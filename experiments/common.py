@@ -143,7 +143,8 @@ class Experiment:
   synthetic_dir: str = "outputs/synthetic_re10k"
   output_dir: str = "outputs/re10k/tiny_synthetic"
   model: str = "tiny"
-  model_overrides: tuple[str, ...] = ("dec_patch_size=4",)
+  model_overrides: tuple[str, ...] = ("num_gs_tokens=128", "dec_patch_size=2",
+                                      "gaussian_scale_cap=0.15")
   image_size: tuple[int, int] = (32, 32)
   num_context_views: int = 2
   eval_index: str | None = None
@@ -332,15 +333,14 @@ def train_model(experiment: Experiment, config: model.ModelConfig, params, write
                 loss_fn=None, batches=None) -> tuple[dict, list[dict], float]:
   """Trains with the library loop (sharded over every device); returns (params, history, seconds).
 
-  loss_fn: `(params, batch, key) -> (loss, aux)`; default the TokenGS objective of `config`.
+  loss_fn: `(params, batch, key) -> (loss, aux)`; default the TokenGS objective of `config`
+    (`Task.loss_fn`).
   batches: iterator of this process's batches; default `training_batches(experiment)`.
   """
   from tokengs_jax.train import LoopConfig, train
-  from tokengs_jax.train.objective import tokengs_loss_fn
 
   if loss_fn is None:
-    loss_fn = tokengs_loss_fn(config, objective=ObjectiveConfig(
-        view_chunk_size=experiment.train.view_chunk_size))
+    loss_fn = Task().loss_fn(experiment, config)
   out = pathlib.Path(experiment.output_dir)
   loop = LoopConfig(total_steps=experiment.train.steps, seed=experiment.seed,
                     log_every=experiment.train.log_every,
@@ -367,8 +367,23 @@ _BACKGROUND = np.asarray(_OBJECTIVE.background, np.float32)
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
-def _reconstruct(params, images, c2w, intrinsics, config):
-  return model.reconstruct(params, images, c2w, intrinsics, config=config)
+def _reconstruct(params, images, c2w, intrinsics, config, times=None, target_time=None):
+  return model.reconstruct(params, images, c2w, intrinsics, config=config, times=times,
+                           target_times=target_time)
+
+
+def reconstruct(params, batch: dict, config: model.ModelConfig, target_time=None) -> Gaussians:
+  """The network's Gaussians [B] for a batch's context views.
+
+  Time-conditioned models decode at `target_time` [B], default the first target view's time
+  (the Kubric reader gives every target view of an example the same time).
+  """
+  times = None
+  if config.time_embedding:
+    times = batch["context_times"]
+    target_time = batch["target_times"][:, 0] if target_time is None else target_time
+  return _reconstruct(params, batch["context_images"], batch["context_c2w"],
+                      batch["context_intrinsics"], config, times, target_time)
 
 
 def render_views(gaussians: Gaussians, c2w, intrinsics, height: int, width: int,
@@ -383,21 +398,28 @@ def render_views(gaussians: Gaussians, c2w, intrinsics, height: int, width: int,
 
 
 def feed_forward(params, config: model.ModelConfig) -> Callable[[dict], Gaussians]:
-  """Method: the network's Gaussians for a batch."""
-  def predict(batch):
-    return _reconstruct(params, batch["context_images"], batch["context_c2w"],
-                        batch["context_intrinsics"], config)
-  return predict
+  """Method: the network's Gaussians for a batch (see `reconstruct`)."""
+  return lambda batch: reconstruct(params, batch, config)
 
 
 def tuned(params, config: model.ModelConfig, steps: int, learning_rate: float,
-          target: tuning.Target = "tokens") -> Callable[[dict], Gaussians]:
-  """Method: the network's Gaussians after test-time tuning on the input views."""
+          target: tuning.Target = "tokens", loss_config=None) -> Callable[[dict], Gaussians]:
+  """Method: the network's Gaussians after test-time tuning on the input views.
+
+  Time-conditioned models tune with every input view rendered at its own time (`tuning.tune`'s
+  `times`) and return the Gaussians at the first target view's time, as `reconstruct`.
+  loss_config: the tuning loss (`losses.LossConfig`); None: the library default.
+  """
   settings = tuning.TuningConfig(target=target, steps=steps, learning_rate=learning_rate)
 
   def predict(batch):
-    return tuning.tune(params, batch["context_images"], batch["context_c2w"],
-                       batch["context_intrinsics"], model_config=config, tuning=settings).gaussians
+    timed = {}
+    if config.time_embedding:
+      timed = {"times": batch["context_times"], "output_times": batch["target_times"][:, :1]}
+    gaussians = tuning.tune(params, batch["context_images"], batch["context_c2w"],
+                            batch["context_intrinsics"], model_config=config, tuning=settings,
+                            loss_config=loss_config, **timed).gaussians
+    return jax.tree.map(lambda x: x[:, 0], gaussians) if timed else gaussians  # [B, 1] -> [B]
   return predict
 
 
@@ -606,11 +628,20 @@ class Task:
   def evaluation_examples(self, experiment: Experiment) -> list[tuple[str, dict]]:
     return evaluation_examples(experiment)
 
+  def loss_config(self, experiment: Experiment):
+    """The training (and token-tuning) loss weights: the library's defaults (official base)."""
+    from tokengs_jax.losses import LossConfig
+
+    return LossConfig()
+
+  def objective(self, experiment: Experiment) -> ObjectiveConfig:
+    return ObjectiveConfig(view_chunk_size=experiment.train.view_chunk_size)
+
   def loss_fn(self, experiment: Experiment, config: model.ModelConfig):
     from tokengs_jax.train.objective import tokengs_loss_fn
 
-    return tokengs_loss_fn(config, objective=ObjectiveConfig(
-        view_chunk_size=experiment.train.view_chunk_size))
+    return tokengs_loss_fn(config, self.loss_config(experiment),
+                           objective=self.objective(experiment))
 
   def methods(self, experiment: Experiment, config: model.ModelConfig, params,
               include_baselines: bool) -> dict[str, Callable | None]:
@@ -623,7 +654,8 @@ class Task:
     methods["trained"] = feed_forward(params, config)
     if experiment.eval.tuning_steps > 0:
       methods["trained+token_tuning"] = tuned(params, config, experiment.eval.tuning_steps,
-                                              experiment.eval.tuning_learning_rate)
+                                              experiment.eval.tuning_learning_rate,
+                                              loss_config=self.loss_config(experiment))
     return methods
 
   def extra_visuals(self, experiment: Experiment, config: model.ModelConfig, params,

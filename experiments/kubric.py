@@ -4,8 +4,8 @@
     python -m experiments.kubric finetune --preset paper --data-dir /data/kubric4d \\
         --checkpoint outputs/re10k/paper_4view/params.msgpack
 
-Besides the common results folder (metrics vs mean colour / untrained, grids, PLY, MP4), the
-evaluation writes `dynamic/`:
+Besides the common results folder (metrics of mean colour / untrained / trained / trained +
+token tuning, grids, PLY, MP4), the evaluation writes `dynamic/`:
 - `in_between_times.png`: one target camera rendered at times between (and at) the input times;
 - `static_dynamic.png`: target | full render | static Gaussians only | dynamic Gaussians only;
 - `scene_flow.png`: trajectories of the most opaque dynamic Gaussians over time, projected into
@@ -20,9 +20,13 @@ Presets:
   tokens, 4 input views, 256x256), 50k finetuning steps; the last `eval.num_scenes` (16, as the
   paper) scenes of the listing are held out.
 
-Training uses the photometric + SSIM + visibility objective at the example's target time. Not
-implemented: the official dynamic-only auxiliary loss schedule (`losses.add_dynamic_aux` exists;
-its weight defaults to 0 here) and token tuning of dynamic models (`tuning.tune` takes no times).
+Training uses the library's dynamic objective (`tokengs_loss_fn` of a time-conditioned model)
+with the official Kubric release weights (`finetune_dl3dv_kubric_dyn_release`): L1 x 0.8 + SSIM
+x 0.2 + visibility x 1, and the dynamic-only auxiliary loss at 0.3, held for the first 10% of the
+steps and decayed linearly to 0 over the next 20% (official 5k hold / 10k decay of 50k steps).
+One decode per example at the targets' time (`decode_times="first"`, official). Token tuning
+(`trained+token_tuning`) tunes on the input views at their own times with the same loss (the
+auxiliary term at its base weight, as the official tuning) and renders the targets at theirs.
 """
 
 from __future__ import annotations
@@ -30,18 +34,17 @@ from __future__ import annotations
 import dataclasses
 import pathlib
 import time
-from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from experiments import common, plot
-from tokengs_jax import export, model
+from tokengs_jax import export, losses, model
 from tokengs_jax.camera import invert_rigid, project_points
 from tokengs_jax.data.kubric import KubricConfig, KubricSource, list_kubric_scenes
 from tokengs_jax.gaussians import Gaussians
-from tokengs_jax.train.objective import ObjectiveConfig, supervision_loss
+from tokengs_jax.train.objective import ObjectiveConfig
 
 TRAIN_SUBSET, TEST_SUBSET = "v0", "test"
 
@@ -55,12 +58,19 @@ class KubricExperiment(common.Experiment):
     min_gap / max_gap: frame span of an example's input views (official 3 / 23).
     flow_times: times sampled for the scene-flow and in-between pictures.
     flow_tracks: dynamic Gaussians drawn in the scene-flow plot (the most opaque ones).
+    lambda_dyn_aux: base weight of the dynamic-only auxiliary loss (official release 0.3).
+    dyn_aux_hold_fraction / dyn_aux_decay_fraction: the auxiliary weight is held for this
+      fraction of `train.steps`, then decays linearly to 0 over the next fraction (official
+      5k / 10k of 50k steps).
   """
   num_cameras: int = 4
   min_gap: int = 3
   max_gap: int = 23
   flow_times: int = 8
   flow_tracks: int = 48
+  lambda_dyn_aux: float = 0.3
+  dyn_aux_hold_fraction: float = 0.1
+  dyn_aux_decay_fraction: float = 0.2
 
 
 def kubric_config(experiment: KubricExperiment, root, subsets) -> KubricConfig:
@@ -69,33 +79,6 @@ def kubric_config(experiment: KubricExperiment, root, subsets) -> KubricConfig:
                       num_views=experiment.num_context_views + experiment.train.num_target_views,
                       image_shape=tuple(experiment.image_size), min_gap=experiment.min_gap,
                       max_gap=experiment.max_gap)
-
-
-def dynamic_reconstruct(params, batch: dict, config: model.ModelConfig, time=None) -> Gaussians:
-  """Gaussians at `time` [B] (default: the example's target time)."""
-  time = batch["target_times"][:, 0] if time is None else time
-  return model.reconstruct(params, batch["context_images"], batch["context_c2w"],
-                           batch["context_intrinsics"], config=config,
-                           times=batch["context_times"], target_times=time)
-
-
-_jitted_reconstruct = jax.jit(dynamic_reconstruct, static_argnames=("config",))
-
-
-def dynamic_loss_fn(config: model.ModelConfig, objective: ObjectiveConfig | None = None):
-  """The TokenGS objective for one target time per example (every target view shares it)."""
-  from tokengs_jax import losses, splatting
-
-  objective = ObjectiveConfig() if objective is None else objective
-
-  def loss_fn(params, batch, key):
-    del key
-    gaussians = dynamic_reconstruct(params, batch, config)
-    return supervision_loss(gaussians, batch["target_images"], invert_rigid(batch["target_c2w"]),
-                            batch["target_intrinsics"], losses.LossConfig(),
-                            splatting.RenderConfig(), objective)
-
-  return loss_fn
 
 
 def _subset_of(gaussians: Gaussians, part: slice) -> Gaussians:
@@ -161,21 +144,23 @@ class KubricTask(common.Task):
     indices = list(indices)[:experiment.eval.num_scenes or None]
     return [(source.scenes[i].name, {k: v[None] for k, v in source[i].items()}) for i in indices]
 
+  def loss_config(self, experiment: KubricExperiment) -> losses.LossConfig:
+    """The official Kubric release loss, its auxiliary schedule scaled to `train.steps`."""
+    steps = experiment.train.steps
+    return losses.LossConfig(
+        rgb_loss="l1", lambda_rgb=0.8, lambda_ssim=0.2, lambda_vis=1.0,
+        lambda_dyn_aux=experiment.lambda_dyn_aux,
+        dyn_aux_hold_steps=round(experiment.dyn_aux_hold_fraction * steps),
+        dyn_aux_decay_steps=max(round(experiment.dyn_aux_decay_fraction * steps), 1))
+
+  def objective(self, experiment: KubricExperiment) -> ObjectiveConfig:
+    # every target view of a Kubric example shares one time: decode once (official)
+    return ObjectiveConfig(view_chunk_size=experiment.train.view_chunk_size, decode_times="first")
+
   def loss_fn(self, experiment: KubricExperiment, config: model.ModelConfig):
     if not config.time_embedding:
       raise ValueError("Kubric training needs a time-conditioned model (time_embedding=True)")
-    return dynamic_loss_fn(config, ObjectiveConfig(view_chunk_size=experiment.train.view_chunk_size))
-
-  def methods(self, experiment, config, params, include_baselines) -> dict[str, Callable | None]:
-    def feed_forward(weights):
-      return lambda batch: _jitted_reconstruct(weights, batch, config)
-
-    methods: dict[str, Callable | None] = {}
-    if include_baselines:
-      methods["mean_colour"] = None
-      methods["untrained"] = feed_forward(model.init_params(jax.random.key(experiment.seed), config))
-    methods["trained"] = feed_forward(params)
-    return methods
+    return super().loss_fn(experiment, config)
 
   def extra_visuals(self, experiment: KubricExperiment, config, params, examples, writer,
                     step) -> dict:
@@ -184,7 +169,7 @@ class KubricTask(common.Task):
     height, width = batch["target_images"].shape[-3:-1]
     camera = (batch["target_c2w"][:, :1], batch["target_intrinsics"][:, :1])
     times = np.linspace(0.0, 1.0, experiment.flow_times, dtype=np.float32)
-    per_time = [jax.device_get(_jitted_reconstruct(params, batch, config, jnp.asarray([t])))
+    per_time = [jax.device_get(common.reconstruct(params, batch, config, jnp.asarray([t])))
                 for t in times]
     renders = [common.render_views(g, *camera, height, width)[0][0, 0] for g in per_time]
     inputs_row = list(batch["context_images"][0])
@@ -194,7 +179,7 @@ class KubricTask(common.Task):
       writer.add_image("dynamic/in_between_times", grid, step, dataformats="HWC")
 
     split = config.num_static_gaussians
-    at_target = jax.device_get(_jitted_reconstruct(params, batch, config))
+    at_target = jax.device_get(common.reconstruct(params, batch, config))
     parts = [at_target, _subset_of(at_target, slice(0, split)), _subset_of(at_target, slice(split, None))]
     row = [batch["target_images"][0, 0]] + [common.render_views(g, *camera, height, width)[0][0, 0]
                                             for g in parts]
@@ -227,16 +212,14 @@ PRESETS = {
         min_gap=3, max_gap=8,
         train=common.TrainSettings(steps=400, batch_size=4, num_target_views=2, learning_rate=2e-3,
                                    warmup_steps=40),
-        eval=common.EvalSettings(num_scenes=4, num_target_views=2, tuning_steps=0, grid_scenes=2,
-                                 video_frames=24)),
+        eval=common.EvalSettings(num_scenes=4, num_target_views=2, grid_scenes=2, video_frames=24)),
     "paper": KubricExperiment(
         data_dir="datasets/kubric4d", output_dir="outputs/kubric/paper", model="kubric_dyn", model_overrides=(),
         image_size=(256, 256), num_context_views=4,
         train=common.TrainSettings(steps=50_000, batch_size=64, num_target_views=4,
                                    learning_rate=4e-5, warmup_steps=400, log_every=50,
                                    checkpoint_every=5_000),
-        eval=common.EvalSettings(num_scenes=16, num_target_views=4, tuning_steps=0, grid_scenes=8,
-                                 video_frames=96)),
+        eval=common.EvalSettings(num_scenes=16, num_target_views=4, grid_scenes=8, video_frames=96)),
 }
 
 if __name__ == "__main__":

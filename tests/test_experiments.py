@@ -80,7 +80,6 @@ def test_trajectory_plot_on_background(tmp_path):
   assert Image.open(path).size == (64, 64)
 
 
-@pytest.mark.slow
 def test_entry_point_end_to_end(tmp_path):
   """`python -m experiments.re10k --preset smoke`: generate, train, evaluate, write every file."""
   out = tmp_path / "results"
@@ -114,17 +113,39 @@ def test_kubric_entry_point_end_to_end(tmp_path):
        "--synthetic.num-test", "1", "--synthetic.frames", "6", "--synthetic.workers", "1",
        "--num-cameras", "2", "--max-gap", "4", "--train.steps", "2", "--train.batch-size", "2",
        "--train.log-every", "1", "--eval.num-scenes", "1", "--eval.video-frames", "2",
+       "--eval.tuning-steps", "2",
        "--flow-times", "3", "--model-overrides", "dec_patch_size=4", "num_dynamic_gs_tokens=2",
        "time_embedding=True", "enc_depth=1", "dec_depth=1", "enc_embed_dim=32", "enc_num_heads=2",
        "num_gs_tokens=4"],
       cwd=REPO, capture_output=True, text=True, timeout=600, check=False)
   assert completed.returncode == 0, completed.stderr[-4000:]
   payload = json.loads((out / "metrics.json").read_text())
-  assert set(payload["metrics"]) == {"mean_colour", "untrained", "trained"}
-  assert math.isfinite(payload["metrics"]["trained"]["mean"]["psnr"])
+  assert set(payload["metrics"]) == {"mean_colour", "untrained", "trained", "trained+token_tuning"}
+  for method in ("trained", "trained+token_tuning"):
+    assert math.isfinite(payload["metrics"][method]["mean"]["psnr"])
+  history = json.loads((out / "train_history.json").read_text())
+  # the official auxiliary weight, scaled to 2 steps: held at step 0, decayed to 0 at step 1
+  assert [h["dyn_aux_weight"] for h in history] == pytest.approx([0.3, 0.0])
   assert math.isfinite(payload["dynamic"]["mean_dynamic_displacement_t0_t1"])
   for name in ("in_between_times.png", "static_dynamic.png", "scene_flow.png"):
     assert (out / "dynamic" / name).stat().st_size > 0, name
+
+
+def test_kubric_loss_is_the_official_release_scaled_to_the_run():
+  from experiments import kubric
+
+  paper = kubric.PRESETS["paper"]
+  config = kubric.KubricTask().loss_config(paper)
+  assert (config.rgb_loss, config.lambda_rgb, config.lambda_ssim, config.lambda_vis) == (
+      "l1", 0.8, 0.2, 1.0)
+  # official release: 0.3 held for 5k steps, decayed to 0 over 10k (of 50k finetuning steps)
+  assert (config.lambda_dyn_aux, config.dyn_aux_hold_steps, config.dyn_aux_decay_steps,
+          config.dyn_aux_min) == (0.3, 5_000, 10_000, 0.0)
+  tiny = kubric.PRESETS["synthetic-tiny"]
+  config = kubric.KubricTask().loss_config(tiny)
+  assert config.dyn_aux_hold_steps == round(0.1 * tiny.train.steps)
+  assert config.dyn_aux_decay_steps == round(0.2 * tiny.train.steps)
+  assert kubric.KubricTask().objective(tiny).decode_times == "first"
 
 
 def test_tick_labels_keep_significant_zeros():
