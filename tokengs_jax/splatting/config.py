@@ -30,7 +30,7 @@ class RenderConfig:
       `min_intersections`); exceeding it drops the farthest Gaussians' tiles and sets
       `stats.truncated`, and `stats.overflow` where that can change a pixel (see RenderStats).
       Binning cost grows with the budget (one sort of B keys). Dense scenes need little: a tile's
-      list only has to reach its pixels' saturation (notes/render.md has the measurements).
+      list only has to reach its pixels' saturation (BUILD_NOTES.md has the measurements).
     min_intersections: floor of the default budget (small scenes, few Gaussians, large tiles).
     max_intersections: explicit budget; overrides the two above when set.
   """
