@@ -144,7 +144,7 @@ class Experiment:
   output_dir: str = "outputs/re10k/tiny_synthetic"
   model: str = "tiny"
   model_overrides: tuple[str, ...] = ("num_gs_tokens=128", "dec_patch_size=2",
-                                      "gaussian_scale_cap=0.15")
+                                      "clip_head_readout_std=0.3")
   image_size: tuple[int, int] = (32, 32)
   num_context_views: int = 2
   eval_index: str | None = None

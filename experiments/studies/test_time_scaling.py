@@ -31,13 +31,27 @@ class TestTimeScaling(StudySettings):
   learning_rate: float = 1e-4  # token rate (paper); Gaussian offsets use the library default
 
 
-def spaced_views(num_context: int, gap: int, num_targets: int):
-  """(record, position) -> (context, target): `num_context` frames evenly over [0, gap], and
-  `num_targets` targets evenly strictly inside it (the same for every context size)."""
+def context_frames(num_context: int, gap: int) -> np.ndarray:
+  """`num_context` input frames evenly over [0, gap] (both ends kept)."""
+  return np.linspace(0, gap, num_context).round().astype(np.int64)
+
+
+def shared_targets(view_counts: tuple[int, ...], gap: int, num_targets: int) -> np.ndarray:
+  """`num_targets` frames strictly inside [0, gap] that no context size in `view_counts` uses as
+  an input, as evenly spread as the free frames allow: every point of the views curve scores the
+  same novel views."""
+  used = set(np.concatenate([context_frames(count, gap) for count in view_counts]).tolist())
+  free = np.array([f for f in range(1, gap) if f not in used], np.int64)
+  if len(free) < num_targets:
+    raise ValueError(f"a context gap of {gap} frames leaves {len(free)} frames that are not inputs "
+                     f"for {view_counts} views; {num_targets} targets need a larger gap")
+  return free[np.linspace(0, len(free) - 1, num_targets).round().astype(np.int64)]
+
+
+def spaced_views(num_context: int, gap: int, targets: np.ndarray):
+  """(record, position) -> (context, target): `context_frames` and the given target frames."""
   def views(record, position):
-    context = np.linspace(0, gap, num_context).round().astype(np.int64)
-    target = np.linspace(1, gap - 1, num_targets).round().astype(np.int64)
-    return context, target
+    return context_frames(num_context, gap), targets
   return views
 
 
@@ -48,17 +62,18 @@ def main(settings: TestTimeScaling) -> list[dict]:
   scorer = common.Scorer(use_lpips=False)
   rows = []
   view_curve = ([], [])
+  targets = shared_targets(settings.views, e.context_gap, e.num_target_views)
   for count in settings.views:
     experiment = dataclasses.replace(settings.experiment, num_context_views=count)
     examples = common.evaluation_examples(
-        experiment, views=spaced_views(count, e.context_gap, e.num_target_views))
+        experiment, views=spaced_views(count, e.context_gap, targets))
     scores, seconds = psnr_of(common.feed_forward(params, config), examples, scorer)
     rows.append({"axis": "input views", "value": count, "psnr": float(np.mean(scores)),
                  "seconds_per_scene": seconds})
     view_curve[0].append(count)
     view_curve[1].append(float(np.mean(scores)))
   examples = common.evaluation_examples(
-      settings.experiment, views=spaced_views(2, e.context_gap, e.num_target_views))
+      settings.experiment, views=spaced_views(2, e.context_gap, targets))
   base, base_seconds = psnr_of(common.feed_forward(params, config), examples, scorer)
   step_curves = {}
   for target in settings.targets:
@@ -76,7 +91,8 @@ def main(settings: TestTimeScaling) -> list[dict]:
   write_table(out, "test_time_scaling", "Test-time scaling (PSNR dB, seconds per scene)", rows,
               ["axis", "value", "psnr", "seconds_per_scene"],
               notes=[(f"{len(examples)} held-out scenes, span {e.context_gap} frames, "
-                     f"{e.num_target_views} targets inside it; token lr {settings.learning_rate}.")])
+                     f"targets at frames {targets.tolist()} (inputs at no view count); token lr "
+                     f"{settings.learning_rate}.")])
   plot.line_plot(out / "views.png", {"TokenGS (feed-forward)": view_curve},
                  title="Context extension", xlabel="input views", ylabel="PSNR (dB)")
   plot.line_plot(out / "tuning_steps.png", step_curves, title="Test-time tuning",

@@ -9,7 +9,7 @@ Two ways to get a model per token count:
 
 Run time is the measured seconds per scene of reconstruction (+ tuning), compilation excluded.
 
-    python -m experiments.studies.token_count [--tokens 8 16 32 64 128] [--retrain]
+    python -m experiments.studies.token_count [--tokens 32 64 128 256 512] [--retrain]
 
 Writes `token_count.{json,md}`, `psnr_vs_tokens.png`, `runtime_vs_psnr.png` to
 `<output_dir>/token_count/`.
@@ -31,7 +31,7 @@ from tokengs_jax import model
 
 @dataclasses.dataclass(frozen=True)
 class TokenCount(StudySettings):
-  tokens: tuple[int, ...] = (8, 16, 32, 64, 128)
+  tokens: tuple[int, ...] = (32, 64, 128, 256, 512)
   tuning_steps: tuple[int, ...] = (0, 25)
   retrain: bool = False
 

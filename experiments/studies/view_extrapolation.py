@@ -34,6 +34,9 @@ class ViewExtrapolation(StudySettings):
 def target_frames(settings: ViewExtrapolation, num_frames: int) -> dict[str, int]:
   """Label -> frame: the span's midpoint ("inside") and each offset before / after the span."""
   first, last = settings.start, settings.start + settings.gap
+  if last >= num_frames:
+    raise ValueError(f"inputs at frames {first} and {last} need {last + 1} frames; the scene has "
+                     f"{num_frames} (lower --start / --gap)")
   frames = {"inside": first + settings.gap // 2}
   for offset in settings.offsets:
     if last + offset < num_frames:
@@ -46,11 +49,11 @@ def target_frames(settings: ViewExtrapolation, num_frames: int) -> dict[str, int
 def main(settings: ViewExtrapolation) -> list[dict]:
   out = pathlib.Path(settings.output_dir) / "view_extrapolation"
   config, params = trained_tokengs(settings)
-  labels: list[str] = []
+  scene_labels: dict[str, list[str]] = {}  # a short scene lacks some far offsets
 
   def views(record, position):
     frames = target_frames(settings, len(record["images"]))
-    labels[:] = list(frames)  # scenes of one set share a length, hence the same labels
+    scene_labels[record["key"]] = list(frames)
     return (np.array([settings.start, settings.start + settings.gap]),
             np.array(list(frames.values())))
 
@@ -61,19 +64,21 @@ def main(settings: ViewExtrapolation) -> list[dict]:
     methods["TokenGS + token tuning"] = common.tuned(params, config, e.tuning_steps,
                                                      e.tuning_learning_rate)
   scorer = common.Scorer(use_lpips=False)
+  labels = list(dict.fromkeys(label for key, _ in examples for label in scene_labels[key]))
   per_label = {name: {label: [] for label in labels} for name in methods}
-  for _, batch in examples:
+  for key, batch in examples:
     height, width = batch["target_images"].shape[-3:-1]
     for name, method in methods.items():
       rgb, _, _ = common.render_views(method(batch), batch["target_c2w"], batch["target_intrinsics"],
                                       height, width)
       scores = scorer(rgb[0], batch["target_images"][0])["psnr"]
-      for label, score in zip(labels, scores):
+      for label, score in zip(scene_labels[key], scores, strict=True):
         per_label[name][label].append(float(score))
   rows, curves = [], {}
   for label in labels:
     distance = 0 if label == "inside" else int(label[1:])
     rows.append({"target": label, "frames_outside_span": distance,
+                 "scenes": len(per_label[next(iter(methods))][label]),
                  **{name: float(np.mean(per_label[name][label])) for name in methods}})
   for name in methods:
     by_distance = {}
@@ -82,7 +87,7 @@ def main(settings: ViewExtrapolation) -> list[dict]:
     xs = sorted(by_distance)
     curves[name] = (xs, [float(np.mean(by_distance[x])) for x in xs])
   write_table(out, "view_extrapolation", "PSNR (dB) of targets inside vs outside the input span",
-              rows, ["target", "frames_outside_span"] + list(methods),
+              rows, ["target", "frames_outside_span", "scenes"] + list(methods),
               notes=[(f"{len(examples)} held-out scenes; inputs at frames {settings.start} and "
                      f"{settings.start + settings.gap}; '+k' after the last, '-k' before the first.")])
   plot.line_plot(out / "view_extrapolation.png", curves, title="View extrapolation",

@@ -1,0 +1,310 @@
+"""experiments/studies: the pure pieces of every study, and token_assignment end to end.
+
+The end-to-end run uses the `smoke` preset on a two-scene synthetic test split with freshly
+initialised weights saved where the study looks for trained ones, so nothing is trained.
+"""
+
+import dataclasses
+import json
+import math
+import pathlib
+
+import jax
+import numpy as np
+import pytest
+from PIL import Image
+
+from experiments import common, re10k
+from experiments.studies import (
+  StudySettings,
+  camera_noise,
+  psnr_of,
+  test_time_scaling,
+  token_assignment,
+  token_count,
+  trained_tokengs,
+  view_extrapolation,
+  write_table,
+)
+from tokengs_jax import model
+from tokengs_jax.gaussians import Gaussians
+
+SMOKE = re10k.PRESETS["smoke"]
+
+
+def _rotation(axis, degrees: float) -> np.ndarray:
+  """Rodrigues' rotation [3, 3] about a unit axis [3]."""
+  x, y, z = axis
+  k = np.array([[0, -z, y], [z, 0, -x], [-y, x, 0]])
+  angle = np.deg2rad(degrees)
+  return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+def _relative_rotation(before: np.ndarray, after: np.ndarray) -> tuple[float, np.ndarray]:
+  """(angle in degrees, unit axis [3]) of R with after = before @ R (camera-frame rotation)."""
+  r = before[:3, :3].T.astype(np.float64) @ after[:3, :3]
+  angle = np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1)))
+  axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+  return float(angle), axis / max(np.linalg.norm(axis), 1e-12)
+
+
+def _random_cameras(views: int, seed: int = 0) -> np.ndarray:
+  """[V, 4, 4] rigid camera-to-world matrices."""
+  rng = np.random.default_rng(seed)
+  c2w = np.tile(np.eye(4, dtype=np.float32), (views, 1, 1))
+  for v in range(views):
+    axis = rng.normal(size=3)
+    c2w[v, :3, :3] = _rotation(axis / np.linalg.norm(axis), rng.uniform(0, 90))
+    c2w[v, :3, 3] = rng.normal(size=3)
+  return c2w
+
+
+# ----------------------------------------------------------------------------------------------
+# camera_noise
+
+
+def test_rotate_cameras_turns_only_non_reference_cameras_about_the_axis():
+  c2w = _random_cameras(3)
+  axes = np.array([[1.0, 0.0, 0.0], [0.0, 0.6, 0.8], [0.0, 0.0, -1.0]])
+  out = camera_noise.rotate_cameras(c2w, axes, 7.0)
+  assert out.shape == (3, 4, 4) and out.dtype == np.float32
+  np.testing.assert_array_equal(out[0], c2w[0])  # the reference camera is exact
+  np.testing.assert_array_equal(out[:, :3, 3], c2w[:, :3, 3])  # centres stay
+  np.testing.assert_array_equal(out[:, 3], c2w[:, 3])
+  for v in (1, 2):
+    angle, axis = _relative_rotation(c2w[v], out[v])
+    assert angle == pytest.approx(7.0, abs=1e-3)
+    np.testing.assert_allclose(axis, axes[v], atol=1e-3)  # right-handed, in camera coordinates
+    np.testing.assert_allclose(out[v, :3, :3] @ out[v, :3, :3].T, np.eye(3), atol=1e-5)
+  np.testing.assert_allclose(camera_noise.rotate_cameras(c2w, axes, 0.0), c2w, atol=1e-7)
+
+
+def test_noisy_draws_one_axis_per_scene_and_view_and_grows_only_the_angle():
+  rng = np.random.default_rng(0)
+  examples = [(f"s{i}", {"context_c2w": _random_cameras(3, seed=i)[None],
+                         "context_images": rng.uniform(size=(1, 3, 2, 2, 3)),
+                         "target_c2w": _random_cameras(2, seed=10 + i)[None]})
+              for i in range(2)]
+  small = camera_noise.noisy(examples, 2.0, seed=0)
+  large = camera_noise.noisy(examples, 5.0, seed=0)
+  assert [key for key, _ in large] == ["s0", "s1"]
+  axes = {}
+  for position, (_, batch) in enumerate(examples):
+    before = batch["context_c2w"][0]
+    for name, degrees, result in (("small", 2.0, small), ("large", 5.0, large)):
+      perturbed = result[position][1]
+      assert perturbed["context_c2w"].shape == (1, 3, 4, 4)
+      assert perturbed["target_c2w"] is batch["target_c2w"]  # targets stay exact
+      assert perturbed["context_images"] is batch["context_images"]
+      np.testing.assert_array_equal(perturbed["context_c2w"][0, 0], before[0])
+      for v in (1, 2):
+        angle, axes[name, position, v] = _relative_rotation(before[v], perturbed["context_c2w"][0, v])
+        assert angle == pytest.approx(degrees, abs=1e-3)
+  for position in range(2):
+    for v in (1, 2):  # the same axis at every angle
+      np.testing.assert_allclose(axes["small", position, v], axes["large", position, v], atol=2e-3)
+  assert np.abs(axes["large", 0, 1] - axes["large", 1, 1]).max() > 0.1  # another scene, another axis
+  assert np.abs(axes["large", 0, 1] - axes["large", 0, 2]).max() > 0.1  # another view, another axis
+  reseeded = camera_noise.noisy(examples, 5.0, seed=1)[0][1]["context_c2w"]
+  assert np.abs(reseeded - large[0][1]["context_c2w"]).max() > 1e-3
+
+
+# ----------------------------------------------------------------------------------------------
+# studies/__init__.py
+
+
+def test_write_table_writes_json_and_markdown(tmp_path):
+  rows = [{"name": "a", "count": 3, "psnr": 21.123456, "extra": 1.0},
+          {"name": "b", "count": 10, "psnr": 0.000123456, "extra": 2.0}]
+  path = write_table(tmp_path / "deep" / "out", "table", "A title", rows, ["name", "psnr", "count"],
+                     notes=["first note", "second note"])
+  assert path == tmp_path / "deep" / "out" / "table.md"
+  payload = json.loads((tmp_path / "deep" / "out" / "table.json").read_text())
+  assert payload == {"title": "A title", "rows": rows, "notes": ["first note", "second note"]}
+  lines = path.read_text().splitlines()
+  assert lines[0] == "# A title"
+  table = lines[lines.index("| name | psnr | count |"):]
+  assert table[1] == "|---|---|---|"
+  assert table[2] == "| a | 21.12 | 3 |"
+  assert table[3] == "| b | 0.0001235 | 10 |"
+  assert "- first note" in lines and "- second note" in lines
+  assert "extra" not in path.read_text()  # only the requested columns
+
+
+# ----------------------------------------------------------------------------------------------
+# view_extrapolation and test_time_scaling: view selection
+
+
+def test_view_extrapolation_targets_inside_and_beyond_both_ends():
+  settings = view_extrapolation.ViewExtrapolation(gap=4, start=2, offsets=(1, 2, 3, 8))
+  frames = view_extrapolation.target_frames(settings, num_frames=10)
+  # inputs at 2 and 6; +k after 6 while < 10, -k before 2 while >= 0
+  assert frames == {"inside": 4, "+1": 7, "-1": 1, "+2": 8, "-2": 0, "+3": 9}
+  assert list(frames) == ["inside", "+1", "-1", "+2", "-2", "+3"]
+  longer = view_extrapolation.target_frames(settings, num_frames=15)
+  assert longer["+8"] == 14 and "-8" not in longer and "+8" not in frames
+  defaults = view_extrapolation.ViewExtrapolation()
+  frames = view_extrapolation.target_frames(defaults, num_frames=24)
+  assert frames["inside"] == 6 and frames["+8"] == 18 and frames["-2"] == 0 and "-4" not in frames
+  with pytest.raises(ValueError, match="need 11 frames"):
+    view_extrapolation.target_frames(defaults, num_frames=10)
+
+
+def test_test_time_scaling_targets_are_novel_views_at_every_context_size():
+  targets = test_time_scaling.shared_targets((2, 3, 4, 6), 12, 3)
+  # inputs over the curve: {0, 12} | {0, 6, 12} | {0, 4, 8, 12} | {0, 2, 5, 7, 10, 12}
+  np.testing.assert_array_equal(targets, [1, 9, 11])
+  for count in (2, 3, 4, 6):
+    context, target = test_time_scaling.spaced_views(count, 12, targets)({"images": [0] * 24}, 0)
+    assert len(context) == count and context[0] == 0 and context[-1] == 12
+    assert np.all(np.diff(context) > 0)
+    np.testing.assert_array_equal(target, targets)
+    assert not set(target.tolist()) & set(context.tolist())
+  with pytest.raises(ValueError, match="larger gap"):
+    test_time_scaling.shared_targets((2, 3, 4, 6), 12, 5)
+
+
+# ----------------------------------------------------------------------------------------------
+# token_count and token_assignment: pure pieces
+
+
+@pytest.fixture(scope="module")
+def smoke_model():
+  """(config, params) of the smoke preset's model (4 tokens x 16 Gaussians), fresh weights."""
+  config = common.model_config(SMOKE)
+  return config, model.init_params(jax.random.key(0), config)
+
+
+def test_token_count_resamples_the_trained_table_without_retraining(smoke_model, tmp_path):
+  config, params = smoke_model
+  settings = token_count.TokenCount(experiment=SMOKE)
+  table = np.asarray(params["gs_tokens"])
+  assert table.shape == (4, config.enc_embed_dim)
+  for count, rows in ((2, [0, 3]), (8, None)):
+    config_k, params_k = token_count.model_for(settings, config, params, count, tmp_path)
+    assert config_k == config.replace(num_gs_tokens=count)
+    assert config_k.num_gaussians == count * config.gaussians_per_token
+    resampled = np.asarray(params_k["gs_tokens"])
+    assert resampled.shape == (count, config.enc_embed_dim)
+    if rows is not None:  # fewer: evenly spaced trained rows
+      np.testing.assert_array_equal(resampled, table[rows])
+    else:  # more: the trained rows, then noisy copies of them
+      np.testing.assert_array_equal(resampled[:4], table)
+      assert 0 < np.abs(resampled[4:] - table).max() < 0.1
+    # everything but the token table is the trained model's, not a fresh initialisation
+    same = jax.tree.map(np.array_equal, {k: v for k, v in params.items() if k != "gs_tokens"},
+                        {k: v for k, v in params_k.items() if k != "gs_tokens"})
+    assert all(jax.tree.leaves(same))
+  assert not list(tmp_path.iterdir())  # nothing trained, nothing written
+
+
+def test_token_count_retrain_reuses_a_saved_model(smoke_model, tmp_path):
+  config, params = smoke_model
+  saved = jax.tree.map(lambda x: np.full_like(x, 0.25), token_count.model_for(
+      token_count.TokenCount(experiment=SMOKE), config, params, 2, tmp_path)[1])
+  common.save_params(tmp_path / "tokens_2.msgpack", saved)
+  settings = token_count.TokenCount(experiment=SMOKE, retrain=True)
+  config_k, loaded = token_count.model_for(settings, config, params, 2, tmp_path)
+  assert config_k.num_gs_tokens == 2
+  assert all(jax.tree.leaves(jax.tree.map(np.array_equal, loaded, saved)))
+
+
+def test_token_colours_are_distinct_and_valid():
+  colours = token_assignment.token_colours(64)
+  assert colours.shape == (64, 3) and colours.dtype == np.float32
+  assert colours.min() >= 0 and colours.max() <= 1
+  distances = np.linalg.norm(colours[:, None] - colours[None], axis=-1)
+  assert distances[~np.eye(64, dtype=bool)].min() > 1e-3
+  assert np.linalg.norm(colours[0] - colours[1]) > 0.2  # neighbours (adjacent tokens) differ a lot
+  np.testing.assert_array_equal(token_assignment.token_colours(8), colours[:8])
+
+
+def test_per_token_statistics_group_consecutive_gaussians():
+  """Gaussian i belongs to token i // per_token."""
+  means = np.array([[-3, 0, 0], [-1, 0, 0], [0, 2, 0], [0, -2, 0]], np.float32)
+  gaussians = Gaussians(means=means, opacities=np.array([0.2, 0.4, 1.0, 0.0], np.float32),
+                        scales=np.ones((4, 3), np.float32), quats=np.ones((4, 4), np.float32),
+                        colors=np.ones((4, 3), np.float32))
+  stats = token_assignment.per_token_statistics(gaussians, per_token=2)
+  # token spreads 1 and 2; scene centroid (-1, 0, 0), mean distance (2 + 0 + 2 sqrt 5) / 4
+  scene = (1 + math.sqrt(5)) / 2
+  np.testing.assert_allclose(stats["relative_spread"], [1 / scene, 2 / scene], rtol=1e-5)
+  np.testing.assert_allclose(stats["opacity"], [0.3, 0.5], rtol=1e-6)
+
+
+# ----------------------------------------------------------------------------------------------
+# a study end to end (smoke preset, two synthetic scenes, fresh weights)
+
+
+@pytest.fixture(scope="module")
+def smoke_study(tmp_path_factory, smoke_model):
+  """StudySettings on a generated two-scene test split, with saved fresh weights."""
+  root = tmp_path_factory.mktemp("study")
+  experiment = dataclasses.replace(
+      SMOKE, synthetic_dir=str(root / "data"), output_dir=str(root / "run"),
+      synthetic=dataclasses.replace(SMOKE.synthetic, num_train=1, num_test=2, workers=1),
+      eval=dataclasses.replace(SMOKE.eval, num_scenes=2))
+  common.ensure_synthetic(experiment)
+  params_path = common.save_params(root / "params.msgpack", smoke_model[1])
+  return StudySettings(experiment=experiment, params=str(params_path),
+                       output_dir=str(root / "studies"))
+
+
+def test_trained_tokengs_loads_saved_weights_without_training(smoke_study, smoke_model):
+  config, params = trained_tokengs(smoke_study)
+  assert config == smoke_model[0]
+  assert all(jax.tree.leaves(jax.tree.map(np.array_equal, params, smoke_model[1])))
+  assert not (pathlib.Path(smoke_study.params).parent / "checkpoints").exists()  # no training
+
+
+def test_psnr_of_scores_every_scene_and_times_the_first_twice(smoke_study, smoke_model):
+  """Invisible Gaussians render the grey background: PSNR = that of grey vs the targets."""
+  examples = common.evaluation_examples(smoke_study.experiment)
+  assert len(examples) == 2
+  calls = []
+  n = smoke_model[0].num_gaussians  # the e2e test's Gaussian count: the render compiles once
+
+  def method(batch):
+    calls.append(batch)
+    return Gaussians(means=np.tile([[[0.0, 0.0, 1.0]]], (1, n, 1)).astype(np.float32),
+                     opacities=np.zeros((1, n), np.float32), scales=np.full((1, n, 3), 0.01, np.float32),
+                     quats=np.tile([[[1.0, 0.0, 0.0, 0.0]]], (1, n, 1)).astype(np.float32),
+                     colors=np.ones((1, n, 3), np.float32))
+
+  scores, seconds = psnr_of(method, examples, common.Scorer(use_lpips=False))
+  assert [id(b) for b in calls] == [id(examples[0][1])] * 2 + [id(examples[1][1])]
+  assert seconds >= 0 and len(scores) == 2
+  for score, (_, batch) in zip(scores, examples):
+    mse = np.mean((batch["target_images"][0] - 0.5) ** 2, axis=(1, 2, 3))
+    assert score == pytest.approx(float(np.mean(-10 * np.log10(mse))), abs=1e-3)
+
+
+def test_token_assignment_main_end_to_end(smoke_study, smoke_model):
+  config = smoke_model[0]
+  settings = token_assignment.TokenAssignment(
+      experiment=smoke_study.experiment, params=smoke_study.params,
+      output_dir=smoke_study.output_dir, num_scenes=1)
+  rows = token_assignment.main(settings)
+  out = pathlib.Path(settings.output_dir) / "token_assignment"
+  assert sorted(row["token"] for row in rows) == list(range(config.num_tokens))
+  spreads = [row["relative_spread"] for row in rows]
+  assert spreads == sorted(spreads)  # sorted by spread
+  for row in rows:
+    assert math.isfinite(row["relative_spread"]) and row["relative_spread"] > 0
+    assert 0 < row["opacity"] < 1
+  payload = json.loads((out / "token_assignment.json").read_text())
+  assert payload["rows"] == rows
+  assert payload["notes"][0].startswith("2 held-out scenes")
+  table = (out / "token_assignment.md").read_text()
+  assert table.count("\n| ") == 1 + len(rows)  # header + one line per token
+  assert (out / "spread.png").stat().st_size > 0
+  # num_scenes=1: one picture, of the first scene: 5 rows (inputs, targets, renders, token
+  # colours at the targets, at the inputs) of two 32x32 views with 2-pixel padding
+  pictures = list((out / "scenes").glob("*.png"))
+  key = common.evaluation_examples(settings.experiment)[0][0]
+  assert [p.name for p in pictures] == [f"{key}.png"]
+  image = np.asarray(Image.open(pictures[0]))
+  assert image.shape == (5 * 32 + 6 * 2, 2 * 32 + 3 * 2, 3)
+  # the token-colour rows differ from the RGB render row (the palette replaced the colours)
+  render, tokens = image[2 + 2 * 34:2 + 2 * 34 + 32], image[2 + 3 * 34:2 + 3 * 34 + 32]
+  assert np.abs(render.astype(int) - tokens.astype(int)).max() > 10
