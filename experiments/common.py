@@ -234,7 +234,8 @@ def evaluation_examples(experiment: Experiment,
   views: optional `(record, scene position) -> (context, target)` frames (studies use it for,
     e.g., extrapolated targets); default: the evaluation index, else deterministic sampling.
   """
-  index = load_evaluation_index(experiment.eval_index) if experiment.eval_index else None
+  index = (load_evaluation_index(experiment.eval_index, num_context=experiment.num_context_views)
+           if experiment.eval_index else None)
   source = ChunkedSceneSource(data_root(experiment) / "test",
                               keys=list(index) if index is not None else None,
                               skip_bad=bool(experiment.data_dir))

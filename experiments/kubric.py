@@ -34,6 +34,7 @@ from __future__ import annotations
 import dataclasses
 import pathlib
 import time
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
@@ -58,6 +59,7 @@ class KubricExperiment(common.Experiment):
     min_gap / max_gap: frame span of an example's input views (official 3 / 23).
     flow_times: times sampled for the scene-flow and in-between pictures.
     flow_tracks: dynamic Gaussians drawn in the scene-flow plot (the most opaque ones).
+    rgb_loss: photometric term, "l1" (official release) or "l2" (MSE: PSNR's own criterion).
     lambda_dyn_aux: base weight of the dynamic-only auxiliary loss (official release 0.3).
     dyn_aux_hold_fraction / dyn_aux_decay_fraction: the auxiliary weight is held for this
       fraction of `train.steps`, then decays linearly to 0 over the next fraction (official
@@ -68,6 +70,7 @@ class KubricExperiment(common.Experiment):
   max_gap: int = 23
   flow_times: int = 8
   flow_tracks: int = 48
+  rgb_loss: Literal["l1", "l2"] = "l1"
   lambda_dyn_aux: float = 0.3
   dyn_aux_hold_fraction: float = 0.1
   dyn_aux_decay_fraction: float = 0.2
@@ -148,7 +151,7 @@ class KubricTask(common.Task):
     """The official Kubric release loss, its auxiliary schedule scaled to `train.steps`."""
     steps = experiment.train.steps
     return losses.LossConfig(
-        rgb_loss="l1", lambda_rgb=0.8, lambda_ssim=0.2, lambda_vis=1.0,
+        rgb_loss=experiment.rgb_loss, lambda_rgb=0.8, lambda_ssim=0.2, lambda_vis=1.0,
         lambda_dyn_aux=experiment.lambda_dyn_aux,
         dyn_aux_hold_steps=round(experiment.dyn_aux_hold_fraction * steps),
         dyn_aux_decay_steps=max(round(experiment.dyn_aux_decay_fraction * steps), 1))

@@ -1,5 +1,6 @@
 """experiments/: command-line parsing, baselines, results writing, plots, and the entry point end to end."""
 
+import dataclasses
 import json
 import math
 import pathlib
@@ -146,9 +147,33 @@ def test_kubric_loss_is_the_official_release_scaled_to_the_run():
   assert config.dyn_aux_hold_steps == round(0.1 * tiny.train.steps)
   assert config.dyn_aux_decay_steps == round(0.2 * tiny.train.steps)
   assert kubric.KubricTask().objective(tiny).decode_times == "first"
+  mse = dataclasses.replace(tiny, rgb_loss="l2")
+  assert kubric.KubricTask().loss_config(mse).rgb_loss == "l2"
 
 
 def test_tick_labels_keep_significant_zeros():
   ticks = np.array([0.0, 10.0, 25.0, 50.0])
   assert [plot._label(v, ticks) for v in ticks] == ["0", "10", "25", "50"]
   assert plot._label(19.0, np.array([18.5, 19.0, 19.5])) == "19"
+
+
+def test_evaluation_examples_read_a_list_format_index(tmp_path):
+  """A Long-LRM list index (official DL3DV eval form): its context list, every frame a target."""
+  smoke = re10k.PRESETS["smoke"]
+  experiment = dataclasses.replace(
+      smoke, synthetic_dir=str(tmp_path / "data"),
+      synthetic=dataclasses.replace(smoke.synthetic, num_train=1, num_test=1, workers=1))
+  common.ensure_synthetic(experiment)
+  key = common.evaluation_examples(experiment)[0][0]
+  index = tmp_path / "index.json"
+  index.write_text(json.dumps([{"scene_name": key, "fold_8_kmeans_2_input": [1, 7]}]))
+  (got_key, batch), = common.evaluation_examples(
+      dataclasses.replace(experiment, eval_index=str(index)))
+  assert got_key == key
+  frames = smoke.synthetic.frames
+  assert batch["context_images"].shape[1] == 2 and batch["target_images"].shape[1] == frames
+  for view, frame in enumerate([1, 7]):  # the listed inputs are frames 1 and 7 of the targets
+    np.testing.assert_array_equal(batch["context_images"][0, view], batch["target_images"][0, frame])
+  with pytest.raises(ValueError, match="fold_8_kmeans_3_input"):
+    common.evaluation_examples(dataclasses.replace(experiment, eval_index=str(index),
+                                                   num_context_views=3))

@@ -308,3 +308,9 @@ def test_token_assignment_main_end_to_end(smoke_study, smoke_model):
   # the token-colour rows differ from the RGB render row (the palette replaced the colours)
   render, tokens = image[2 + 2 * 34:2 + 2 * 34 + 32], image[2 + 3 * 34:2 + 3 * 34 + 32]
   assert np.abs(render.astype(int) - tokens.astype(int)).max() > 10
+
+
+def test_camera_noise_needs_the_clean_angle():
+  with pytest.raises(ValueError, match="must include 0"):
+    camera_noise.CameraNoise(angles=(1.0, 5.0))
+  assert camera_noise.CameraNoise(angles=(5.0, 0.0)).angles == (5.0, 0.0)

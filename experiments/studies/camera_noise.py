@@ -28,6 +28,10 @@ class CameraNoise(StudySettings):
   angles: tuple[float, ...] = (0.0, 1.0, 2.0, 5.0, 10.0)
   baseline_params: str | None = None  # trained baseline weights; default <out>/pixel_baseline.msgpack
 
+  def __post_init__(self):
+    if 0.0 not in self.angles:
+      raise ValueError(f"angles {self.angles} must include 0: the drops are measured from it")
+
 
 def rotate_cameras(c2w: np.ndarray, axes: np.ndarray, degrees: float) -> np.ndarray:
   """Rotates every camera but the first about its own centre.
@@ -92,9 +96,10 @@ def main(settings: CameraNoise) -> list[dict]:
       curves[name][0].append(degrees)
       curves[name][1].append(row[name])
     rows.append(row)
+  clean = next(row for row in rows if row["angle_deg"] == 0.0)
   for name in methods:  # drop relative to the clean inputs: the robustness figure
     for row in rows:
-      row[f"{name} drop"] = row[name] - rows[0][name]
+      row[f"{name} drop"] = row[name] - clean[name]
   columns = ["angle_deg"] + list(methods) + [f"{name} drop" for name in methods]
   write_table(out, "camera_noise", "PSNR (dB) vs rotation noise on the non-reference input views",
               rows, columns, notes=[(f"{len(examples)} held-out scenes; models trained "
