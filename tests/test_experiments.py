@@ -127,7 +127,8 @@ def test_kubric_entry_point_end_to_end(tmp_path):
   history = json.loads((out / "train_history.json").read_text())
   # the official auxiliary weight, scaled to 2 steps: held at step 0, decayed to 0 at step 1
   assert [h["dyn_aux_weight"] for h in history] == pytest.approx([0.3, 0.0])
-  assert math.isfinite(payload["dynamic"]["mean_dynamic_displacement_t0_t1"])
+  for name in ("mean_dynamic", "median_dynamic", "median_tracked", "mean_static"):
+    assert math.isfinite(payload["dynamic"][f"{name}_displacement_t0_t1"]), name
   for name in ("in_between_times.png", "static_dynamic.png", "scene_flow.png"):
     assert (out / "dynamic" / name).stat().st_size > 0, name
 
