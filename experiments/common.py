@@ -695,6 +695,15 @@ def run_eval(experiment: Experiment, config: model.ModelConfig, params, *, task:
   return payload
 
 
+def merge_history(earlier: list[dict], resumed: list[dict]) -> list[dict]:
+  """The saved training log followed by a resumed run's: earlier entries from the resumed run's
+  first logged step on are replaced (the run redid them), all of them kept when it logged none."""
+  if not resumed:
+    return earlier
+  first = resumed[0]["step"]
+  return [entry for entry in earlier if entry["step"] < first] + resumed
+
+
 def execute(command: Command, experiment: Experiment, task: Task | None = None,
             invocation: str = "") -> dict | None:
   """Runs one command; returns the metrics payload when it evaluated."""
@@ -723,11 +732,14 @@ def execute(command: Command, experiment: Experiment, task: Task | None = None,
     params, history, seconds = train_model(experiment, config, params, writer,
                                            loss_fn=task.loss_fn(experiment, config),
                                            batches=task.training_batches(experiment))
+    history_path = out / "train_history.json"
+    if history_path.exists():  # a resumed run logs only its own steps
+      history = merge_history(json.loads(history_path.read_text()), history)
     info.update(train_seconds=seconds, train_steps=experiment.train.steps,
                 final_train_loss=history[-1].get("loss") if history else None)
     if jax.process_index() == 0:
       save_params(out / "params.msgpack", params)
-      (out / "train_history.json").write_text(json.dumps(history, indent=1))
+      history_path.write_text(json.dumps(history, indent=1))
     if command in ("train", "finetune"):
       return None
     payload = run_eval(experiment, config, params, task=task, writer=writer,

@@ -178,3 +178,12 @@ def test_evaluation_examples_read_a_list_format_index(tmp_path):
   with pytest.raises(ValueError, match="fold_8_kmeans_3_input"):
     common.evaluation_examples(dataclasses.replace(experiment, eval_index=str(index),
                                                    num_context_views=3))
+
+
+def test_merge_history_keeps_the_log_of_a_resumed_run():
+  earlier = [{"step": 5, "loss": 1.0}, {"step": 10, "loss": 0.9}, {"step": 15, "loss": 0.8}]
+  assert common.merge_history(earlier, []) == earlier  # re-evaluation only: log kept
+  resumed = [{"step": 15, "loss": 0.7}, {"step": 20, "loss": 0.6}]
+  assert [e["loss"] for e in common.merge_history(earlier, resumed)] == [1.0, 0.9, 0.7, 0.6]
+  fresh = [{"step": 5, "loss": 2.0}]
+  assert common.merge_history(earlier, fresh) == fresh
