@@ -79,11 +79,12 @@ def main(settings: TokenCount) -> list[dict]:
       psnr_curves[name][1].append(psnr)
       runtime_curves[name][0].append(seconds)
       runtime_curves[name][1].append(psnr)
-  how = "retrained per count" if settings.retrain else "trained table resampled (no retraining)"
+  how = (f"one model trained {settings.experiment.train.steps} steps per count" if settings.retrain
+         else f"the {config.num_gs_tokens}-token table resampled (no retraining)")
   write_table(out, "token_count", "PSNR (dB) and run time vs Gaussian tokens", rows,
               ["tokens", "gaussians", "tuning_steps", "psnr", "seconds_per_scene"],
-              notes=[(f"{len(examples)} held-out scenes; models: {how}; trained with "
-                     f"{config.num_gs_tokens} tokens; run time on {jax.devices()[0].platform}.")])
+              notes=[(f"{len(examples)} held-out scenes; models: {how}; run time on "
+                     f"{jax.devices()[0].platform}.")])
   plot.line_plot(out / "psnr_vs_tokens.png", psnr_curves, title="PSNR vs Gaussian tokens",
                  xlabel="Gaussian tokens", ylabel="PSNR (dB)", log_x=True)
   plot.line_plot(out / "runtime_vs_psnr.png", runtime_curves, title="Run time vs PSNR",
