@@ -42,7 +42,7 @@ from tokengs_jax.data.transforms import (
   translation_scale,
 )
 
-__all__ = ["ExampleConfig", "DATASET_PRESETS", "TRANSLATION_SCALES", "make_example",
+__all__ = ["ExampleConfig", "DATASET_PRESETS", "TRANSLATION_SCALES", "make_example", "field_of_view",
            "InputPipeline", "BadExampleError"]
 
 # Paper, training details: camera translations scaled so that mean depths are roughly 1. The
@@ -70,6 +70,18 @@ class ExampleConfig:
       official Kubric; needs the record's `depths`).
     random_flip: flip each example left-right with probability 1/2 (training).
     deterministic: pixelSplat's test-stage sampling, no flip (validation without an index).
+    max_fov_degrees: reject the scene (`BadExampleError`) if any of its frames (all of the record's
+      frames, not only the chosen views) has a horizontal or vertical field of view strictly above
+      this, in degrees. The FOV is the angle between the rays through the middles of opposite image
+      edges, so an off-centre principal point counts. None: off (default).
+    min_context_baseline: reject the example if its two context camera centres, in the record's
+      raw world units (before normalisation and translation scaling), are strictly closer than
+      this. Not checked with more or fewer than 2 context views. None: off (default).
+
+  The last two reproduce pixelSplat/MVSplat's RE10K filters (`src/dataset/dataset_re10k.py`:
+  `max_fov: 100.0` and, with `make_baseline_1`, `baseline_epsilon: 1e-3` in
+  `config/dataset/re10k.yaml`). They are off in `DATASET_PRESETS`: the official TokenGS pipeline
+  normalises cameras itself and is not known to filter (not checked against its code).
   """
   image_shape: tuple[int, int] = (256, 256)
   sampler: BoundedSamplerConfig = SAMPLER_PRESETS["depthsplat_re10k"]
@@ -78,6 +90,8 @@ class ExampleConfig:
   scale_method: Literal["constant", "distance", "bound", "pointmap"] = "constant"
   random_flip: bool = True
   deterministic: bool = False
+  max_fov_degrees: float | None = None
+  min_context_baseline: float | None = None
 
 
 _KUBRIC = KubricConfig()  # the official Kubric preset's camera handling, shared with `KubricSource`
@@ -137,6 +151,48 @@ def _depth(record: dict, index: int) -> np.ndarray:
   return depth.astype(np.float32)
 
 
+def field_of_view(intrinsics: np.ndarray, height: int, width: int) -> np.ndarray:
+  """Horizontal and vertical field of view in degrees, as pixelSplat's `get_fov`.
+
+  intrinsics: [..., 4] pixels (fx, fy, cx, cy) of `height` x `width` frames -> [..., 2] (x, y).
+  """
+  fx, fy, cx, cy = np.moveaxis(np.asarray(intrinsics, np.float64), -1, 0)
+
+  def ray(u, v):  # direction through pixel (u, v), unit length
+    direction = np.stack(np.broadcast_arrays((u - cx) / fx, (v - cy) / fy, np.ones_like(fx)), -1)
+    return direction / np.linalg.norm(direction, axis=-1, keepdims=True)
+
+  # Rays through the middles of opposite edges, not 2 atan(W / 2 fx): pixelSplat's definition also
+  # counts an off-centre principal point.
+  left, right = ray(0.0, height / 2), ray(float(width), height / 2)
+  top, bottom = ray(width / 2, 0.0), ray(width / 2, float(height))
+  cosines = np.stack([(left * right).sum(-1), (top * bottom).sum(-1)], -1)
+  return np.degrees(np.arccos(np.clip(cosines, -1.0, 1.0)))
+
+
+def _check_filters(record: dict, config: ExampleConfig, context: np.ndarray, height: int, width: int):
+  """pixelSplat/MVSplat's RE10K example filters (see `ExampleConfig`); raises `BadExampleError`."""
+  where = _where(record)
+  if config.max_fov_degrees is not None:
+    # All frames, as pixelSplat (it tests the scene's intrinsics, not the sampled views'). NaN in an
+    # unused frame compares False there and here.
+    with np.errstate(invalid="ignore"):
+      fov = field_of_view(np.asarray(record["intrinsics"]), height, width)
+      wide = fov > config.max_fov_degrees
+    if wide.any():
+      frame, axis = np.argwhere(wide)[0]
+      raise BadExampleError(f"{where}: {('horizontal', 'vertical')[axis]} field of view "
+                            f"{fov[frame, axis]:.4f} deg of frame {frame} exceeds max_fov_degrees "
+                            f"{config.max_fov_degrees}")
+  if config.min_context_baseline is not None and len(context) == 2:
+    # Raw record cameras: pixelSplat measures before it rescales the world.
+    centres = np.asarray(record["c2w"], np.float64)[context, :3, 3]
+    baseline = float(np.linalg.norm(centres[0] - centres[1]))
+    if baseline < config.min_context_baseline:
+      raise BadExampleError(f"{where}: context baseline {baseline:.6g} (frames {context.tolist()}) is "
+                            f"below min_context_baseline {config.min_context_baseline}")
+
+
 def make_example(record: dict, config: ExampleConfig, rng: np.random.Generator, *, step: int = 0,
                  views: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
   """One example (no batch axis) from a scene record; keys as the batch without the leading `B`.
@@ -164,6 +220,7 @@ def make_example(record: dict, config: ExampleConfig, rng: np.random.Generator, 
   if images.shape[1:3] != (record.get("height", images.shape[1]), record.get("width", images.shape[2])):
     raise BadExampleError(f"{where}: frames are {images.shape[1:3]}, cameras are for "
                           f"{(record['height'], record['width'])}")
+  _check_filters(record, config, np.asarray(context), images.shape[1], images.shape[2])
   raw_intrinsics = intrinsics
   images, intrinsics = resize_and_center_crop(images, intrinsics, config.image_shape)
   num_context = len(context)
