@@ -34,6 +34,7 @@ from tokengs_jax.data.pipeline import (
     BadExampleError,
     ExampleConfig,
     InputPipeline,
+    field_of_view,
     make_example,
 )
 from tokengs_jax.data.sampler import (
@@ -75,6 +76,7 @@ __all__ = [
     "decode_jpeg",
     "encode_jpeg",
     "evaluation_views",
+    "field_of_view",
     "flip_horizontal",
     "list_dl3dv_scenes",
     "load_evaluation_index",
