@@ -3,20 +3,27 @@
 from tokengs_jax.data.synthetic import generate_re10k_like, generate_kubric_like
 generate_re10k_like("data/synthetic_re10k", num_train=256, num_test=32, height=64, width=64)
 generate_kubric_like("data/synthetic_kubric", num_scenes=16)
+generate_galleries("data/galleries", num_scenes=24)  # out-of-distribution test set (64x64)
 """
 
 from tokengs_jax.data.synthetic.cameras import (
+  ArcConfig,
   WalkConfig,
+  arc_path,
   forward_walk,
   look_at,
   orbit_cameras,
   pinhole_intrinsics,
 )
 from tokengs_jax.data.synthetic.generate import (
+  GalleryDatasetConfig,
   KubricLikeConfig,
   Re10kLikeConfig,
+  gallery_views,
+  generate_galleries,
   generate_kubric_like,
   generate_re10k_like,
+  render_gallery_scene,
   render_kubric_like_scene,
   render_re10k_like_scene,
   write_kubric_view,
@@ -34,15 +41,20 @@ from tokengs_jax.data.synthetic.raytrace import (
 from tokengs_jax.data.synthetic.scenes import (
   DynamicConfig,
   DynamicScene,
+  GalleryConfig,
   RoomConfig,
   sample_dynamic_scene,
+  sample_gallery_scene,
   sample_room_scene,
 )
 
 __all__ = [
+  "ArcConfig",
   "Box",
   "DynamicConfig",
   "DynamicScene",
+  "GalleryConfig",
+  "GalleryDatasetConfig",
   "KubricLikeConfig",
   "Plane",
   "Re10kLikeConfig",
@@ -52,16 +64,21 @@ __all__ = [
   "Sphere",
   "Texture",
   "WalkConfig",
+  "arc_path",
   "forward_walk",
+  "gallery_views",
+  "generate_galleries",
   "generate_kubric_like",
   "generate_re10k_like",
   "look_at",
   "orbit_cameras",
   "pinhole_intrinsics",
   "render",
+  "render_gallery_scene",
   "render_kubric_like_scene",
   "render_re10k_like_scene",
   "sample_dynamic_scene",
+  "sample_gallery_scene",
   "sample_room_scene",
   "trace",
   "write_kubric_view",

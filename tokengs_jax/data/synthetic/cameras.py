@@ -140,3 +140,37 @@ def pinhole_intrinsics(height: int, width: int, fov_x: float) -> np.ndarray:
   """Square-pixel intrinsics with horizontal field of view `fov_x` (radians).  -> [4] pixels."""
   focal = 0.5 * width / np.tan(0.5 * fov_x)
   return np.array([focal, focal, 0.5 * width, 0.5 * height])
+
+
+@dataclasses.dataclass(frozen=True)
+class ArcConfig:
+  """Ranges of `arc_path`, the gallery family's camera path (metres, radians)."""
+
+  radius: tuple[float, float] = (1.3, 2.3)  # distance from the point of interest
+  step: tuple[float, float] = (0.04, 0.09)  # arc length travelled per frame
+  height: tuple[float, float] = (0.9, 2.0)  # camera height above the floor
+  look_height: tuple[float, float] = (0.6, 1.4)  # height of the point looked at
+  look_wander: float = 0.3  # the look-at point drifts by up to this much over the path
+  position_jitter: float = 0.004
+
+
+def arc_path(
+  rng: np.random.Generator, frames: int, centre: np.ndarray, config: ArcConfig = ArcConfig()
+) -> np.ndarray:
+  """Cameras on a circular arc around `centre [3]` (x, z used), all looking inwards at a slowly
+  drifting point near it: an object-centric orbit, unlike `forward_walk`'s travel along the view
+  direction.  -> c2w [F, 4, 4] (OpenCV).
+  """
+  radius = rng.uniform(*config.radius)
+  angle_step = rng.choice([-1.0, 1.0]) * rng.uniform(*config.step) / radius
+  angle = rng.uniform(0, 2 * np.pi) + angle_step * np.arange(frames)
+  height = rng.uniform(*config.height)
+  positions = np.stack(
+    [centre[0] + radius * np.sin(angle), np.full(frames, height), centre[2] + radius * np.cos(angle)],
+    -1,
+  )
+  positions += rng.normal(0.0, config.position_jitter, positions.shape)
+  wander = rng.uniform(-1.0, 1.0, 3) * config.look_wander
+  look = np.array([centre[0], rng.uniform(*config.look_height), centre[2]])
+  targets = look + np.linspace(0.0, 1.0, frames)[:, None] * wander
+  return look_at(positions, targets)

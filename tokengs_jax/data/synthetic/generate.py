@@ -2,6 +2,9 @@
 
 - `generate_re10k_like`: static rooms + RE10K-like walks -> pixelSplat chunks
   `{train,test}/NNNNNN.torch` (JPEG frames, normalised intrinsics, w2c rows) + `index.json`.
+- `generate_galleries`: a held-out family (polygonal galleries, orbiting camera; see
+  `scenes.GalleryConfig`) -> `test/` chunks + `index.json` in the same layout, plus
+  `eval_index.json` (pixelSplat's evaluation-index format) whose targets are never input frames.
 - `generate_kubric_like`: dynamic scenes seen by a 9-camera rig -> the Kubric-4D layout
   `<root>/<subset>/<scene>/output_{view:03d}.tar`, each tar holding `metadata.json`,
   `rgba_{frame:05d}.png` and `depth_{frame:05d}.tiff` (camera z-depth, float32).
@@ -146,6 +149,100 @@ def generate_re10k_like(
     indexes[split] = {key: name for name, chunk_keys in zip(names, keys) for key in chunk_keys}
     (directory / "index.json").write_text(json.dumps(indexes[split], indent=1))
   return indexes
+
+
+# ----------------------------------------------------------------------------------------------
+# Galleries: the out-of-distribution test family (never trained on)
+
+_GALLERY_STREAM = 7  # rng stream of the gallery family: disjoint from the rooms' train / test ids
+
+
+@dataclasses.dataclass(frozen=True)
+class GalleryDatasetConfig:
+  """Options of `generate_galleries` beyond the sizes."""
+
+  fov_x_degrees: tuple[float, float] = (45.0, 95.0)
+  supersample: int = 2
+  jpeg_quality: int = 95
+  scenes_per_chunk: int = 16
+  num_targets: int = 3  # per scene in `eval_index.json`, evenly inside the context span
+  scene: scenes.GalleryConfig = scenes.GalleryConfig()
+
+
+def render_gallery_scene(
+  seed: int,
+  index: int,
+  height: int,
+  width: int,
+  frames: int,
+  config: GalleryDatasetConfig = GalleryDatasetConfig(),
+) -> dict:
+  """One gallery scene, with the fields of `render_re10k_like_scene`."""
+  rng = np.random.default_rng([seed, _GALLERY_STREAM, index])
+  scene, c2w = scenes.sample_gallery_scene(rng, frames, config.scene)
+  intrinsics = cameras.pinhole_intrinsics(height, width, np.deg2rad(rng.uniform(*config.fov_x_degrees)))
+  outputs = [render(scene, pose, intrinsics, height, width, config.supersample) for pose in c2w]
+  return {
+    "key": f"gallery{seed}_{index:06d}",
+    "url": "",
+    "timestamps": np.arange(frames, dtype=np.int64) * (1_000_000 // _RE10K_FPS),
+    "c2w": c2w.astype(np.float32),
+    "intrinsics": np.broadcast_to(intrinsics, (frames, 4)).astype(np.float32),
+    "images": np.stack([np.round(o.rgb * 255.0).astype(np.uint8) for o in outputs]),
+    "depths": np.stack([o.depth for o in outputs]),
+  }
+
+
+def gallery_views(frames: int, num_targets: int) -> dict:
+  """Evaluation views of a gallery scene: inputs at the first and last frame, targets evenly
+  spaced strictly between them (never an input frame, so copying an input is never exact)."""
+  if frames - 2 < num_targets:
+    raise ValueError(f"{frames} frames cannot hold {num_targets} targets between two inputs")
+  targets = np.linspace(0, frames - 1, num_targets + 2)[1:-1].round().astype(int)
+  return {"context": [0, frames - 1], "target": [int(t) for t in targets]}
+
+
+def _write_gallery_chunk(path, seed, indices, height, width, frames, config) -> list[str]:
+  rendered = [render_gallery_scene(seed, i, height, width, frames, config) for i in indices]
+  chunks.write_chunk(path, rendered, jpeg_quality=config.jpeg_quality)
+  return [scene["key"] for scene in rendered]
+
+
+def generate_galleries(
+  root: str | os.PathLike,
+  num_scenes: int = 24,
+  height: int = 64,
+  width: int = 64,
+  frames: int = 13,
+  seed: int = 0,
+  *,
+  config: GalleryDatasetConfig = GalleryDatasetConfig(),
+  workers: int = 1,
+) -> dict:
+  """Writes the gallery test set: `<root>/test/NNNNNN.torch` + `<root>/test/index.json` (the
+  pixelSplat layout, as `generate_re10k_like`) and `<root>/eval_index.json` (scene key ->
+  {"context", "target"}, the pixelSplat / MVSplat evaluation-index format; `gallery_views`).
+
+  Returns the evaluation index.
+  """
+  directory = pathlib.Path(root) / "test"
+  directory.mkdir(parents=True, exist_ok=True)
+  groups = [
+    list(range(start, min(start + config.scenes_per_chunk, num_scenes)))
+    for start in range(0, num_scenes, config.scenes_per_chunk)
+  ]
+  names = [f"{number:06d}.torch" for number in range(len(groups))]
+  jobs = [
+    (str(directory / name), seed, group, height, width, frames, config)
+    for name, group in zip(names, groups)
+  ]
+  keys = _run_jobs(_write_gallery_chunk, jobs, workers)
+  index = {key: name for name, chunk_keys in zip(names, keys) for key in chunk_keys}
+  (directory / "index.json").write_text(json.dumps(index, indent=1))
+  views = gallery_views(frames, config.num_targets)
+  evaluation = {key: views for key in index}
+  (pathlib.Path(root) / "eval_index.json").write_text(json.dumps(evaluation, indent=1))
+  return evaluation
 
 
 # ----------------------------------------------------------------------------------------------

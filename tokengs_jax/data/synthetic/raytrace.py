@@ -9,9 +9,9 @@ Conventions: OpenCV camera axes (+x right, +y down, +z forward), `c2w [4, 4]` ca
 intrinsics (fx, fy, cx, cy) in pixels, pixel (row i, column j) centred at (j + 0.5, i + 0.5).
 Depth is the camera z-depth (the convention of the Kubric depth maps the official loader reads).
 
-Shading: Lambert + ambient under one directional light, with hard shadows cast by the objects
-(boxes and spheres) only; the enclosing planes (floor, walls) do not cast shadows, so a room with a
-ceiling is still lit ("light through the ceiling").
+Shading: Lambert + ambient under one directional (optionally coloured) light, with hard shadows
+cast by the objects (boxes and spheres) only; the enclosing planes (floor, walls) do not cast
+shadows, so a room with a ceiling is still lit ("light through the ceiling").
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from typing import NamedTuple, Union
 import numpy as np
 
 _EPS = 1e-4  # minimum hit distance: avoids self-intersection of shadow rays
-TEXTURE_KINDS = ("solid", "checker", "stripes", "gradient", "noise")
+TEXTURE_KINDS = ("solid", "checker", "stripes", "gradient", "noise", "rings", "dots", "bricks")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,6 +36,10 @@ class Texture:
     frequency: pattern cells per metre (of local coordinates).
     axis: local axis of `stripes` / `gradient`.
     seed: lattice seed of `noise`.
+
+  `rings` (concentric about the local origin), `dots` (a lattice of discs) and `bricks`
+  (staggered rows, mortar in `color_b`) are drawn only by the gallery family (`scenes.py`), so
+  a model trained on the rooms never sees them.
   """
 
   kind: str = "solid"
@@ -100,8 +104,17 @@ def texture_color(texture: Texture, local: np.ndarray) -> np.ndarray:
   elif texture.kind == "gradient":
     # Triangle wave: linear ramps without the jump a sawtooth would have.
     mix = np.abs(2.0 * (p[:, texture.axis] - np.floor(p[:, texture.axis])) - 1.0)
-  else:
+  elif texture.kind == "noise":
     mix = value_noise(p, texture.seed)
+  elif texture.kind == "rings":
+    mix = (np.floor(np.linalg.norm(p, axis=-1)).astype(np.int64) % 2).astype(np.float32)
+  elif texture.kind == "dots":
+    mix = (np.linalg.norm(p - np.round(p), axis=-1) < 0.3).astype(np.float32)
+  else:  # bricks: rows of height 1/2 along local axis 1, every other row shifted half a brick
+    row = np.floor(2.0 * p[:, 1])
+    along = p[:, 0] + 0.5 * (row % 2)
+    mortar = ((along - np.floor(along)) < 0.08) | ((2.0 * p[:, 1] - row) < 0.12)
+    mix = mortar.astype(np.float32)
   color_a = np.asarray(texture.color_a, np.float32)
   color_b = np.asarray(texture.color_b, np.float32)
   return color_a + mix[:, None] * (color_b - color_a)
@@ -216,6 +229,7 @@ class Scene:
   objects: tuple[Union[Sphere, Box], ...] = ()
   light_direction: tuple[float, float, float] = (0.3, 1.0, 0.2)  # towards the light (world)
   ambient: float = 0.35
+  light_color: tuple[float, float, float] = (1.0, 1.0, 1.0)  # scales the direct (Lambert) term
   background: tuple[float, float, float] = (0.55, 0.7, 0.9)
 
   @property
@@ -270,8 +284,9 @@ def trace(scene: Scene, origins: np.ndarray, dirs: np.ndarray) -> TraceResult:
       scene.objects, shadow_origins, np.broadcast_to(light, shadow_origins.shape)
     )
     lambert[np.flatnonzero(lit)[np.isfinite(shadow_t)]] = 0.0
-  shade = np.float32(scene.ambient) + np.float32(1.0 - scene.ambient) * lambert
-  rgb = np.where(hit[:, None], albedo * shade[:, None], albedo)
+  direct = lambert[:, None] * np.asarray(scene.light_color, np.float32)
+  shade = np.float32(scene.ambient) + np.float32(1.0 - scene.ambient) * direct
+  rgb = np.where(hit[:, None], albedo * shade, albedo)
   return TraceResult(np.clip(rgb, 0.0, 1.0).astype(np.float32), t, ids)
 
 

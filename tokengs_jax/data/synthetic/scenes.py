@@ -1,4 +1,5 @@
-"""Random scene layouts: RE10K-like rooms with a walking camera, and Kubric-like dynamic scenes.
+"""Random scene layouts: RE10K-like rooms with a walking camera, Kubric-like dynamic scenes, and
+galleries (a held-out family for out-of-distribution tests: nothing is trained on it).
 
 World frame: +y up, floor at y = 0. All randomness comes from the `np.random.Generator` passed in,
 so a scene is a pure function of its seed.
@@ -15,18 +16,22 @@ from tokengs_jax.data.synthetic import cameras
 from tokengs_jax.data.synthetic.raytrace import Box, Plane, Scene, Sphere, Texture
 
 _PATTERNS = ("checker", "stripes", "gradient", "noise")
+# The gallery family's textures share no kind with the rooms' `_PATTERNS`.
+_GALLERY_PATTERNS = ("solid", "rings", "dots", "bricks")
 
 
 def random_color(rng: np.random.Generator, saturation=(0.2, 0.8), value=(0.3, 0.95)) -> tuple:
   return colorsys.hsv_to_rgb(rng.uniform(), rng.uniform(*saturation), rng.uniform(*value))
 
 
-def random_texture(rng: np.random.Generator, frequency=(0.5, 3.0), kinds=_PATTERNS) -> Texture:
+def random_texture(
+  rng: np.random.Generator, frequency=(0.5, 3.0), kinds=_PATTERNS, saturation=(0.2, 0.8)
+) -> Texture:
   """A random pattern between two random colours."""
   return Texture(
     kind=str(rng.choice(kinds)),
-    color_a=random_color(rng),
-    color_b=random_color(rng),
+    color_a=random_color(rng, saturation),
+    color_b=random_color(rng, saturation),
     frequency=float(rng.uniform(*frequency)),
     axis=int(rng.integers(0, 3)),
     seed=int(rng.integers(0, 2**31)),
@@ -255,3 +260,150 @@ def sample_dynamic_scene(
     light_direction=(float(rng.uniform(-0.6, 0.6)), 1.0, float(rng.uniform(-0.6, 0.6))),
     ambient=float(rng.uniform(0.3, 0.45)),
   )
+
+
+# ----------------------------------------------------------------------------------------------
+# Galleries: the out-of-distribution family
+
+
+@dataclasses.dataclass(frozen=True)
+class GalleryConfig:
+  """Ranges for `sample_gallery_scene` (metres, radians). Every choice differs from the rooms':
+
+  room: a convex polygon of 5-8 walls at a random orientation (rooms: axis-aligned rectangles);
+  textures: solid / rings / dots / bricks in more saturated colours (rooms: checker / stripes /
+    gradient / noise);
+  objects: pillars, tables, floating spheres, stacks of boxes (rooms: single boxes and spheres on
+    the floor);
+  light: low (20-50 degrees elevation) and tinted warm or cool (rooms: high, white);
+  camera: an inward orbit around the room's middle (`cameras.arc_path`; rooms: a forward walk),
+    with a wider range of fields of view (set in `generate.GalleryConfig`).
+  """
+
+  walls: tuple[int, int] = (5, 9)  # [low, high)
+  apothem: tuple[float, float] = (3.2, 5.0)  # centre-to-wall distance
+  height: tuple[float, float] = (2.2, 4.5)
+  num_items: tuple[int, int] = (3, 8)
+  clearance: float = 0.4  # minimum gap between an item and the camera path
+  light_elevation: tuple[float, float] = (0.35, 0.9)
+  ambient: tuple[float, float] = (0.2, 0.45)
+  arc: cameras.ArcConfig = cameras.ArcConfig()
+
+
+def polygon_room_planes(
+  rng: np.random.Generator, walls: int, apothem: float, height: float, kinds: tuple[str, ...]
+) -> tuple[Plane, ...]:
+  """Floor, ceiling and `walls` walls of a regular polygon room around x = z = 0, turned by a
+  random angle (normals inward). The room is convex, so the nearest plane hit from inside is the
+  room's surface."""
+  x, y, _ = np.eye(3)
+  planes = [
+    Plane(point=np.zeros(3), normal=y, tangent=x, texture=random_texture(rng, kinds=kinds)),
+    Plane(point=height * y, normal=-y, tangent=x, texture=random_texture(rng, kinds=kinds)),
+  ]
+  turn = rng.uniform(0, 2 * np.pi)
+  for k in range(walls):
+    outward = np.array([np.sin(turn + 2 * np.pi * k / walls), 0.0, np.cos(turn + 2 * np.pi * k / walls)])
+    planes.append(
+      Plane(
+        point=apothem * outward,
+        normal=-outward,
+        tangent=np.cross(y, outward),
+        texture=random_texture(rng, kinds=kinds, saturation=(0.4, 1.0)),
+      )
+    )
+  return tuple(planes)
+
+
+def _gallery_item(
+  rng: np.random.Generator, centre_xz: np.ndarray, height: float, kinds: tuple[str, ...]
+) -> tuple[tuple[Sphere | Box, ...], float]:
+  """One item at `centre_xz [2]`: a pillar, a table, a floating sphere or a stack of boxes.
+
+  Returns (its primitives, its footprint radius on the floor).
+  """
+  texture = random_texture(rng, kinds=kinds, saturation=(0.4, 1.0))
+  yaw = yaw_rotation(rng.uniform(0, 2 * np.pi))
+  kind = rng.integers(0, 4)
+  if kind == 0:  # pillar, up to just below the ceiling
+    half = np.array([rng.uniform(0.1, 0.25), 0.0, rng.uniform(0.1, 0.25)])
+    half[1] = 0.5 * rng.uniform(1.2, height - 0.2)
+    box = Box(np.array([centre_xz[0], half[1], centre_xz[1]]), half, texture, yaw)
+    return (box,), float(np.hypot(half[0], half[2]))
+  if kind == 1:  # table: a top on four legs
+    top = np.array([rng.uniform(0.3, 0.6), 0.03, rng.uniform(0.25, 0.5)])
+    legs_height = rng.uniform(0.5, 0.9)
+    parts = [Box(np.array([centre_xz[0], legs_height + top[1], centre_xz[1]]), top, texture, yaw)]
+    leg_texture = random_texture(rng, kinds=kinds)
+    for sx, sz in ((-1, -1), (-1, 1), (1, -1), (1, 1)):
+      offset = yaw @ np.array([sx * (top[0] - 0.05), 0.0, sz * (top[2] - 0.05)])
+      centre = np.array([centre_xz[0] + offset[0], 0.5 * legs_height, centre_xz[1] + offset[2]])
+      parts.append(Box(centre, np.array([0.03, 0.5 * legs_height, 0.03]), leg_texture, yaw))
+    return tuple(parts), float(np.hypot(top[0], top[2]))
+  if kind == 2:  # a sphere floating in the air
+    radius = rng.uniform(0.15, 0.4)
+    centre = np.array([centre_xz[0], rng.uniform(0.7, min(2.0, height - radius - 0.1)), centre_xz[1]])
+    return (Sphere(centre, radius, texture, random_rotation(rng)),), float(radius)
+  # A stack of 2-3 boxes, each smaller and turned on the one below.
+  parts, base, size = [], 0.0, rng.uniform(0.25, 0.45)
+  for _ in range(int(rng.integers(2, 4))):
+    half = size * rng.uniform(0.7, 1.0, 3)
+    parts.append(
+      Box(
+        np.array([centre_xz[0], base + half[1], centre_xz[1]]),
+        half,
+        random_texture(rng, kinds=kinds, saturation=(0.4, 1.0)),
+        yaw_rotation(rng.uniform(0, 2 * np.pi)),
+      )
+    )
+    base += 2 * half[1]
+    size *= 0.7
+  return tuple(parts), float(np.linalg.norm(parts[0].half_size[[0, 2]]))
+
+
+def sample_gallery_scene(
+  rng: np.random.Generator, frames: int, config: GalleryConfig = GalleryConfig()
+) -> tuple[Scene, np.ndarray]:
+  """A polygonal gallery with items and an inward orbit around its middle (see `GalleryConfig`).
+
+  Returns:
+    (scene, c2w [F, 4, 4] OpenCV). Items keep `clearance` from the camera path.
+  """
+  walls = int(rng.integers(*config.walls))
+  apothem, height = rng.uniform(*config.apothem), rng.uniform(*config.height)
+  planes = polygon_room_planes(rng, walls, apothem, height, _GALLERY_PATTERNS)
+  centre = np.array([rng.uniform(-0.3, 0.3), 0.0, rng.uniform(-0.3, 0.3)])
+  c2w = cameras.arc_path(rng, frames, centre, config.arc)
+  path_xz = c2w[:, [0, 2], 3]
+
+  items, objects = [], []
+  count = int(rng.integers(*config.num_items))
+  # The room's inscribed circle (radius = apothem) minus a margin: items stay inside any polygon.
+  inside = apothem - 0.7
+  for _ in range(200):  # rejection sampling with bounded attempts
+    if len(items) >= count:
+      break
+    position = rng.uniform(-inside, inside, 2)
+    if np.linalg.norm(position) > inside:
+      continue
+    parts, extent = _gallery_item(rng, position, height, _GALLERY_PATTERNS)
+    if np.min(np.linalg.norm(path_xz - position, axis=-1)) < config.clearance + extent:
+      continue
+    if any(np.linalg.norm(position - p) < extent + e + 0.2 for p, e in items):
+      continue
+    items.append((position, extent))
+    objects.extend(parts)
+
+  elevation, azimuth = rng.uniform(*config.light_elevation), rng.uniform(0, 2 * np.pi)
+  light = np.array([np.cos(elevation) * np.sin(azimuth), np.sin(elevation), np.cos(elevation) * np.cos(azimuth)])
+  warmth = rng.uniform(-1.0, 1.0)  # > 0 warm (reddish), < 0 cool (bluish)
+  tint = (1.0, 1.0 - 0.15 * abs(warmth), 1.0 - 0.35 * warmth) if warmth > 0 else (
+    1.0 + 0.3 * warmth, 1.0 + 0.15 * warmth, 1.0)
+  scene = Scene(
+    planes=planes,
+    objects=tuple(objects),
+    light_direction=tuple(light),
+    ambient=float(rng.uniform(*config.ambient)),
+    light_color=tuple(float(c) for c in tint),
+  )
+  return scene, c2w
