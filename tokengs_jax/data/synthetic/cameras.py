@@ -166,7 +166,11 @@ def arc_path(
   angle = rng.uniform(0, 2 * np.pi) + angle_step * np.arange(frames)
   height = rng.uniform(*config.height)
   positions = np.stack(
-    [centre[0] + radius * np.sin(angle), np.full(frames, height), centre[2] + radius * np.cos(angle)],
+    [
+      centre[0] + radius * np.sin(angle),
+      np.full(frames, height),
+      centre[2] + radius * np.cos(angle),
+    ],
     -1,
   )
   positions += rng.normal(0.0, config.position_jitter, positions.shape)

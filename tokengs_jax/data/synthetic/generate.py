@@ -180,7 +180,8 @@ def render_gallery_scene(
   """One gallery scene, with the fields of `render_re10k_like_scene`."""
   rng = np.random.default_rng([seed, _GALLERY_STREAM, index])
   scene, c2w = scenes.sample_gallery_scene(rng, frames, config.scene)
-  intrinsics = cameras.pinhole_intrinsics(height, width, np.deg2rad(rng.uniform(*config.fov_x_degrees)))
+  fov_x = np.deg2rad(rng.uniform(*config.fov_x_degrees))
+  intrinsics = cameras.pinhole_intrinsics(height, width, fov_x)
   outputs = [render(scene, pose, intrinsics, height, width, config.supersample) for pose in c2w]
   return {
     "key": f"gallery{seed}_{index:06d}",

@@ -303,7 +303,8 @@ def polygon_room_planes(
   ]
   turn = rng.uniform(0, 2 * np.pi)
   for k in range(walls):
-    outward = np.array([np.sin(turn + 2 * np.pi * k / walls), 0.0, np.cos(turn + 2 * np.pi * k / walls)])
+    azimuth = turn + 2 * np.pi * k / walls
+    outward = np.array([np.sin(azimuth), 0.0, np.cos(azimuth)])
     planes.append(
       Plane(
         point=apothem * outward,
@@ -342,7 +343,8 @@ def _gallery_item(
     return tuple(parts), float(np.hypot(top[0], top[2]))
   if kind == 2:  # a sphere floating in the air
     radius = rng.uniform(0.15, 0.4)
-    centre = np.array([centre_xz[0], rng.uniform(0.7, min(2.0, height - radius - 0.1)), centre_xz[1]])
+    lift = rng.uniform(0.7, min(2.0, height - radius - 0.1))
+    centre = np.array([centre_xz[0], lift, centre_xz[1]])
     return (Sphere(centre, radius, texture, random_rotation(rng)),), float(radius)
   # A stack of 2-3 boxes, each smaller and turned on the one below.
   parts, base, size = [], 0.0, rng.uniform(0.25, 0.45)
@@ -395,7 +397,9 @@ def sample_gallery_scene(
     objects.extend(parts)
 
   elevation, azimuth = rng.uniform(*config.light_elevation), rng.uniform(0, 2 * np.pi)
-  light = np.array([np.cos(elevation) * np.sin(azimuth), np.sin(elevation), np.cos(elevation) * np.cos(azimuth)])
+  light = np.array(
+    [np.cos(elevation) * np.sin(azimuth), np.sin(elevation), np.cos(elevation) * np.cos(azimuth)]
+  )
   warmth = rng.uniform(-1.0, 1.0)  # > 0 warm (reddish), < 0 cool (bluish)
   tint = (1.0, 1.0 - 0.15 * abs(warmth), 1.0 - 0.35 * warmth) if warmth > 0 else (
     1.0 + 0.3 * warmth, 1.0 + 0.15 * warmth, 1.0)
