@@ -1,32 +1,57 @@
-"""orbax checkpoints of the whole `TrainState` plus the data-iterator state; exact resume.
+"""orbax checkpoints of the whole `TrainState` plus per-process host state; verified restore.
 
-A checkpoint holds two items: "state" (params, optimiser state, step, RNG; array pytree) and
-"data": the input pipeline's iterator state (e.g. grain's `get_state()`) of *every process*, one
-JSON file per process, `data/process_{i}-of-{n}.json` (the layout of grain's own orbax handler).
-In a multi-host run each process reads its own shard of the data, so its iterator position is its
-own; every process writes its file into the shared step directory and restores from it, so a
-resume on the same number of processes is exact. Restoring on another process count is refused
-(the shards would differ). Saves are asynchronous: `save` returns once the arrays are copied off
-the device and the write continues in the background; `wait()` blocks until it is on disk (call
-it before exiting).
+A checkpoint (one step directory, written atomically by orbax: a temporary directory renamed
+once every process has written its part) holds three items:
+- "state": params, optimiser state, step, RNG (array pytree, `StandardCheckpointHandler`);
+- "data": one JSON file per process, `data/process_{i}-of-{n}.json` (the layout of grain's own
+  orbax handler), with that process's host-side state (the loop stores its input iterator
+  position and the training log). In a multi-host run each process reads its own shard of the
+  data, so its iterator position is its own; a resume on the same number of processes is exact,
+  another process count is refused (the shards would differ);
+- "checksums": one JSON file per process, `checksums/process_{i}-of-{n}.json`: the crc32 of
+  every array shard the process held at save time.
+
+Restore walks back from the newest step to the newest one that restores *and* whose arrays match
+their checksums (a bit flip inside a compressed chunk can decode to wrong numbers without any
+read error); each skipped step is logged with the reason and renamed `<step>.unusable` so later
+saves of that step number and `max_to_keep` only see good checkpoints. All processes agree on
+the step they resume from. Saves are asynchronous: `save` returns once the arrays are copied off
+the device; `wait()` blocks until the write is on disk (call it before exiting).
 """
 
 from __future__ import annotations
 
+import json
+import logging
 import pathlib
+import re
+import zlib
 from typing import Any
 
 import jax
+import numpy as np
 import orbax.checkpoint as ocp
+from jax.experimental import multihost_utils
+
+log = logging.getLogger(__name__)
+
+
+class UnusableCheckpointError(RuntimeError):
+  """The checkpoint directory holds steps but none restores and verifies."""
+
+
+class ChecksumError(ValueError):
+  """Restored arrays differ from the checksums written when they were saved."""
 
 
 def data_state_file(process_index: int, process_count: int) -> str:
-  """Name of one process's iterator-state file inside a checkpoint's "data" item."""
+  """Name of one process's JSON file inside a checkpoint's "data" item."""
   return f"process_{process_index}-of-{process_count}.json"
 
 
 def data_state_handler(process_index: int, process_count: int) -> ocp.JsonCheckpointHandler:
-  """orbax handler of the "data" item as seen by one process: its own JSON file, written by it.
+  """orbax handler of a per-process JSON item ("data", "checksums") as seen by one process: its
+  own file, written by it.
 
   `primary_host=None` makes every process write (orbax's default writes JSON from process 0 only,
   which would keep one process's position for all).
@@ -36,6 +61,71 @@ def data_state_handler(process_index: int, process_count: int) -> ocp.JsonCheckp
       multiprocessing_options=ocp.options.MultiprocessingOptions(primary_host=None))
 
 
+def _index_key(index: tuple, shape: tuple) -> str:
+  """'0:4,0:16' for a shard's index (tuple of slices) into an array of `shape`."""
+  return ",".join(f"{s.start or 0}:{dim if s.stop is None else s.stop}"
+                  for s, dim in zip(index, shape, strict=True))
+
+
+def array_checksums(tree) -> dict[str, dict[str, int]]:
+  """crc32 of the bytes of every array shard this process holds.
+
+  Returns:
+    {leaf path (`jax.tree_util.keystr`): {shard index ('0:4,0:16'): crc32}}; a replicated array
+    has one entry (the whole array), a sharded one an entry per distinct local shard.
+  """
+  sums = {}
+  for path, leaf in jax.tree_util.tree_leaves_with_path(tree):
+    if isinstance(leaf, jax.Array):
+      pieces = [(_index_key(s.index, leaf.shape), s.data) for s in leaf.addressable_shards]
+    else:
+      leaf = np.asarray(leaf)
+      pieces = [(_index_key((slice(None),) * leaf.ndim, leaf.shape), leaf)]
+    shards = {}
+    for key, data in pieces:
+      if key not in shards:
+        shards[key] = zlib.crc32(np.ascontiguousarray(jax.device_get(data)).view(np.uint8))
+    sums[jax.tree_util.keystr(path)] = shards
+  return sums
+
+
+def verify_checksums(tree, expected: dict[str, dict[str, int]]) -> int:
+  """Checks `tree`'s local shards against `array_checksums` taken at save time.
+
+  Returns:
+    how many shards were verified (shards saved under another layout are not comparable).
+
+  Raises:
+    ChecksumError: naming the arrays whose bytes differ (or that the manifest lacks).
+  """
+  verified, bad = 0, []
+  for name, shards in array_checksums(tree).items():
+    if name not in expected:
+      bad.append(f"{name} (not in the checksum manifest)")
+      continue
+    for key, crc in shards.items():
+      if key in expected[name]:
+        verified += 1
+        if expected[name][key] != crc:
+          bad.append(f"{name}[{key}]")
+  if bad:
+    raise ChecksumError(f"checksum mismatch in {len(bad)} array(s): {', '.join(bad[:5])}"
+                        + (" ..." if len(bad) > 5 else ""))
+  return verified
+
+
+def _all_agree(ok: bool) -> bool:
+  """True iff `ok` on every process (a collective: every process must call it)."""
+  if jax.process_count() == 1:
+    return ok
+  return bool(np.all(multihost_utils.process_allgather(np.asarray(ok, np.int32))))
+
+
+def _short(error: BaseException) -> str:
+  text = " ".join(str(error).split())
+  return f"{type(error).__name__}: {text[:300]}{' ...' if len(text) > 300 else ''}"
+
+
 class Checkpointer:
   """Thin wrapper over `ocp.CheckpointManager` with the two items of a training checkpoint.
 
@@ -43,7 +133,7 @@ class Checkpointer:
     directory: where step-numbered checkpoints go (created if missing).
     max_to_keep: checkpoints kept (oldest deleted first); None keeps all.
     async_save: write in a background thread.
-    process_index, process_count: whose iterator state this process saves and restores; default
+    process_index, process_count: whose host state this process saves and restores; default
       `jax.process_index()` / `jax.process_count()` (other values only simulate hosts in tests).
   """
 
@@ -53,10 +143,11 @@ class Checkpointer:
     self.directory = pathlib.Path(directory).resolve()
     self.process_index = jax.process_index() if process_index is None else process_index
     self.process_count = jax.process_count() if process_count is None else process_count
-    data_handler = data_state_handler(self.process_index, self.process_count)
     registry = ocp.handlers.DefaultCheckpointHandlerRegistry()
-    for args in (ocp.args.JsonSave, ocp.args.JsonRestore):
-      registry.add("data", args, data_handler)
+    for item in ("data", "checksums"):
+      handler = data_state_handler(self.process_index, self.process_count)
+      for args in (ocp.args.JsonSave, ocp.args.JsonRestore):
+        registry.add(item, args, handler)
     state_handler = ocp.StandardCheckpointHandler()
     for args in (ocp.args.StandardSave, ocp.args.StandardRestore):
       registry.add("state", args, state_handler)
@@ -66,14 +157,15 @@ class Checkpointer:
                                              enable_async_checkpointing=async_save))
 
   def save(self, state, data_state: Any = None) -> None:
-    """Saves `state` under step `int(state.step)` with this process's JSON-able iterator state.
+    """Saves `state` under step `int(state.step)` with this process's JSON-able host state.
 
-    Every process must call it (orbax coordinates the step directory across processes).
+    Every process must call it (orbax coordinates the step directory across processes). The
+    checksums are taken here, from the arrays being saved, before the asynchronous write.
     """
     step = int(jax.device_get(state.step))
     self._manager.save(step, args=ocp.args.Composite(
-        state=ocp.args.StandardSave(state),
-        data=ocp.args.JsonSave({"iterator": data_state})), force=True)
+        state=ocp.args.StandardSave(state), data=ocp.args.JsonSave({"iterator": data_state}),
+        checksums=ocp.args.JsonSave(array_checksums(state))), force=True)
 
   def latest_step(self) -> int | None:
     return self._manager.latest_step()
@@ -82,37 +174,92 @@ class Checkpointer:
     return list(self._manager.all_steps())
 
   def restore(self, like_state, step: int | None = None):
-    """Restores (state, data_state) at `step` (default: latest).
+    """Restores (state, data_state) of `step`, or of the newest step that restores and verifies.
 
     Args:
       like_state: a state (or tree of `jax.ShapeDtypeStruct` with shardings) whose structure,
         dtypes and shardings the restored arrays take.
-      step: which checkpoint.
+      step: restore exactly this step (no walking back); default the newest usable one.
 
     Returns:
       `(state, data_state)`: the data state is this process's.
 
     Raises:
-      FileNotFoundError: no checkpoint, or none holding this process's iterator state (written
-        by a different number of processes).
+      FileNotFoundError: no checkpoint, or the checkpoint was written by another process count.
+      UnusableCheckpointError: no step restores and verifies (each one's reason is listed).
     """
     self.wait()
-    step = self.latest_step() if step is None else step
-    if step is None:
-      raise FileNotFoundError(f"no checkpoint in {self.directory}")
     abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, like_state)
-    try:
-      restored = self._manager.restore(step, args=ocp.args.Composite(
-          state=ocp.args.StandardRestore(abstract), data=ocp.args.JsonRestore()))
-    except FileNotFoundError as error:
-      data_dir = self.directory / str(step) / "data"
-      written = sorted(p.name for p in data_dir.glob("process_*.json"))
+    if step is not None:
+      self._check_process_count(step)
+      return self._restore_verified(step, abstract)
+    steps = sorted(self.all_steps(), reverse=True)
+    if not steps:
+      raise FileNotFoundError(f"no checkpoint in {self.directory}")
+    skipped = []
+    for candidate in steps:
+      self._check_process_count(candidate)
+      try:
+        restored, error = self._restore_verified(candidate, abstract), None
+      except Exception as failure:  # orbax/tensorstore/json raise many types for damaged files
+        restored, error = None, failure
+      if _all_agree(error is None):
+        self._set_aside(skipped)
+        return restored
+      reason = _short(error) if error is not None else "another process could not restore it"
+      log.warning("checkpoint step %d in %s is unusable, skipped (%s)", candidate,
+                  self.directory, reason)
+      skipped.append((candidate, reason))
+    raise UnusableCheckpointError(
+        f"no usable checkpoint in {self.directory}; every step failed to restore or verify:\n"
+        + "\n".join(f"  step {s}: {reason}" for s, reason in skipped)
+        + "\nMove the directory away to start afresh, or point checkpoint_dir elsewhere.")
+
+  def _restore_verified(self, step: int, abstract):
+    restored = self._manager.restore(step, args=ocp.args.Composite(
+        state=ocp.args.StandardRestore(abstract), data=ocp.args.JsonRestore()))
+    state, host = restored["state"], restored["data"]
+    name = data_state_file(self.process_index, self.process_count)
+    if not isinstance(host, dict) or "iterator" not in host:
+      raise ValueError(f"data/{name} holds no iterator state")
+    # Read directly, not as an orbax item: a checkpoint without this file (older versions, or a
+    # process simulated in tests) still restores, unverified and said so.
+    checksums = self.directory / str(step) / "checksums" / name
+    if checksums.is_file():
+      verify_checksums(state, json.loads(checksums.read_text()))
+    else:
+      log.warning("checkpoint step %d in %s has no checksums/%s: restored unverified", step,
+                  self.directory, name)
+    return state, host["iterator"]
+
+  def _check_process_count(self, step: int) -> None:
+    """Refuses a step written by another number of processes (not damage: walking back would
+    find the same everywhere)."""
+    data_dir = self.directory / str(step) / "data"
+    written = sorted(p.name for p in data_dir.glob("process_*-of-*.json"))
+    counts = {int(re.search(r"-of-(\d+)", name).group(1)) for name in written}
+    if written and self.process_count not in counts:
       raise FileNotFoundError(
           f"checkpoint step {step} in {self.directory} has no iterator state for process "
           f"{self.process_index} of {self.process_count} "
           f"(expected data/{data_state_file(self.process_index, self.process_count)}; found "
-          f"{written or 'none'}): resume with the process count it was written with") from error
-    return restored["state"], restored["data"]["iterator"]
+          f"{written}): resume with the process count it was written with")
+
+  def _set_aside(self, skipped: list[tuple[int, str]]) -> None:
+    """Renames skipped steps to `<step>.unusable[.k]` (kept for inspection, invisible to orbax)."""
+    if not skipped:
+      return
+    if jax.process_index() == 0:
+      for step, reason in skipped:
+        target = self.directory / f"{step}.unusable"
+        k = 1
+        while target.exists():
+          target, k = self.directory / f"{step}.unusable.{k}", k + 1
+        (self.directory / str(step)).rename(target)
+        (target / "UNUSABLE.txt").write_text(reason + "\n")
+        log.warning("moved unusable checkpoint step %d to %s", step, target)
+    multihost_utils.sync_global_devices(f"tokengs_checkpoint_set_aside_{skipped[-1][0]}")
+    self._manager.reload()
 
   def wait(self) -> None:
     """Blocks until every pending asynchronous save is on disk."""

@@ -61,7 +61,7 @@ def train(loss_fn: LossFn, params, batches: Iterator[dict], optim_config: OptimC
   """Trains `params` on `batches`, resuming from `loop_config.checkpoint_dir` when it holds one.
 
   Args:
-    loss_fn: `(params, batch, key) -> (loss, aux)` (e.g. `tokengs_loss_fn(...)`).
+    loss_fn: `(params, batch, key, step) -> (loss, aux)` (e.g. `tokengs_loss_fn(...)`).
     params: initial parameters (host or device pytree, identical on every process); ignored when
       a checkpoint is resumed.
     batches: iterator of this process's batches (dicts of `[B_local, ...]` numpy arrays). If it has
@@ -74,7 +74,8 @@ def train(loss_fn: LossFn, params, batches: Iterator[dict], optim_config: OptimC
     log_fn: `(step, metrics) -> None`; default prints one line.
 
   Returns:
-    `(final state, history)`; history is a list of logged dicts (each with "step").
+    `(final state, history)`; history is the list of logged dicts (each with "step") of the whole
+    run: a resumed run starts from the history saved in its checkpoint (entries up to its step).
 
   Raises:
     NonFiniteError: a loss/gradient went non-finite; no later checkpoint was written.
@@ -86,19 +87,22 @@ def train(loss_fn: LossFn, params, batches: Iterator[dict], optim_config: OptimC
                        out_shardings=replicated)
   state = init_state(replicate(jax.device_get(params), mesh))
 
-  checkpointer = None
+  checkpointer, history = None, []
   if loop_config.checkpoint_dir is not None:
     checkpointer = Checkpointer(loop_config.checkpoint_dir, loop_config.max_to_keep,
                                 loop_config.async_checkpoint)
     if checkpointer.latest_step() is not None:
-      state, data_state = checkpointer.restore(state)
-      set_iterator_state(batches, data_state)
+      state, host_state = checkpointer.restore(state)
+      set_iterator_state(batches, host_state["iterator"])
+      history = host_state["history"]
+      print(f"[train] resuming from step {int(jax.device_get(state.step))} "
+            f"({checkpointer.directory})", flush=True)
   train_step = make_train_step(loss_fn, optimizer, mesh,
                                precision=Precision() if precision is None else precision)
   # A separate buffer: the state (and its rng) is donated to each step.
   key = jnp.copy(state.rng)
 
-  history, pending = [], []
+  pending = []
   step = int(jax.device_get(state.step))
   last_saved = checkpointer.latest_step() if checkpointer else None
   tick = time.perf_counter()
@@ -113,8 +117,6 @@ def train(loss_fn: LossFn, params, batches: Iterator[dict], optim_config: OptimC
     first = step_now - len(fetched) + 1
     for offset, metrics in enumerate(fetched):
       if not metrics["finite"]:
-        if checkpointer is not None:
-          checkpointer.wait()
         raise NonFiniteError(
             f"non-finite loss or gradient at step {first + offset - 1} (loss "
             f"{float(metrics['loss'])}, grad_norm {float(metrics['grad_norm'])}); the update was "
@@ -128,25 +130,27 @@ def train(loss_fn: LossFn, params, batches: Iterator[dict], optim_config: OptimC
     history.append(logged)
     log_fn(step_now, logged)
 
-  while step < loop_config.total_steps:
-    batch = shard_batch(next(batches), mesh)
-    state, metrics = train_step(state, batch, key)
-    pending.append(metrics)
-    step += 1
-    is_last = step == loop_config.total_steps
-    save_now = checkpointer is not None and (is_last or (
-        loop_config.checkpoint_every and step % loop_config.checkpoint_every == 0))
-    if save_now or is_last or step % loop_config.log_every == 0:
-      drain(step)
-    if save_now:
-      checkpointer.save(state, iterator_state(batches))
-      last_saved = step
-    if eval_fn is not None and loop_config.eval_every and step % loop_config.eval_every == 0:
-      evaluated = {f"eval/{k}": float(v) for k, v in jax.device_get(eval_fn(state)).items()}
-      history.append({"step": step, **evaluated})
-      log_fn(step, evaluated)
-
-  if checkpointer is not None:
-    checkpointer.wait()
-    checkpointer.close()
+  try:
+    while step < loop_config.total_steps:
+      batch = shard_batch(next(batches), mesh)
+      state, metrics = train_step(state, batch, key)
+      pending.append(metrics)
+      step += 1
+      is_last = step == loop_config.total_steps
+      save_now = checkpointer is not None and (is_last or (
+          loop_config.checkpoint_every and step % loop_config.checkpoint_every == 0))
+      if save_now or is_last or step % loop_config.log_every == 0:
+        drain(step)
+      # Before the save, so the checkpoint's history holds this step's evaluation.
+      if eval_fn is not None and loop_config.eval_every and step % loop_config.eval_every == 0:
+        evaluated = {f"eval/{k}": float(v) for k, v in jax.device_get(eval_fn(state)).items()}
+        history.append({"step": step, **evaluated})
+        log_fn(step, evaluated)
+      if save_now:
+        checkpointer.save(state, {"iterator": iterator_state(batches), "history": history})
+        last_saved = step
+  finally:
+    if checkpointer is not None:
+      checkpointer.wait()  # a pending save completes even when training stops on an error
+      checkpointer.close()
   return state, history

@@ -1,0 +1,141 @@
+"""Checkpoints: per-array checksums, and restore walking back past damaged steps with a log line."""
+
+import logging
+import pathlib
+import shutil
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from tokengs_jax.train import (
+  Checkpointer,
+  OptimConfig,
+  create_train_state,
+  make_optimizer,
+)
+from tokengs_jax.train.checkpoint import (
+  ChecksumError,
+  UnusableCheckpointError,
+  array_checksums,
+  verify_checksums,
+)
+
+OPTIMIZER = make_optimizer(OptimConfig(learning_rate=1e-2, schedule="constant"))
+
+
+def state_at(step):
+  """A train state whose arrays depend on `step`; "big" (256 KiB) is the large array file."""
+  params = {"big": jnp.arange(64 * 1024, dtype=jnp.float32).reshape(64, 1024) + step,
+            "bias": jnp.full((3,), float(step))}
+  state = create_train_state(params, OPTIMIZER, seed=0)
+  return state.replace(step=jnp.asarray(step, jnp.int32))
+
+
+@pytest.fixture
+def saved(tmp_path):
+  """A directory with good checkpoints at steps 2 and 4."""
+  directory = tmp_path / "run"
+  checkpointer = Checkpointer(directory, async_save=True)
+  for step in (2, 4):
+    checkpointer.save(state_at(step), {"position": step})
+  checkpointer.wait()
+  checkpointer.close()
+  return directory
+
+
+def largest_array_file(step_dir: pathlib.Path) -> pathlib.Path:
+  """The largest file of array chunks (`state/ocdbt.process_*/d/*`)."""
+  return max((step_dir / "state").glob("ocdbt.process_*/d/*"), key=lambda p: p.stat().st_size)
+
+
+def empty_directory(step_dir):
+  for path in step_dir.iterdir():
+    shutil.rmtree(path) if path.is_dir() else path.unlink()
+
+
+def remove_array_metadata(step_dir):
+  (step_dir / "state" / "_METADATA").unlink()
+
+
+def truncate_json(step_dir):
+  path = step_dir / "data" / "process_0-of-1.json"
+  path.write_text(path.read_text()[:7])
+
+
+def truncate_array_file(step_dir):
+  path = largest_array_file(step_dir)
+  assert path.stat().st_size > 100_000
+  path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+
+
+def flip_one_bit(step_dir):
+  path = largest_array_file(step_dir)
+  data = bytearray(path.read_bytes())
+  data[len(data) // 2] ^= 0x10
+  path.write_bytes(bytes(data))
+
+
+# (damage, a fragment of the logged reason)
+DAMAGE = {
+  "emptied": (empty_directory, 'Item "data" was not found'),
+  "array_metadata_removed": (remove_array_metadata, "pytree structure"),
+  "json_truncated": (truncate_json, "JSONDecodeError"),
+  "array_file_truncated": (truncate_array_file, "reading array"),
+  "bit_flip": (flip_one_bit, "ChecksumError: checksum mismatch in 1 array(s): .params['big']"),
+}
+
+
+@pytest.mark.parametrize("case", DAMAGE)
+def test_restore_walks_back_past_a_damaged_latest_step(saved, case, caplog):
+  damage, reason = DAMAGE[case]
+  damage(saved / "4")
+  checkpointer = Checkpointer(saved)
+  assert checkpointer.latest_step() == 4
+  with caplog.at_level(logging.WARNING, logger="tokengs_jax.train.checkpoint"):
+    state, data_state = checkpointer.restore(state_at(0))
+  checkpointer.close()
+  assert int(state.step) == 2 and data_state == {"position": 2}
+  jax.tree.map(np.testing.assert_array_equal, jax.device_get(state),
+               jax.device_get(state_at(2)))
+  skipped = [r.getMessage() for r in caplog.records if "unusable, skipped" in r.getMessage()]
+  assert len(skipped) == 1 and "step 4" in skipped[0] and reason in skipped[0], skipped
+  # set aside for inspection, invisible to orbax: the step number can be saved again
+  assert (saved / "4.unusable" / "UNUSABLE.txt").is_file()
+  assert Checkpointer(saved).all_steps() == [2]
+
+
+def test_missing_step_metadata_alone_still_restores_the_latest_step(saved, caplog):
+  """orbax's _CHECKPOINT_METADATA is bookkeeping: the arrays still verify, so step 4 is used."""
+  (saved / "4" / "_CHECKPOINT_METADATA").unlink()
+  with caplog.at_level(logging.WARNING, logger="tokengs_jax.train.checkpoint"):
+    state, data_state = Checkpointer(saved).restore(state_at(0))
+  assert int(state.step) == 4 and data_state == {"position": 4}
+  assert not [r for r in caplog.records if "unusable" in r.getMessage()]
+
+
+def test_no_usable_step_is_a_clear_error_naming_the_directory(saved):
+  flip_one_bit(saved / "4")
+  truncate_json(saved / "2")
+  with pytest.raises(UnusableCheckpointError, match=(
+      rf"no usable checkpoint in {saved}.*\n  step 4: ChecksumError.*\n  step 2: JSONDecodeError")):
+    Checkpointer(saved).restore(state_at(0))
+
+
+def test_checksums_detect_a_changed_value_and_name_the_array():
+  state = state_at(3)
+  sums = array_checksums(state)
+  assert sums[".params['big']"] == {"0:64,0:1024": sums[".params['big']"]["0:64,0:1024"]}
+  assert verify_checksums(state, sums) == len(jax.tree.leaves(state))
+  one_ulp = np.nextafter(np.float32(3), np.float32(4))  # the smallest change of one element
+  changed = state.replace(params={**state.params, "bias": state.params["bias"].at[1].set(one_ulp)})
+  with pytest.raises(ChecksumError, match=r"\.params\['bias'\]\[0:3\]"):
+    verify_checksums(changed, sums)
+
+
+def test_checksums_of_sharded_arrays_are_per_shard():
+  mesh = jax.make_mesh((4,), ("data",), axis_types=(jax.sharding.AxisType.Auto,))
+  sharded = jax.device_put(jnp.arange(8.0), jax.sharding.NamedSharding(
+      mesh, jax.sharding.PartitionSpec("data")))
+  assert sorted(array_checksums({"x": sharded})["['x']"]) == ["0:2", "2:4", "4:6", "6:8"]
