@@ -175,7 +175,7 @@ def test_benchmark_layout_keys_and_subsets(tmp_path):
   with pytest.raises(MissingIndexEntryError, match="'eeee'"):
     DL3DVSceneSource(tmp_path / "bench", keys=["eeee"])
   skipping = DL3DVSceneSource(tmp_path / "bench", keys=["eeee", "cccc"], skip_bad=True)
-  assert len(skipping) == 1 and skipping.skipped["missing_scene"] == 1
+  assert len(skipping) == 1 and skipping.rejections.counts["missing_scene"] == 1
   _write_zip(tmp_path / "train" / "1K" / "x.zip", "x", files)
   _write_zip(tmp_path / "train" / "2K" / "y.zip", "y", files)
   assert [p.stem for p in list_dl3dv_scenes(tmp_path / "train", ["2K"])] == ["y"]
@@ -246,7 +246,7 @@ def test_bad_files_name_file_and_scene(tmp_path):
     make_example(record, config, np.random.default_rng(0), views=(np.array([0, 4]), np.array([1])))
   pipeline = InputPipeline(DL3DVSceneSource(tmp_path / "d"), config, batch_size=1, seed=0, shard_index=0,
                            shard_count=1, num_epochs=1, skip_bad=True, evaluation_index={"s": ((0, 4), (1,))})
-  assert list(pipeline) == [] and pipeline.skipped["BadExampleError"] == 1
+  assert list(pipeline) == [] and pipeline.rejections.counts == {"DL3DVError": 1}
 
 
 def test_frames_of_another_size_than_the_resolution_are_reported(dl3dv_root):

@@ -122,7 +122,7 @@ def test_pipeline_skips_and_counts_filtered_examples():
     list(InputPipeline(source, config, **kwargs))
   lenient = InputPipeline(source, config, skip_bad=True, **kwargs)
   assert [int(b["scene_index"][0]) for b in lenient] == [0, 2, 4]
-  assert lenient.skipped == {"BadExampleError": 2}
-  assert any("scene 'wide'" in m and "field of view" in m for m in lenient.skip_messages)
-  assert any("scene 'still'" in m and "context baseline 0 " in m for m in lenient.skip_messages)
+  assert lenient.rejections.counts == {"BadExampleError": 2}
+  assert any("scene 'wide'" in m and "field of view" in m for m in lenient.rejections.messages)
+  assert any("scene 'still'" in m and "context baseline 0 " in m for m in lenient.rejections.messages)
   assert len(list(InputPipeline(source, OFF, **kwargs))) == 5

@@ -143,7 +143,7 @@ def test_synthetic_default_trains_with_its_preset(tmp_path):
                            shard_index=0, shard_count=1)
   batch = next(iter(pipeline))
   assert batch["context_images"].shape == (2, 2, 16, 16, 3) and batch["target_images"].shape == (2, 4, 16, 16, 3)
-  assert pipeline.skipped == {}
+  assert not pipeline.rejections
 
 
 # ---- host-side rigid inverse

@@ -163,8 +163,8 @@ def test_bad_scenes_raise_naming_file_and_scene_or_are_skipped_and_counted(tmp_p
                       batch_size=1, skip_bad=True)
   keys = [int(b["scene_index"][0]) for b in lenient]
   assert len(keys) == 3
-  assert sum(lenient.skipped.values()) == 2
-  assert any("000001.torch scene 'corrupt' frame" in m for m in lenient.skip_messages)
+  assert lenient.rejections.total() == 2
+  assert any("000001.torch scene 'corrupt' frame" in m for m in lenient.rejections.messages)
 
 
 def test_nan_pose_chunk_is_refused_at_scan(tmp_path):
@@ -181,7 +181,7 @@ def test_missing_index_entry_and_evaluation_views(dataset, tmp_path):
   with pytest.raises(MissingIndexEntryError, match="'nope'"):
     ChunkedSceneSource(dataset, keys=["k01", "nope"])
   source = ChunkedSceneSource(dataset, keys=["k12", "k01", "nope"], skip_bad=True)
-  assert [e.key for e in source.entries] == ["k12", "k01"] and source.skipped["missing_index_entry"] == 1
+  assert [e.key for e in source.entries] == ["k12", "k01"] and source.rejections.counts["missing_index_entry"] == 1
   index = {"k12": ((0, 8), (2, 4)), "k01": ((1, 9), (3, 5))}
   pipeline = _pipeline(source, ExampleConfig((20, 32), SMALL_SAMPLER, 0.25, random_flip=False),
                        evaluation_index=index, shuffle=False, num_epochs=1, batch_size=1)

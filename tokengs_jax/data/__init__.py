@@ -28,12 +28,14 @@ from tokengs_jax.data.dl3dv import (
     opencv_to_nerfstudio_c2w,
     read_dl3dv_cameras,
 )
+from tokengs_jax.data.rejections import Rejections, summarize_rejections
 from tokengs_jax.data.pipeline import (
     DATASET_PRESETS,
     TRANSLATION_SCALES,
     BadExampleError,
     ExampleConfig,
     InputPipeline,
+    NoUsableExamplesError,
     field_of_view,
     make_example,
 )
@@ -67,7 +69,9 @@ __all__ = [
     "InputPipeline",
     "LazyTensor",
     "MissingIndexEntryError",
+    "NoUsableExamplesError",
     "NotEnoughFramesError",
+    "Rejections",
     "SAMPLER_PRESETS",
     "SceneEntry",
     "TRANSLATION_SCALES",
@@ -91,6 +95,7 @@ __all__ = [
     "rigid_inverse",
     "sample_bounded",
     "save_tensor_archive",
+    "summarize_rejections",
     "translation_scale",
     "write_chunk",
 ]

@@ -20,7 +20,8 @@ import os
 import pathlib
 from typing import Iterable
 
-from tokengs_jax.data.chunks import ChunkError, read_chunk
+from tokengs_jax.data.chunks import ChunkError, check_regular_file, scan_chunk
+from tokengs_jax.data.rejections import Rejections
 from tokengs_jax.data.sampler import MissingIndexEntryError
 
 __all__ = ["ChunkedSceneSource", "SceneEntry"]
@@ -41,78 +42,108 @@ class ChunkedSceneSource:
     root: a stage directory holding `*.torch` chunks and `index.json`.
     keys: only these scenes, in this order (e.g. the keys of an evaluation index); the index finds
       their chunks, so the other chunks are never opened.
-    skip_bad: drop (and count in `skipped`) unreadable chunks, malformed scenes and keys missing
-      from the index, instead of raising.
-    min_frames: scenes with fewer frames are dropped and counted (pixelSplat skips them too).
+    skip_bad: drop unreadable chunks, malformed scenes (one scene at a time: a chunk's good scenes
+      are kept), keys missing from the index and index entries that are not regular files inside
+      `root`, instead of raising. Each is counted and logged in `rejections`.
+    min_frames: scenes with fewer frames are dropped, counted and logged (pixelSplat skips them too).
+
+  Raises `ChunkError` for the first bad chunk, scene or index entry without `skip_bad`, and
+  `MissingIndexEntryError` for a requested key the index does not list.
   """
 
   def __init__(self, root: str | os.PathLike, *, keys: Iterable[str] | None = None,
                skip_bad: bool = False, min_frames: int = 1):
     self.root = pathlib.Path(root)
     self.skip_bad = skip_bad
-    self.skipped: collections.Counter = collections.Counter()
-    self.skip_messages: list[str] = []
-    index_path = self.root / "index.json"
-    index = json.loads(index_path.read_text()) if index_path.exists() else None
+    self.rejections = Rejections(f"source {self.root}")
     if keys is None:
       chunk_paths = sorted(self.root.glob("*.torch"))
       wanted = None
     else:
-      wanted = list(keys)
-      if index is None:
-        raise FileNotFoundError(f"{index_path}: needed to find scenes by key")
-      present = []
-      for key in wanted:
-        if key in index:
-          present.append(key)
-        else:
+      index = self._read_index()
+      wanted, chunk_paths = [], set()
+      for key in keys:
+        if key not in index:
           self._bad("missing_index_entry", MissingIndexEntryError(
-              f"{index_path}: scene '{key}' has no entry"))
-      wanted = present
-      chunk_paths = sorted({self.root / index[key] for key in wanted})
-    by_key = {}
+              f"{self.root / 'index.json'}: scene '{key}' has no entry"))
+          continue
+        try:
+          chunk_paths.add(self._inside_root(index[key], f"scene '{key}'"))
+        except ChunkError as error:
+          self._bad("bad_index_entry", error)
+          continue
+        wanted.append(key)
+      chunk_paths = sorted(chunk_paths)
+    by_key, rejected, unreadable = {}, set(), set()  # rejected: keys of bad scenes
     for chunk_path in chunk_paths:
       try:
-        scenes = read_chunk(chunk_path, images="lazy")
-      except (ChunkError, FileNotFoundError) as error:
+        self._inside_root(chunk_path.name, "chunk")  # a symlink may not lead out of the root
+        scenes = scan_chunk(chunk_path)
+      except ChunkError as error:
+        unreadable.add(chunk_path)
         self._bad("bad_chunk", error)
         continue
       for position, scene in enumerate(scenes):
-        if len(scene["images"]) < min_frames:
-          self.skipped["too_few_frames"] += 1
-          continue
-        by_key[scene["key"]] = SceneEntry(scene["key"], str(chunk_path), position, len(scene["images"]))
+        if isinstance(scene, ChunkError):
+          rejected.add(scene.scene_key)
+          self._bad("bad_scene", scene)
+        elif len(scene["images"]) < min_frames:
+          self._bad("too_few_frames", ChunkError(
+              f"{chunk_path} scene '{scene['key']}': {len(scene['images'])} frames, fewer than "
+              f"min_frames {min_frames}"), always_skip=True)
+        else:
+          by_key[scene["key"]] = SceneEntry(scene["key"], str(chunk_path), position,
+                                            len(scene["images"]))
     if wanted is None:
       self.entries = list(by_key.values())
     else:
-      self.entries = []
-      for key in wanted:
-        if key in by_key:
-          self.entries.append(by_key[key])
-        else:
-          self._bad("missing_scene", ChunkError(f"{self.root / index[key]}: scene '{key}' listed "
-                                                "in index.json is not in its chunk"))
+      self.entries = [by_key[key] for key in wanted if key in by_key]
+      for key in wanted:  # a key whose scene or chunk was rejected is counted already
+        if key not in by_key and key not in rejected and self.root / index[key] not in unreadable:
+          self._bad("missing_scene", ChunkError(
+              f"{self.root / index[key]}: scene '{key}' listed in index.json is not in its chunk"))
     self._cache: collections.OrderedDict = collections.OrderedDict()
 
-  def _bad(self, reason: str, error: Exception) -> None:
-    if not self.skip_bad:
+  def _read_index(self) -> dict:
+    path = self.root / "index.json"
+    if not path.exists():
+      raise FileNotFoundError(f"{path}: needed to find scenes by key")
+    check_regular_file(path)
+    try:
+      index = json.loads(path.read_bytes())
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+      raise ChunkError(f"{path}: not valid JSON ({error})") from error
+    if not isinstance(index, dict):
+      raise ChunkError(f"{path}: expected a scene key -> chunk file map, found {type(index).__name__}")
+    return index
+
+  def _inside_root(self, name, what: str) -> pathlib.Path:
+    """`root / name`, refused unless it stays inside the root once symlinks are resolved."""
+    if not isinstance(name, str) or not name:
+      raise ChunkError(f"{self.root / 'index.json'}: {what} has entry {name!r}, not a file name")
+    path = self.root / name
+    if not path.resolve().is_relative_to(self.root.resolve()):
+      raise ChunkError(f"{self.root / 'index.json'}: {what} -> '{name}' resolves to "
+                       f"{path.resolve()}, outside the data root {self.root.resolve()}")
+    return path
+
+  def _bad(self, reason: str, error: Exception, *, always_skip: bool = False) -> None:
+    if not (self.skip_bad or always_skip):
       raise error
-    self.skipped[reason] += 1
-    self.skip_messages.append(str(error))
+    self.rejections.add(reason, str(error))
 
   def __len__(self) -> int:
     return len(self.entries)
 
   def __getitem__(self, index: int) -> dict:
     entry = self.entries[index]
-    scenes = self._chunk(entry.chunk)
-    return {**scenes[entry.position], "source": entry.chunk}
+    return {**self._chunk(entry.chunk)[entry.position], "source": entry.chunk}
 
-  def _chunk(self, path: str) -> list[dict]:
-    """A per-process LRU of parsed chunks (cameras + lazy frame references, no pixels)."""
+  def _chunk(self, path: str) -> list:
+    """A per-process LRU of scanned chunks (cameras + lazy frame references, no pixels)."""
     key = (os.getpid(), path)
     if key not in self._cache:
-      self._cache[key] = read_chunk(path, images="lazy")
+      self._cache[key] = scan_chunk(path)
       while len(self._cache) > 16:
         self._cache.popitem(last=False)
     self._cache.move_to_end(key)

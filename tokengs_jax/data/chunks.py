@@ -18,11 +18,14 @@ import collections
 import dataclasses
 import hashlib
 import io
+import math
 import os
 import pathlib
 import pickle
+import stat
 import struct
 import zipfile
+import zlib
 from typing import Any, Iterable, Literal, Mapping
 
 import ml_dtypes
@@ -34,6 +37,10 @@ from tokengs_jax.data.transforms import rigid_inverse
 __all__ = [
     "ChunkError",
     "UnsafeChunkError",
+    "check_regular_file",
+    "open_zip",
+    "read_member",
+    "scan_chunk",
     "load_tensor_archive",
     "save_tensor_archive",
     "LazyTensor",
@@ -76,12 +83,77 @@ class UnsafeChunkError(ChunkError):
 # ----------------------------------------------------------------------------------------------
 # Reading
 
+# Allocation bounds, checked against a record's declared size before any byte is read: a forged
+# archive cannot make the reader inflate more than this (torch stores records uncompressed, so a
+# real chunk's records are bounded by the file itself).
+MAX_PICKLE_BYTES = 256 << 20
+MAX_INFLATED_RECORD_BYTES = 256 << 20
 
+
+def check_regular_file(path: str | os.PathLike, *, where: str = "") -> None:
+  """Raises `ChunkError` unless `path` is an existing regular file (after symlinks).
+
+  Opening a FIFO blocks and /dev/zero never ends: data files must be plain files.
+  """
+  try:
+    mode = os.stat(path).st_mode
+  except OSError as error:
+    raise ChunkError(f"{where or path}: cannot open ({error.strerror or error})") from error
+  if not stat.S_ISREG(mode):
+    raise ChunkError(f"{where or path}: not a regular file (a data file may not be a device, FIFO, "
+                     "socket or directory)")
+
+
+def open_zip(path: str | os.PathLike) -> zipfile.ZipFile:
+  """Opens a zip archive; every way a file can fail to be one is a `ChunkError` naming it."""
+  check_regular_file(path)
+  try:
+    return zipfile.ZipFile(path)
+  except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, ValueError, struct.error,
+          OverflowError) as error:  # what zipfile raises on a malformed central directory
+    raise ChunkError(f"{path}: not a readable zip archive ({type(error).__name__}: {error})") from error
+
+
+def read_member(archive: zipfile.ZipFile, name: str, *, where: str,
+                expected_bytes: int | None = None, max_bytes: int = MAX_INFLATED_RECORD_BYTES) -> bytes:
+  """One member of an open archive, its size checked before it is read.
+
+  Args:
+    archive: an open zip archive.
+    name: the member's name.
+    where: file (and scene) for the error message.
+    expected_bytes: the exact size the member must have (a tensor storage), if known.
+    max_bytes: refuse a compressed member that declares more (a "zip bomb").
+
+  Raises `ChunkError` for a missing, oversized, truncated, encrypted or corrupt member.
+  """
+  try:
+    info = archive.getinfo(name)
+  except KeyError:
+    raise ChunkError(f"{where}: record '{name}' is missing") from None
+  if expected_bytes is not None and info.file_size != expected_bytes:
+    raise ChunkError(f"{where}: record '{name}' declares {info.file_size} bytes, expected "
+                     f"{expected_bytes}")
+  if info.compress_type != zipfile.ZIP_STORED and info.file_size > max_bytes:
+    raise ChunkError(f"{where}: compressed record '{name}' would inflate to {info.file_size} bytes "
+                     f"(limit {max_bytes})")
+  try:
+    data = archive.read(info)
+  except (zipfile.BadZipFile, OSError, EOFError, zlib.error, NotImplementedError,
+          RuntimeError) as error:  # RuntimeError: zipfile's "encrypted, password required"
+    raise ChunkError(f"{where}: cannot read record '{name}' ({type(error).__name__}: {error})") from error
+  if len(data) != info.file_size:
+    raise ChunkError(f"{where}: record '{name}' holds {len(data)} bytes, declares {info.file_size}")
+  return data
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
 class _StorageType:
-  """Stand-in for `torch.<X>Storage` inside the pickle: only carries the element dtype."""
+  """Stand-in for `torch.<X>Storage` inside the pickle: only carries the element dtype.
 
-  def __init__(self, dtype: np.dtype):
-    self.dtype = dtype
+  Shared by every read, so immutable (and the unpickler refuses BUILD, which would set state).
+  """
+  dtype: np.dtype
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,28 +166,31 @@ class _StorageRecord:
   byteorder: str
 
   def read(self, archive: zipfile.ZipFile) -> np.ndarray:
-    try:
-      raw = archive.read(self.record)
-    except KeyError:
-      raise ChunkError(f"{self.path}: storage record '{self.record}' is missing") from None
     dtype = self.dtype.newbyteorder("<" if self.byteorder == "little" else ">")
-    if len(raw) != self.numel * dtype.itemsize:
-      raise ChunkError(f"{self.path}: storage '{self.record}' holds {len(raw)} bytes, "
-                       f"expected {self.numel} x {dtype.itemsize}")
+    raw = read_member(archive, self.record, where=self.path,
+                      expected_bytes=self.numel * dtype.itemsize)
     return np.frombuffer(raw, dtype).astype(self.dtype, copy=False)
 
 
+def _is_index(value) -> bool:
+  return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
 def _check_geometry(numel: int, offset, size, stride) -> None:
-  """Rejects a size/stride/offset that would read outside a storage of `numel` elements."""
-  ints = (offset, *size, *stride)
-  if not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in ints):
-    raise pickle.UnpicklingError(f"bad tensor geometry offset={offset} size={size} stride={stride}")
+  """Rejects a size/stride/offset that would read outside a storage of `numel` elements, or that
+  would make a view with more elements than its storage (a stride-0 view could ask for any
+  amount of memory)."""
+  if not (isinstance(size, tuple) and isinstance(stride, tuple) and _is_index(offset)
+          and all(map(_is_index, size + stride))):
+    raise pickle.UnpicklingError(f"bad tensor geometry offset={offset!r} size={size!r} stride={stride!r}")
   if len(size) != len(stride):
     raise pickle.UnpicklingError(f"tensor size {size} and stride {stride} differ in rank")
   if all(size):
     last = offset + sum((n - 1) * s for n, s in zip(size, stride))
     if last >= numel:
       raise pickle.UnpicklingError(f"tensor reaches element {last} of a storage of {numel}")
+    if math.prod(size) > numel:
+      raise pickle.UnpicklingError(f"tensor of {math.prod(size)} elements views a storage of {numel}")
 
 
 def _view(storage: np.ndarray, offset: int, size: tuple, stride: tuple) -> np.ndarray:
@@ -131,6 +206,7 @@ class LazyTensor:
   """A tensor of a chunk whose bytes are read only by `load()` (e.g. the one JPEG a sample needs).
 
   Picklable (it holds the file path, not an open file), so it can travel to input workers.
+  `load()` raises `ChunkError` naming the file for anything wrong with the bytes.
   """
   storage: _StorageRecord
   offset: int
@@ -142,13 +218,8 @@ class LazyTensor:
     return self.storage.dtype
 
   def load(self) -> np.ndarray:
-    try:
-      return _view(self.storage.read(_open_archive(self.storage.path)), self.offset, self.shape,
-                   self.stride)
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as error:
-      if isinstance(error, ChunkError):
-        raise
-      raise ChunkError(f"{self.storage.path}: cannot read '{self.storage.record}' ({error})") from error
+    storage = self.storage.read(_open_archive(self.storage.path))
+    return _view(storage, self.offset, self.shape, self.stride)
 
 
 _ARCHIVES: collections.OrderedDict = collections.OrderedDict()
@@ -160,7 +231,7 @@ def _open_archive(path: str) -> zipfile.ZipFile:
   parent's file offset)."""
   key = (os.getpid(), path)
   if key not in _ARCHIVES:
-    _ARCHIVES[key] = zipfile.ZipFile(path)
+    _ARCHIVES[key] = open_zip(path)
     while len(_ARCHIVES) > _MAX_OPEN_ARCHIVES:
       _ARCHIVES.popitem(last=False)[1].close()
   _ARCHIVES.move_to_end(key)
@@ -181,41 +252,110 @@ def _rebuild_tensor(storage, storage_offset, size, stride, requires_grad=False,
   return _view(storage, storage_offset, tuple(size), tuple(stride))
 
 
-class _TensorUnpickler(pickle.Unpickler):
-  """Unpickler that can only build tensors (numpy arrays), storages and plain containers."""
+# Opcodes a tensor pickle never needs: BUILD sets state on an object (on one of our shared globals
+# it would change them for the whole process), the others instantiate or look up objects outside
+# `find_class`'s control. PERSID is the text form; torch writes BINPERSID.
+_REFUSED_OPCODES = {op[0]: name for op, name in [
+    (pickle.BUILD, "BUILD"), (pickle.INST, "INST"), (pickle.OBJ, "OBJ"), (pickle.NEWOBJ, "NEWOBJ"),
+    (pickle.NEWOBJ_EX, "NEWOBJ_EX"), (pickle.EXT1, "EXT1"), (pickle.EXT2, "EXT2"),
+    (pickle.EXT4, "EXT4"), (pickle.PERSID, "PERSID")]}
+# What the pure-Python pickle machine raises when the opcode stream itself is malformed (stack
+# underflow, truncated argument, wrong container type for an opcode).
+_MALFORMED_STREAM = (IndexError, KeyError, TypeError, AttributeError, ValueError, struct.error,
+                     EOFError, OverflowError)
+
+
+def _guarded(handler):
+  """An opcode handler whose malformed-stream failures become `UnpicklingError`."""
+  def run(unpickler):
+    try:
+      handler(unpickler)
+    except ChunkError:
+      raise
+    except _MALFORMED_STREAM as error:
+      raise pickle.UnpicklingError(f"malformed pickle ({type(error).__name__}: {error})") from error
+  return run
+
+
+def _refused(code: int):
+  def refuse(unpickler):
+    raise UnsafeChunkError(f"{unpickler.path}: refusing pickle opcode "
+                           f"{_REFUSED_OPCODES.get(code, hex(code))}: a chunk only rebuilds tensors")
+  return refuse
+
+
+def _load_reduce(unpickler):
+  """REDUCE, restricted to the two callables a tensor pickle uses, arguments checked first."""
+  stack = unpickler.stack
+  if len(stack) < 2 or not isinstance(stack[-1], tuple):
+    raise pickle.UnpicklingError("REDUCE without a callable and an argument tuple")
+  args = stack.pop()
+  func = stack[-1]
+  if func is collections.OrderedDict and not args:
+    stack[-1] = collections.OrderedDict()
+  elif func is _rebuild_tensor and 4 <= len(args) <= 7:
+    stack[-1] = _rebuild_tensor(*args)
+  else:
+    raise UnsafeChunkError(f"{unpickler.path}: refusing to call {func!r} with {len(args)} arguments")
+
+
+def _load_binpersid(unpickler):
+  if not unpickler.stack:
+    raise pickle.UnpicklingError("BINPERSID on an empty stack")
+  unpickler.append(unpickler.persistent_load(unpickler.stack.pop()))
+
+
+class _TensorUnpickler(pickle._Unpickler):  # noqa: SLF001 - the Python one lets us vet each opcode
+  """Unpickler that can only build tensors (numpy arrays), storages and plain containers.
+
+  The pure-Python unpickler (not the C one) so that every opcode is vetted: refused opcodes and
+  callables raise `UnsafeChunkError`; a malformed stream raises `pickle.UnpicklingError`. Nothing
+  in the file is ever executed. (A chunk's pickle is small: the tensors' bytes are other records.)
+  """
 
   _GLOBALS = {
       ("torch._utils", "_rebuild_tensor_v2"): _rebuild_tensor,
       ("collections", "OrderedDict"): collections.OrderedDict,
       **{("torch", name): _StorageType(dtype) for name, dtype in _STORAGE_DTYPES.items()},
   }
+  dispatch = {code: _refused(code) for code in range(256)}
+  dispatch.update({code: _guarded(handler) for code, handler in pickle._Unpickler.dispatch.items()
+                   if code not in _REFUSED_OPCODES})
+  dispatch[pickle.REDUCE[0]] = _load_reduce
+  dispatch[pickle.BINPERSID[0]] = _load_binpersid
 
   def __init__(self, data: bytes, archive: zipfile.ZipFile, prefix: str, path: str,
                byteorder: str, lazy: bool):
     super().__init__(io.BytesIO(data))
     self._archive = archive
     self._prefix = prefix
-    self._path = path
+    self.path = path
     self._byteorder = byteorder
     self._lazy = lazy
     self._storages: dict[str, Any] = {}
 
+  def load(self):
+    try:
+      return super().load()
+    except EOFError as error:  # the stream ended before STOP
+      raise pickle.UnpicklingError("truncated pickle (no STOP opcode)") from error
+
   def find_class(self, module: str, name: str):
     try:
       return self._GLOBALS[(module, name)]
-    except KeyError:
+    except (KeyError, TypeError):
       raise UnsafeChunkError(
-          f"{self._path}: refusing to load global '{module}.{name}': a chunk may only contain "
+          f"{self.path}: refusing to load global '{module}.{name}': a chunk may only contain "
           "tensors, storages and plain containers") from None
 
   def persistent_load(self, pid):
     if not (isinstance(pid, tuple) and len(pid) == 5 and pid[0] == "storage"
             and isinstance(pid[1], _StorageType) and isinstance(pid[2], str)
-            and isinstance(pid[4], int) and pid[4] >= 0):
-      raise UnsafeChunkError(f"{self._path}: unexpected persistent id {pid!r}")
+            and _is_index(pid[4])):
+      raise UnsafeChunkError(f"{self.path}: unexpected persistent id {pid!r}")
     _, storage_type, key, _location, numel = pid
     if key not in self._storages:
-      record = _StorageRecord(self._path, f"{self._prefix}data/{key}", storage_type.dtype, numel,
+      record = _StorageRecord(self.path, f"{self._prefix}data/{key}", storage_type.dtype, numel,
                               self._byteorder)
       self._storages[key] = record if self._lazy else record.read(self._archive)
     return self._storages[key]
@@ -225,29 +365,33 @@ def load_tensor_archive(path: str | os.PathLike, *, lazy: bool = False) -> Any:
   """Loads a `torch.save` zip archive of tensors and plain containers as numpy, without torch.
 
   Returns the saved object with every tensor replaced by a numpy array, or with `lazy` by a
-  `LazyTensor` (shape/dtype known, bytes read on `load()`). Raises `ChunkError` for a file that is
-  not such an archive (truncated, legacy non-zip format, missing records) and `UnsafeChunkError`
-  for a pickle that references anything else (it is never executed).
+  `LazyTensor` (shape/dtype known, bytes read on `load()`). Raises `ChunkError` (naming the file)
+  for anything that is not such an archive: missing, not a regular file, truncated, legacy
+  non-zip format, missing or oversized records, a malformed pickle; and `UnsafeChunkError` for a
+  pickle that asks for any global, opcode or call a plain tensor file never needs (it is never
+  executed).
   """
   path = str(path)
-  try:
-    with zipfile.ZipFile(path) as archive:
-      pickles = [n for n in archive.namelist() if n.endswith("/data.pkl") and n.count("/") == 1]
-      if len(pickles) != 1:
-        raise ChunkError(f"{path}: not a torch zip archive (no single '<name>/data.pkl' record)")
-      prefix = pickles[0][: -len("data.pkl")]
-      byteorder = "little"
-      if f"{prefix}byteorder" in archive.namelist():
-        byteorder = archive.read(f"{prefix}byteorder").decode("ascii", "replace").strip()
-        if byteorder not in ("little", "big"):
-          raise ChunkError(f"{path}: unknown byteorder record {byteorder!r}")
-      unpickler = _TensorUnpickler(archive.read(pickles[0]), archive, prefix, path, byteorder, lazy)
-      return unpickler.load()
-  except (ChunkError, FileNotFoundError):
-    raise
-  except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, pickle.UnpicklingError, OSError,
-          ValueError, TypeError, AttributeError, IndexError, KeyError, struct.error) as error:
-    raise ChunkError(f"{path}: not a readable tensor chunk ({type(error).__name__}: {error})") from error
+  with open_zip(path) as archive:
+    names = archive.namelist()
+    pickles = [n for n in names if n.endswith("/data.pkl") and n.count("/") == 1]
+    if len(pickles) != 1:
+      raise ChunkError(f"{path}: not a torch zip archive (no single '<name>/data.pkl' record)")
+    prefix = pickles[0][: -len("data.pkl")]
+    byteorder = "little"
+    if f"{prefix}byteorder" in names:
+      byteorder = read_member(archive, f"{prefix}byteorder", where=path, max_bytes=16)
+      byteorder = byteorder.decode("ascii", "replace").strip()
+      if byteorder not in ("little", "big"):
+        raise ChunkError(f"{path}: unknown byteorder record {byteorder!r}")
+    if archive.getinfo(pickles[0]).file_size > MAX_PICKLE_BYTES:
+      raise ChunkError(f"{path}: a pickle of {archive.getinfo(pickles[0]).file_size} bytes exceeds "
+                       f"{MAX_PICKLE_BYTES}")
+    data = read_member(archive, pickles[0], where=path)
+    try:
+      return _TensorUnpickler(data, archive, prefix, path, byteorder, lazy).load()
+    except pickle.UnpicklingError as error:
+      raise ChunkError(f"{path}: not a readable tensor chunk ({error})") from error
 
 
 # ----------------------------------------------------------------------------------------------
@@ -426,6 +570,10 @@ def cameras_to_poses(cameras: np.ndarray, height: int, width: int, *, where: str
   if not np.isfinite(cameras).all():
     bad = sorted(set(np.nonzero(~np.isfinite(cameras))[0].tolist()))
     raise ChunkError(f"{where}: NaN/inf in the cameras of frames {bad}")
+  focal = cameras[:, :2]
+  if (focal <= 0).any():
+    bad = sorted(set(np.nonzero(focal <= 0)[0].tolist()))
+    raise ChunkError(f"{where}: non-positive focal length (fx/W, fy/H) in the cameras of frames {bad}")
   w2c = np.zeros((cameras.shape[0], 4, 4), np.float64)
   w2c[:, :3, :] = cameras[:, 6:].reshape(-1, 3, 4)
   w2c[:, 3, 3] = 1.0
@@ -458,13 +606,22 @@ def _scene_from_record(record, path: str, position: int, images_mode: str) -> di
   if not isinstance(frames, (list, tuple)) or not frames:
     raise ChunkError(f"{where}: 'images' must be a non-empty list of JPEG byte tensors")
   frames = list(frames)
+  if not all(isinstance(frame, (LazyTensor, np.ndarray)) and frame.dtype == np.uint8
+             for frame in frames):
+    raise ChunkError(f"{where}: 'images' must hold uint8 tensors of JPEG bytes")
+  if not isinstance(record["cameras"], (LazyTensor, np.ndarray)):
+    raise ChunkError(f"{where}: 'cameras' must be a tensor")
   if images_mode != "lazy":
     frames = [_loaded(frame) for frame in frames]
   height, width = jpeg_size(_loaded(frames[0]), where=f"{where} frame 0")
   c2w, intrinsics = cameras_to_poses(_loaded(record["cameras"]), height, width, where=where)
   if len(frames) != c2w.shape[0]:
     raise ChunkError(f"{where}: {len(frames)} images but {c2w.shape[0]} camera rows")
-  timestamps = np.asarray(_loaded(record.get("timestamps", np.arange(len(frames)))), np.int64)
+  timestamps = _loaded(record.get("timestamps", np.arange(len(frames))))
+  if not (isinstance(timestamps, np.ndarray) and timestamps.shape == (len(frames),)
+          and np.issubdtype(timestamps.dtype, np.integer)):
+    raise ChunkError(f"{where}: 'timestamps' must be an integer tensor [{len(frames)}]")
+  timestamps = timestamps.astype(np.int64)
   if images_mode == "decode":
     decoded = [decode_jpeg(f, where=f"{where} frame {i}") for i, f in enumerate(frames)]
     shapes = {d.shape for d in decoded}
@@ -473,6 +630,29 @@ def _scene_from_record(record, path: str, position: int, images_mode: str) -> di
     frames = np.stack(decoded)
   return {"key": key, "url": str(record.get("url", "")), "timestamps": timestamps, "c2w": c2w,
           "intrinsics": intrinsics, "images": frames, "height": int(height), "width": int(width)}
+
+
+def scan_chunk(path: str | os.PathLike, *,
+               images: Literal["decode", "bytes", "lazy"] = "lazy") -> list[dict | ChunkError]:
+  """Reads a pixelSplat-format chunk scene by scene: one bad scene costs only that scene.
+
+  Returns, in file order, each scene (as `read_chunk`) or the `ChunkError` saying why that scene
+  is unusable (NaN camera, corrupt frame 0, ...; its `scene_key` attribute holds the scene's key
+  when it has one). Raises `ChunkError` when the file as a whole is unreadable.
+  """
+  path = str(path)
+  content = load_tensor_archive(path, lazy=True)
+  if not isinstance(content, list):
+    raise ChunkError(f"{path}: a chunk holds a list of scenes, found {type(content).__name__}")
+  scenes = []
+  for position, record in enumerate(content):
+    try:
+      scenes.append(_scene_from_record(record, path, position, images))
+    except ChunkError as error:
+      key = record.get("key") if isinstance(record, Mapping) else None
+      error.scene_key = key if isinstance(key, str) else None
+      scenes.append(error)
+  return scenes
 
 
 def read_chunk(path: str | os.PathLike, *,
@@ -484,13 +664,13 @@ def read_chunk(path: str | os.PathLike, *,
   stored images), `height`, `width` and `images`: uint8 [F, H, W, 3] (`"decode"`), the F encoded
   JPEGs as uint8 1-D arrays (`"bytes"`), or F `LazyTensor`s whose `load()` reads one JPEG
   (`"lazy"`: reads only the pickle, the cameras and frame 0). Raises `ChunkError` naming the file
-  and scene on any malformed content.
+  and scene on any malformed content (`scan_chunk` keeps the good scenes of a chunk instead).
   """
-  path = str(path)
-  content = load_tensor_archive(path, lazy=True)
-  if not isinstance(content, list):
-    raise ChunkError(f"{path}: a chunk holds a list of scenes, found {type(content).__name__}")
-  return [_scene_from_record(r, path, i, images) for i, r in enumerate(content)]
+  scenes = scan_chunk(path, images=images)
+  for scene in scenes:
+    if isinstance(scene, ChunkError):
+      raise scene
+  return scenes
 
 
 def _scene_to_record(scene: Mapping, jpeg_quality: int) -> dict:

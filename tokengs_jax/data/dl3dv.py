@@ -30,13 +30,13 @@ import io
 import json
 import os
 import pathlib
-import zipfile
 from collections.abc import Iterable, Sequence
 
 import numpy as np
 from PIL import Image
 
-from tokengs_jax.data.chunks import _open_archive
+from tokengs_jax.data.chunks import ChunkError, _open_archive, check_regular_file, read_member
+from tokengs_jax.data.rejections import Rejections
 from tokengs_jax.data.sampler import MissingIndexEntryError
 
 __all__ = [
@@ -97,11 +97,18 @@ class _SceneFiles:
   def read(self, name: str) -> bytes:
     try:
       if self.path.suffix == ".zip":
-        return _open_archive(str(self.path)).read(f"{self.key}/{self.prefix}{name}")
-      return (self.path / self.prefix / name).read_bytes()
-    except KeyError as error:  # zipfile: no such member
-      raise DL3DVError(f"{self.where(name)}: missing (scene '{self.key}')") from error
-    except (OSError, zipfile.BadZipFile) as error:
+        archive, member = _open_archive(str(self.path)), f"{self.key}/{self.prefix}{name}"
+        if member not in archive.NameToInfo:
+          raise DL3DVError(f"{self.where(name)}: missing (scene '{self.key}')")
+        return read_member(archive, member, where=f"{self.where(name)} (scene '{self.key}')")
+      path = self.path / self.prefix / name
+      if not path.exists():
+        raise DL3DVError(f"{self.where(name)}: missing (scene '{self.key}')")
+      check_regular_file(path)  # a FIFO or device would block or never end
+      return path.read_bytes()
+    except ChunkError as error:
+      raise DL3DVError(str(error)) from error
+    except OSError as error:
       raise DL3DVError(f"{self.where(name)}: cannot read ({error}; scene '{self.key}')") from error
 
 
@@ -123,7 +130,7 @@ class _SceneImages:
 def _scene_files(path: pathlib.Path) -> _SceneFiles:
   try:
     return _SceneFiles(path)
-  except (OSError, zipfile.BadZipFile) as error:
+  except (OSError, ChunkError) as error:
     raise DL3DVError(f"{path}: not a readable scene zip ({error})") from error
 
 
@@ -214,8 +221,8 @@ class DL3DVSceneSource:
       image (the official code assumes (540, 960)). The pipeline checks every frame it decodes
       against it, so a scene with mixed sizes is reported, not silently mis-calibrated.
     keys: only these scenes (e.g. an evaluation index's keys), in this order.
-    skip_bad: drop and count (`skipped`, `skip_messages`) requested keys that are absent, instead
-      of raising `MissingIndexEntryError`. Malformed scenes raise `DL3DVError` on access; the
+    skip_bad: drop, count and log (`rejections`) requested keys that are absent, instead of
+      raising `MissingIndexEntryError`. Malformed scenes raise `DL3DVError` on access; the
       pipeline's `skip_bad` drops those.
   """
 
@@ -224,8 +231,7 @@ class DL3DVSceneSource:
                keys: Iterable[str] | None = None, skip_bad: bool = False):
     self.root = pathlib.Path(root)
     self.image_folder, self.resolution = image_folder, resolution
-    self.skipped: collections.Counter = collections.Counter()
-    self.skip_messages: list[str] = []
+    self.rejections = Rejections(f"source {self.root}")
     scenes = list_dl3dv_scenes(self.root, subsets)
     by_key = {}
     for path in scenes:
@@ -241,8 +247,7 @@ class DL3DVSceneSource:
         error = MissingIndexEntryError(f"{self.root}: scene '{key}' is not in the dataset")
         if not skip_bad:
           raise error
-        self.skipped["missing_scene"] += 1
-        self.skip_messages.append(str(error))
+        self.rejections.add("missing_scene", str(error))
     self._cache: collections.OrderedDict = collections.OrderedDict()
 
   def __len__(self) -> int:

@@ -27,6 +27,7 @@ from PIL import Image
 from tokengs_jax.data.chunks import ChunkError, LazyTensor, decode_jpeg
 from tokengs_jax.data.dl3dv import DL3DVError
 from tokengs_jax.data.kubric import KubricConfig, KubricError, pointmap_scale
+from tokengs_jax.data.rejections import Rejections, summarize_rejections
 from tokengs_jax.data.sampler import (
   SAMPLER_PRESETS,
   BoundedSamplerConfig,
@@ -38,12 +39,13 @@ from tokengs_jax.data.sampler import (
 from tokengs_jax.data.transforms import (
   flip_horizontal,
   normalize_cameras,
+  normalize_times,
   resize_and_center_crop,
   translation_scale,
 )
 
 __all__ = ["ExampleConfig", "DATASET_PRESETS", "TRANSLATION_SCALES", "make_example", "field_of_view",
-           "InputPipeline", "BadExampleError"]
+           "InputPipeline", "BadExampleError", "NoUsableExamplesError"]
 
 # Paper, training details: camera translations scaled so that mean depths are roughly 1. The
 # synthetic RE10K-like rooms have a median depth of ~3.8 m (measured, BUILD_NOTES.md), so RE10K's
@@ -53,6 +55,11 @@ TRANSLATION_SCALES = {"re10k": 0.25, "dl3dv": 0.15, "kubric": 0.1, "synthetic": 
 
 class BadExampleError(ValueError):
   """An example could not be built; the message names the file and scene."""
+
+
+class NoUsableExamplesError(RuntimeError):
+  """The pipeline rejected `max_consecutive_bad` examples in a row: the data (or the sampler's
+  settings for it) yields nothing, and waiting longer would hang the run."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -125,7 +132,10 @@ def _frame(record: dict, index: int) -> np.ndarray:
   frame = record["images"][index]
   if isinstance(frame, LazyTensor):
     frame = frame.load()
-  if isinstance(frame, np.ndarray) and frame.ndim == 3:
+  if isinstance(frame, np.ndarray) and frame.ndim != 1:  # decoded pixels, not encoded bytes
+    if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[-1] != 3:
+      raise BadExampleError(f"{_where(record)} frame {index}: decoded frames must be uint8 "
+                            f"[H, W, 3] RGB, got {frame.dtype} {list(frame.shape)}")
     return frame
   return decode_jpeg(frame, where=f"{_where(record)} frame {index}")
 
@@ -212,6 +222,9 @@ def make_example(record: dict, config: ExampleConfig, rng: np.random.Generator, 
     intrinsics = np.asarray(record["intrinsics"])[frames]
     if not (np.isfinite(c2w).all() and np.isfinite(intrinsics).all()):
       raise BadExampleError(f"{where}: NaN/inf in the cameras of frames {frames.tolist()}")
+    if intrinsics.shape != (len(frames), 4) or (intrinsics[:, :2] <= 0).any():
+      raise BadExampleError(f"{where}: intrinsics of frames {frames.tolist()} must be [V, 4] "
+                            f"(fx, fy, cx, cy) pixels with fx, fy > 0, got {intrinsics.tolist()}")
     images = np.stack([_frame(record, int(i)) for i in frames])
     depths = (np.stack([_depth(record, int(i)) for i in context])
               if config.scale_method == "pointmap" else None)
@@ -240,10 +253,8 @@ def make_example(record: dict, config: ExampleConfig, rng: np.random.Generator, 
       "target_images": images[num_context:], "target_c2w": c2w[num_context:],
       "target_intrinsics": intrinsics[num_context:],
   }
-  if "times" in record:  # official: min-max normalised over the example's frames
-    times = np.asarray(record["times"], np.float64)[frames]
-    span = times.max() - times.min()
-    times = ((times - times.min()) / span if span > 0 else np.zeros_like(times)).astype(np.float32)
+  if "times" in record:
+    times = normalize_times(np.asarray(record["times"], np.float64)[frames])
     example["context_times"], example["target_times"] = times[:num_context], times[num_context:]
   return example
 
@@ -275,7 +286,8 @@ class _BuildExample:
     except (BadExampleError, *_DATA_ERRORS) as error:
       if not self.skip_bad:
         raise
-      return _Skipped(type(error).__name__, str(error))
+      cause = error.__cause__ if isinstance(error, BadExampleError) else None
+      return _Skipped(type(cause or error).__name__, str(error))  # the reason: the root cause
     example["scene_index"] = np.int64(scene_index)
     return example
 
@@ -294,22 +306,31 @@ class InputPipeline:
     num_workers: decoding processes (0: in this process).
     evaluation_index: key -> (context, target) frames (see `sampler.load_evaluation_index`).
     select_views: custom `(record, rng, step) -> (context, target)`, e.g. for dynamic scenes.
-    skip_bad: drop and count bad examples (`skipped`, `skip_messages`) instead of raising.
+    skip_bad: drop bad examples, counting and logging each in `rejections`, instead of raising.
+    max_consecutive_bad: with `skip_bad`, raise `NoUsableExamplesError` after this many rejected
+      examples in a row (e.g. every clip too short for the sampler) instead of waiting forever.
 
   Iterate it (or `iterator()`); the iterator's `get_state()` / `set_state()` checkpoint the
-  position exactly.
+  position exactly. `rejection_summary()` reports what the source and the pipeline rejected.
   """
 
   def __init__(self, source: Sequence[dict], config: ExampleConfig, *, batch_size: int, seed: int = 0,
                shuffle: bool = True, num_epochs: int | None = None, shard_index: int | None = None,
                shard_count: int | None = None, num_workers: int = 0, evaluation_index: dict | None = None,
-               select_views: ViewSelector | None = None, skip_bad: bool = False, drop_remainder: bool = True):
+               select_views: ViewSelector | None = None, skip_bad: bool = False, drop_remainder: bool = True,
+               max_consecutive_bad: int = 256):
     if shard_index is None or shard_count is None:
       import jax  # only for the process topology
       shard_index, shard_count = jax.process_index(), jax.process_count()
-    self.skipped: collections.Counter = collections.Counter()
-    self.skip_messages: collections.deque = collections.deque(maxlen=100)
+    self.source = source
+    self.rejections = Rejections("pipeline")
+    self.max_consecutive_bad = max_consecutive_bad
+    self._consecutive_bad = 0
     scenes = grain.MapDataset.range(len(source))[shard_index::shard_count]
+    if len(scenes) == 0:
+      raise NoUsableExamplesError(
+          f"no scenes for shard {shard_index} of {shard_count}: the source has {len(source)}"
+          + (f" ({self.rejection_summary()})" if _source_rejections(source) else ""))
     if shuffle:
       scenes = scenes.shuffle(seed=seed)
     scenes = scenes.repeat(num_epochs)
@@ -323,14 +344,31 @@ class InputPipeline:
     self.dataset = examples.filter(self._keep).batch(batch_size, drop_remainder=drop_remainder)
 
   def _keep(self, example) -> bool:
-    if isinstance(example, _Skipped):
-      self.skipped[example.reason] += 1
-      self.skip_messages.append(example.message)
-      return False
-    return True
+    if not isinstance(example, _Skipped):
+      self._consecutive_bad = 0
+      return True
+    self.rejections.add(example.reason, example.message)
+    self._consecutive_bad += 1
+    if self._consecutive_bad >= self.max_consecutive_bad:
+      raise NoUsableExamplesError(
+          f"the last {self._consecutive_bad} examples were all rejected (max_consecutive_bad); "
+          f"nothing to train on.\n{self.rejection_summary()}")
+    return False
+
+  def rejection_summary(self) -> str:
+    """What the source (when it keeps a `rejections` log) and the pipeline rejected so far."""
+    logs = {}
+    if _source_rejections(self.source) is not None:
+      logs["source"] = _source_rejections(self.source)
+    logs["pipeline"] = self.rejections
+    return summarize_rejections(logs)
 
   def iterator(self):
     return iter(self.dataset)
 
   def __iter__(self):
     return self.iterator()
+
+
+def _source_rejections(source) -> Rejections | None:
+  return getattr(source, "rejections", None)

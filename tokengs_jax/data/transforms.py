@@ -18,6 +18,7 @@ __all__ = [
     "flip_horizontal",
     "normalize_cameras",
     "translation_scale",
+    "normalize_times",
 ]
 
 _REFLECT_X = np.diag([-1.0, 1.0, 1.0, 1.0])
@@ -136,3 +137,14 @@ def translation_scale(c2w: np.ndarray, num_context: int, base_scale: float,
   if method == "bound":
     return float(base_scale / max(np.abs(positions).max(), 1e-6))
   raise ValueError(f"unknown camera scale method {method!r}")
+
+
+def normalize_times(times: np.ndarray) -> np.ndarray:
+  """An example's frame times min-max normalised to [0, 1] (official TokenGS).
+
+  All times equal (an example from one instant, e.g. a static or single-frame clip): all 0, not
+  the official 0 / 0 = NaN.  times: [V] -> [V] float32.
+  """
+  times = np.asarray(times, np.float64)
+  span = times.max() - times.min()
+  return ((times - times.min()) / span if span > 0 else np.zeros_like(times)).astype(np.float32)
