@@ -521,3 +521,21 @@ def test_tiny_preset_runs_at_its_resolution():
   assert gaussians.means.shape == (1, config.num_gaussians, 3)
   # at initialisation the Gaussians sit in front of the first camera (z-offset 1)
   np.testing.assert_allclose(np.asarray(gaussians.means[..., 2]).mean(), 1.0, atol=0.1)
+
+
+def test_normalize_images_scales_uint8_and_refuses_what_it_cannot_convert():
+  """uint8 is scaled by 1/255 (it once cast the ImageNet mean/std to uint8: NaN Gaussians);
+  grayscale, integer types and 0..255 floats are refused with a message naming `images`."""
+  rng = np.random.default_rng(0)
+  pixels = rng.integers(0, 256, (2, 4, 5, 3), dtype=np.uint8)
+  from_uint8 = np.asarray(normalize_images(pixels))
+  assert from_uint8.dtype == np.float32 and np.isfinite(from_uint8).all()
+  np.testing.assert_allclose(from_uint8, np.asarray(normalize_images(pixels / np.float32(255))),
+                             atol=1e-6)
+  np.testing.assert_allclose(np.asarray(jax.jit(normalize_images)(pixels)), from_uint8, atol=1e-6)
+  with pytest.raises(ValueError, match=r"images: expected RGB \[\.\.\., 3\].*grayscale"):
+    normalize_images(pixels[..., :1])
+  with pytest.raises(TypeError, match="images: expected float in .0, 1. or uint8.*int32"):
+    normalize_images(pixels.astype(np.int32))
+  with pytest.raises(ValueError, match=r"images: expected float values in \[0, 1\].*divide by 255"):
+    normalize_images(pixels.astype(np.float32))

@@ -18,6 +18,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from tokengs_jax.camera import plucker_rays
 from tokengs_jax.gaussians import Gaussians
@@ -66,14 +67,35 @@ def count_params(config: ModelConfig) -> int:
 
 
 def normalize_images(images: jax.Array) -> jax.Array:
-  """[0, 1] RGB -> the encoder's input (ImageNet mean/std, as the official data provider).
+  """RGB -> the encoder's input (ImageNet mean/std, as the official data provider).
 
-  images: [..., 3] -> [..., 3].
+  images: [..., 3], float in [0, 1] or uint8 in [0, 255] (scaled by 1/255 here) -> [..., 3]
+  float (float32 for uint8, else the input's float dtype).
+
+  Raises ValueError (at trace time) unless the last axis is 3 (e.g. grayscale [..., 1]),
+  TypeError for other dtypes, and, when the values are concrete (not traced), ValueError for
+  float values outside [0, 1] (e.g. 0..255 floats, which would silently saturate the encoder).
   """
+  if np.ndim(images) == 0 or np.shape(images)[-1] != 3:
+    raise ValueError(f"images: expected RGB [..., 3], got shape {list(np.shape(images))}"
+                     + (" (grayscale: repeat it to 3 channels)" if np.shape(images)[-1:] == (1,) else ""))
+  dtype = jnp.result_type(images)
+  if dtype == jnp.uint8:
+    images = jnp.asarray(images).astype(jnp.float32) / 255.0
+  elif not jnp.issubdtype(dtype, jnp.floating):
+    raise TypeError(f"images: expected float in [0, 1] or uint8 in [0, 255], got {dtype}")
+  elif not isinstance(images, jax.core.Tracer) and np.size(images):
+    low, high = float(jnp.min(images)), float(jnp.max(images))
+    if low < -_RANGE_SLACK or high > 1.0 + _RANGE_SLACK:
+      raise ValueError(f"images: expected float values in [0, 1], got [{low:.4g}, {high:.4g}]"
+                       + (" (0..255 values: divide by 255 or pass uint8)" if high > 2.0 else ""))
   images = jnp.asarray(images)
   mean = jnp.asarray(IMAGE_MEAN, images.dtype)
   std = jnp.asarray(IMAGE_STD, images.dtype)
   return (images - mean) / std
+
+
+_RANGE_SLACK = 1e-3  # resampled or low-precision images may overshoot [0, 1] by a hair
 
 
 def encode(params: Params, images: jax.Array, plucker: jax.Array, config: ModelConfig,
