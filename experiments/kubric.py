@@ -48,7 +48,8 @@ import numpy as np
 from experiments import common, plot
 from tokengs_jax import export, losses, model
 from tokengs_jax.camera import invert_rigid, project_points
-from tokengs_jax.data.kubric import KubricConfig, KubricSource, list_kubric_scenes
+from tokengs_jax.data import DATASET_PRESETS, ExampleConfig, InputPipeline, make_example
+from tokengs_jax.data.kubric import KubricSceneSource, kubric_view_selector, list_kubric_scenes
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.train.objective import ObjectiveConfig
 
@@ -81,12 +82,17 @@ class KubricExperiment(common.Experiment):
   dyn_aux_decay_fraction: float = 0.2
 
 
-def kubric_config(experiment: KubricExperiment, root, subsets) -> KubricConfig:
-  return KubricConfig(root=str(root), subsets=tuple(subsets),
-                      num_context=experiment.num_context_views,
-                      num_views=experiment.num_context_views + experiment.train.num_target_views,
-                      image_shape=tuple(experiment.image_size), min_gap=experiment.min_gap,
-                      max_gap=experiment.max_gap)
+def kubric_example_config(experiment: KubricExperiment, *, training: bool) -> ExampleConfig:
+  """The official Kubric example preset (mean_cam, pointmap scale) at the experiment's image
+  size; random flips only in training."""
+  return dataclasses.replace(DATASET_PRESETS["kubric"], image_shape=tuple(experiment.image_size),
+                             random_flip=training, deterministic=not training)
+
+
+def kubric_views(experiment: KubricExperiment, num_targets: int):
+  """The official dynamic view selection (targets <= context views, as official)."""
+  return kubric_view_selector(experiment.num_context_views, num_targets, experiment.min_gap,
+                              experiment.max_gap)
 
 
 def _subset_of(gaussians: Gaussians, part: slice) -> Gaussians:
@@ -119,38 +125,40 @@ class KubricTask(common.Task):
         print(f"[data] written in {time.perf_counter() - start:.1f} s", flush=True)
     return root
 
-  def splits(self, experiment: KubricExperiment) -> tuple[KubricConfig, KubricConfig, int]:
-    """(train config, test config, number of train scenes to use)."""
+  def sources(self, experiment: KubricExperiment) -> tuple[KubricSceneSource, KubricSceneSource]:
+    """(training scenes, held-out scenes): the synthetic subsets, or with `--data-dir` the last
+    `eval.num_scenes` (default 16) scenes of the listing held out."""
     root = self.root(experiment)
     if not experiment.data_dir:
-      return (kubric_config(experiment, root, [TRAIN_SUBSET]),
-              kubric_config(experiment, root, [TEST_SUBSET]), -1)
-    config = kubric_config(experiment, root, ("v0", "v1", "v2"))
+      return KubricSceneSource(root, [TRAIN_SUBSET]), KubricSceneSource(root, [TEST_SUBSET])
+    scenes = list_kubric_scenes(root)
     held_out = experiment.eval.num_scenes or 16
-    return config, config, len(list_kubric_scenes(root, config.subsets)) - held_out
+    return KubricSceneSource(scenes=scenes[:-held_out]), KubricSceneSource(scenes=scenes[-held_out:])
 
   def training_batches(self, experiment: KubricExperiment):
-    train_config, _, count = self.splits(experiment)
-    local = experiment.train.batch_size // jax.process_count()
-    epoch = 0
-    while True:
-      source = KubricSource(train_config, seed=experiment.seed, epoch=epoch, training=True)
-      scenes = np.arange(len(source) if count < 0 else count)[jax.process_index()::jax.process_count()]
-      order = np.random.default_rng([experiment.seed, epoch]).permutation(scenes)
-      for start in range(0, len(order) - local + 1, local):
-        examples = [source[int(i)] for i in order[start:start + local]]
-        yield {k: np.stack([e[k] for e in examples]) for k in examples[0]}
-      epoch += 1
+    """This process's batches from the shared input pipeline: grain workers, and an iterator
+    state the checkpoints save, so a resumed run continues the data stream where it stopped."""
+    train, _ = self.sources(experiment)
+    pipeline = InputPipeline(
+        train, kubric_example_config(experiment, training=True),
+        batch_size=experiment.train.batch_size // jax.process_count(), seed=experiment.seed,
+        num_workers=experiment.train.num_workers,
+        select_views=kubric_views(experiment, experiment.train.num_target_views),
+        skip_bad=bool(experiment.data_dir))
+    return iter(pipeline)
 
   def evaluation_examples(self, experiment: KubricExperiment) -> list[tuple[str, dict]]:
-    _, test_config, count = self.splits(experiment)
-    test_config = dataclasses.replace(
-        test_config, num_views=experiment.num_context_views + min(
-            experiment.eval.num_target_views, experiment.num_context_views))
-    source = KubricSource(test_config, seed=experiment.seed, training=False)
-    indices = range(len(source)) if count < 0 else range(count, len(source))
-    indices = list(indices)[:experiment.eval.num_scenes or None]
-    return [(source.scenes[i].name, {k: v[None] for k, v in source[i].items()}) for i in indices]
+    _, test = self.sources(experiment)
+    config = kubric_example_config(experiment, training=False)
+    select = kubric_views(experiment, min(experiment.eval.num_target_views,
+                                          experiment.num_context_views))
+    examples = []
+    for position in range(min(len(test), experiment.eval.num_scenes or len(test))):
+      record = test[position]
+      rng = np.random.default_rng([experiment.seed, position])
+      example = make_example(record, config, rng, views=select(record, rng, 0))
+      examples.append((record["key"], {k: v[None] for k, v in example.items()}))
+    return examples
 
   def loss_config(self, experiment: KubricExperiment) -> losses.LossConfig:
     """The official Kubric release loss, its auxiliary schedule scaled to `train.steps`."""

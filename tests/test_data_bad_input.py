@@ -3,6 +3,7 @@
 and logged. Nothing hangs (a SIGALRM guard fails a test instead of letting it wait forever)."""
 
 import contextlib
+import dataclasses
 import json
 import logging
 import os
@@ -269,3 +270,60 @@ def test_negative_focal_length_and_bad_frames_are_rejected_per_example():
                            shard_count=1, skip_bad=True, num_epochs=1, shuffle=False)
   assert [int(b["scene_index"][0]) for b in pipeline] == [0, 2]
   assert pipeline.rejections.counts == {"BadExampleError": 1}
+
+
+# ---- 5. Kubric: every failure is a KubricError; a bad scene costs only itself
+
+
+def _kubric_view(path, frames=4, size=8, sensor_width=32.0, resolution=None):
+  from tokengs_jax.data.synthetic.generate import write_kubric_view
+
+  path.parent.mkdir(parents=True, exist_ok=True)
+  positions = [[0.3 * f, 0.0, 5.0] for f in range(frames)]
+  metadata = {"metadata": {"resolution": resolution or [size, size]},
+              "camera": {"focal_length": 35.0, "sensor_width": sensor_width, "positions": positions,
+                         "quaternions": [[1.0, 0.0, 0.0, 0.0]] * frames}}
+  images = np.random.default_rng(0).integers(0, 255, (frames, size, size, 3), dtype=np.uint8)
+  write_kubric_view(path, metadata, images, np.full((frames, size, size), 5.0, np.float32))
+
+
+def _truncate(path):
+  path.write_bytes(path.read_bytes()[: path.stat().st_size * 2 // 3])
+
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda p: _truncate(p), "truncated|not a readable tar"),
+    (lambda p: _kubric_view(p, sensor_width=0.0), "sensor_width 0.0"),
+    (lambda p: _kubric_view(p, resolution=[32, 32]), r"is \[8, 8\], metadata.json resolution is \[32, 32\]"),
+])
+def test_damaged_kubric_views_raise_kubric_errors(tmp_path, damage, message):
+  from tokengs_jax.data import kubric
+
+  path = tmp_path / "output_000.tar"
+  _kubric_view(path)
+  damage(path)
+  with pytest.raises(kubric.KubricError, match=rf"output_000\.tar.*({message})"):
+    kubric.read_kubric_view(path, load_depth=True)
+
+
+def test_kubric_pipeline_keeps_the_good_scene_and_counts_the_bad_ones(tmp_path):
+  from tokengs_jax.data import DATASET_PRESETS, kubric
+
+  _kubric_view(tmp_path / "v0" / "a_good" / "output_000.tar")
+  _kubric_view(tmp_path / "v0" / "b_truncated" / "output_000.tar")
+  _truncate(tmp_path / "v0" / "b_truncated" / "output_000.tar")
+  _kubric_view(tmp_path / "v0" / "c_sensor" / "output_000.tar", sensor_width=0.0)
+  _kubric_view(tmp_path / "v0" / "d_resolution" / "output_000.tar", resolution=[32, 32])
+  config = dataclasses.replace(DATASET_PRESETS["kubric"], image_shape=(8, 8))
+  pipeline = InputPipeline(kubric.KubricSceneSource(tmp_path, ["v0"]), config, batch_size=1,
+                           shard_index=0, shard_count=1, num_epochs=1, shuffle=False, skip_bad=True,
+                           select_views=kubric.kubric_view_selector(2, 1, 1, 3))
+  with _deadline(60):
+    assert [int(b["scene_index"][0]) for b in pipeline] == [0]
+  counts = dict(pipeline.rejections.counts)
+  # the truncation may cut a frame (KubricError on read) or the tar index (KubricError on parse);
+  # the 4x-wrong intrinsics are caught where a decoded frame (or depth map) meets the metadata's
+  # resolution
+  assert counts == {"KubricError": 2, "BadExampleError": 1}
+  assert any("d_resolution" in m and "(8, 8)" in m and "(32, 32)" in m
+             for m in pipeline.rejections.messages)

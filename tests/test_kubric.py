@@ -1,5 +1,8 @@
 """Kubric-4D reader: conventions (OpenGL -> OpenCV, quaternions, intrinsics), tar round trips of
-generated scenes, index sampling, time normalisation, pointmap scale and assembled examples."""
+generated scenes, index sampling, time normalisation, pointmap scale and examples assembled by the
+input pipeline (the one Kubric path), including a resumed pipeline."""
+
+import dataclasses
 
 import io
 import json
@@ -10,7 +13,8 @@ import numpy as np
 import pytest
 
 from tokengs_jax import camera
-from tokengs_jax.data import kubric
+from tokengs_jax.data import DATASET_PRESETS, InputPipeline, kubric, make_example
+from tokengs_jax.data.transforms import normalize_times
 from tokengs_jax.data.synthetic import generate
 from tokengs_jax.data.synthetic.scenes import random_rotation
 
@@ -25,12 +29,15 @@ def kubric_root(tmp_path_factory):
   return root, config
 
 
-def _tiny_config(root, **overrides):
-  fields = dict(
-    root=str(root), num_context=2, num_views=4, image_shape=(H, W), min_gap=2, max_gap=5
-  )
-  fields.update(overrides)
-  return kubric.KubricConfig(**fields)
+CONFIG = dataclasses.replace(DATASET_PRESETS["kubric"], image_shape=(H, W), random_flip=False)
+
+
+def _example(root, index, seed, num_context=2, num_targets=2, config=CONFIG):
+  """The pipeline's example of scene `index`, views drawn from `default_rng(seed)`."""
+  record = kubric.KubricSceneSource(root)[index]
+  rng = np.random.default_rng(seed)
+  views = kubric.kubric_view_selector(num_context, num_targets, 2, 5)(record, rng, 0)
+  return make_example(record, config, rng, views=views)
 
 
 def test_quaternion_conversions_invert_each_other_and_follow_hamilton():
@@ -175,11 +182,9 @@ def test_sample_dynamic_indices_properties():
 
 
 def test_normalize_times_is_min_max_over_the_example():
-  np.testing.assert_allclose(
-    kubric.normalize_times(np.array([5, 9, 7, 13, 9])), [0, 0.5, 0.25, 1, 0.5]
-  )
-  with pytest.raises(ValueError):
-    kubric.normalize_times(np.array([3, 3]))
+  np.testing.assert_allclose(normalize_times(np.array([5, 9, 7, 13, 9])), [0, 0.5, 0.25, 1, 0.5])
+  # one instant (official: 0 / 0 = NaN): every time is 0
+  np.testing.assert_array_equal(normalize_times(np.array([3, 3])), [0.0, 0.0])
 
 
 def test_pointmap_scale_is_the_mean_distance_of_depth_points():
@@ -195,10 +200,7 @@ def test_pointmap_scale_is_the_mean_distance_of_depth_points():
 
 def test_example_pairs_cameras_frames_and_times_as_official(kubric_root):
   root, _ = kubric_root
-  config = _tiny_config(root)
-  source = kubric.KubricSource(config, seed=3, training=False)
-  assert len(source) == 2
-  example = source[1]
+  example = _example(root, 1, seed=3)
   vc, vt = 2, 2
   shapes = {
     "context_images": (vc, H, W, 3),
@@ -209,16 +211,13 @@ def test_example_pairs_cameras_frames_and_times_as_official(kubric_root):
     "target_c2w": (vt, 4, 4),
     "target_intrinsics": (vt, 4),
     "target_times": (vt,),
-    "scene_index": (),
   }
   assert {k: v.shape for k, v in example.items()} == shapes
-  for key, value in source[1].items():  # deterministic per (seed, epoch, index)
+  for key, value in _example(root, 1, seed=3).items():  # deterministic per rng
     np.testing.assert_array_equal(value, example[key])
 
   # Replay the draws: context v = camera v at frame v, target v = camera v at the target frame.
-  frames, views = kubric.sample_dynamic_indices(
-    np.random.default_rng([3, 0, 1]), FRAMES, CAMERAS, 2, 2, 5
-  )
+  frames, views = kubric.sample_dynamic_indices(np.random.default_rng(3), FRAMES, CAMERAS, 2, 2, 5)
   scene_dir = root / "v0" / "scene_000001"
   raw = [
     kubric.read_kubric_view(scene_dir / f"output_{views[v]:03d}.tar", [f])
@@ -227,7 +226,7 @@ def test_example_pairs_cameras_frames_and_times_as_official(kubric_root):
   images = np.concatenate([example["context_images"], example["target_images"]])
   np.testing.assert_allclose(images, np.concatenate([r["images"] for r in raw]) / 255.0, atol=1e-6)
   times = np.concatenate([example["context_times"], example["target_times"]])
-  np.testing.assert_allclose(times, kubric.normalize_times(frames[[0, 1, 2, 2]]))
+  np.testing.assert_allclose(times, normalize_times(frames[[0, 1, 2, 2]]))
   assert times.min() == 0.0 and times.max() == 1.0
 
   # Normalised cameras are a similarity of the raw ones: same relative rotations, translations
@@ -246,30 +245,18 @@ def test_example_pairs_cameras_frames_and_times_as_official(kubric_root):
 
 def test_pointmap_scale_makes_the_mean_context_point_distance_one(kubric_root):
   root, _ = kubric_root
-  example = kubric.KubricSource(
-    _tiny_config(root, num_context=3, num_views=5), seed=1, training=False
-  )[0]
-  # Depth scales with the translations, so re-measuring on the normalised cameras gives base_scale.
-  frames, views = kubric.sample_dynamic_indices(
-    np.random.default_rng([1, 0, 0]), FRAMES, CAMERAS, 3, 2, 5
-  )
+  example = _example(root, 0, seed=1, num_context=3)
+  # Depth scales with the translations, so re-measuring on the normalised cameras gives the base 1.
+  frames, views = kubric.sample_dynamic_indices(np.random.default_rng(1), FRAMES, CAMERAS, 3, 2, 5)
   scene_dir = root / "v0" / "scene_000000"
-  depths = np.concatenate(
-    [
-      kubric.read_kubric_view(
-        scene_dir / f"output_{views[v]:03d}.tar", [frames[v]], load_images=False, load_depth=True
-      )["depths"]
-      for v in range(3)
-    ]
-  )
-  raw_c2w = np.concatenate(
-    [
-      kubric.read_kubric_view(
-        scene_dir / f"output_{views[v]:03d}.tar", [frames[v]], load_images=False
-      )["c2w"]
-      for v in range(3)
-    ]
-  )
+  read = [
+    kubric.read_kubric_view(
+      scene_dir / f"output_{views[v]:03d}.tar", [frames[v]], load_images=False, load_depth=True
+    )
+    for v in range(3)
+  ]
+  depths = np.concatenate([r["depths"] for r in read])
+  raw_c2w = np.concatenate([r["c2w"] for r in read])
   scale = np.linalg.norm(
     example["context_c2w"][1, :3, 3] - example["context_c2w"][0, :3, 3]
   ) / np.linalg.norm(raw_c2w[1, :3, 3] - raw_c2w[0, :3, 3])
@@ -281,19 +268,17 @@ def test_pointmap_scale_makes_the_mean_context_point_distance_one(kubric_root):
 
 def test_training_examples_flip_some_scenes(kubric_root):
   root, _ = kubric_root
-  config = _tiny_config(root)
-  plain = kubric.KubricSource(config, seed=0, training=False)
+  flipping = dataclasses.replace(CONFIG, random_flip=True)
   flipped_any = False
-  for epoch in range(6):
-    train = kubric.KubricSource(config, seed=0, epoch=epoch, training=True)
-    example = train[0]
-    reference = kubric.KubricSource(config, seed=0, epoch=epoch, training=False)[0]
+  for seed in range(6):
+    example = _example(root, 0, seed, config=flipping)
+    reference = _example(root, 0, seed)  # the same draws: the flip is drawn after the views
     if not np.array_equal(example["context_images"], reference["context_images"]):
       np.testing.assert_array_equal(
         example["context_images"], reference["context_images"][:, :, ::-1]
       )
       flipped_any = True
-  assert flipped_any and len(plain) == 2
+  assert flipped_any
 
 
 def test_bad_kubric_files_name_the_file(tmp_path):
@@ -374,4 +359,42 @@ def test_scene_records_batch_through_the_generic_pipeline(kubric_root):
     matches = np.argwhere(np.all(np.abs(rendered / 255.0 - image) < 1e-6, axis=(2, 3, 4)))
     assert len(matches) >= 1
     frames.append(matches[0][1])
-  np.testing.assert_allclose(times[0], kubric.normalize_times(np.array(frames)), atol=1e-6)
+  np.testing.assert_allclose(times[0], normalize_times(np.array(frames)), atol=1e-6)
+
+
+def _pipeline(root, **kwargs):
+  return InputPipeline(kubric.KubricSceneSource(root), CONFIG, batch_size=1, seed=5, shard_index=0,
+                       shard_count=1, select_views=kubric.kubric_view_selector(2, 1, 2, 5), **kwargs)
+
+
+def test_resumed_pipeline_sees_the_same_batches_as_an_uninterrupted_one(kubric_root):
+  root, _ = kubric_root
+  uninterrupted = _pipeline(root).iterator()
+  expected = [next(uninterrupted) for _ in range(5)]  # 2 scenes: crosses an epoch boundary
+  first = _pipeline(root).iterator()
+  for _ in range(3):
+    next(first)
+  state = first.get_state()
+  resumed = _pipeline(root).iterator()  # a new run: new source, new pipeline
+  resumed.set_state(state)
+  for batch in expected[3:]:
+    got = next(resumed)
+    assert set(got) == set(batch)
+    for key in batch:
+      np.testing.assert_array_equal(got[key], batch[key], err_msg=key)
+
+
+def test_scene_metadata_is_parsed_once_per_process(kubric_root, monkeypatch):
+  root, _ = kubric_root
+  source = kubric.KubricSceneSource(root)
+  parsed = []
+  parse = kubric.parse_kubric_view
+  monkeypatch.setattr(kubric, "parse_kubric_view", lambda path: parsed.append(path) or parse(path))
+  record = source[0]
+  assert len(parsed) == CAMERAS
+  monkeypatch.setattr(kubric.tarfile, "open", None)  # reading frames never reopens a tar
+  for _ in range(3):
+    record = source[0]
+  assert len(parsed) == CAMERAS
+  frame = record["images"][CAMERAS * FRAMES - 1]
+  assert frame[:8] == b"\x89PNG\r\n\x1a\n" and record["depths"][0][:2] in (b"II", b"MM")

@@ -10,41 +10,45 @@ frames), each tar holding `./metadata.json`, `./rgba_{frame:05d}.png` and (optio
   translation `camera.positions[f]`, in Blender/OpenGL axes (+y up, looking down -z); OpenCV
   is obtained by negating the y and z columns.
 
-An example (official `_get_indices_dynamic` + `_curate_batch_dynamic` + `_preprocess`): pick
-`num_context` cameras and `num_context` increasing frames spanning a random gap, plus one target
-frame; context view v is camera v at frame v, target view v is camera v at the target frame.
-Times are the frame indices min-max normalised over the example. Cameras are normalised
-(`mean_cam` by default) and scaled by `base_scale / mean distance of the context views' depth
-points from the origin` ("pointmap").
+Examples are built by the shared input pipeline: `KubricSceneSource` yields scene records (the C
+cameras x F frames flattened camera-major, lazy PNG/TIFF members) and `kubric_view_selector`
+draws the official views (`_get_indices_dynamic` + `_curate_batch_dynamic`): `num_context`
+cameras and `num_context` increasing frames spanning a random gap, plus one target frame; context
+view v is camera v at frame v, target view v is camera v at the target frame. The pipeline
+(`DATASET_PRESETS["kubric"]`) then min-max normalises the times, normalises the cameras
+(`mean_cam`) and scales them by `translation_scale / mean distance of the context views' depth
+points from the origin` ("pointmap", `pointmap_scale`).
+
+Every failure to read a scene (unreadable or truncated tar, missing member, bad metadata, a
+frame whose size is not the metadata's resolution) raises `KubricError` naming the file.
 """
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import io
 import json
 import os
 import pathlib
 import tarfile
-from typing import Literal, Sequence
+from typing import Sequence
 
 import numpy as np
 from PIL import Image
 
-from tokengs_jax.data import transforms
+from tokengs_jax.data.chunks import ChunkError, check_regular_file
 
 __all__ = [
-  "KubricConfig",
   "KubricError",
   "KubricSceneSource",
-  "KubricSource",
+  "KubricView",
   "intrinsics_from_metadata",
   "kubric_view_selector",
   "kubric_pose_to_opencv",
   "list_kubric_scenes",
-  "make_kubric_example",
-  "normalize_times",
   "opencv_to_kubric_pose",
+  "parse_kubric_view",
   "pointmap_scale",
   "quat_wxyz_to_rotation",
   "read_kubric_view",
@@ -55,6 +59,7 @@ __all__ = [
 DEFAULT_SUBSETS = ("v0", "v1", "v2")
 # Blender/OpenGL camera axes (x right, y up, looking down -z) -> OpenCV (x right, y down, +z).
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0])
+_MAX_METADATA_BYTES = 64 << 20
 
 
 class KubricError(ValueError):
@@ -126,7 +131,12 @@ def intrinsics_from_metadata(
   """(fx, fy, cx, cy) in pixels, as the official loader derives them.  -> [4] float32.
 
   Note fy uses H / sensor_width like the official code: square pixels only for square images.
+  Raises `KubricError` unless focal length, sensor width and resolution are finite and positive.
   """
+  values = np.array([focal_length, sensor_width, height, width], np.float64)
+  if not (np.isfinite(values).all() and (values > 0).all()):
+    raise KubricError(f"focal_length {focal_length}, sensor_width {sensor_width} and resolution "
+                      f"{[height, width]} must be finite and positive")
   return np.array(
     [
       focal_length * width / sensor_width,
@@ -158,15 +168,80 @@ def list_kubric_scenes(
   return found
 
 
-def _member(tar: tarfile.TarFile, name: str, path: str) -> bytes:
-  for candidate in (f"./{name}", name):  # released tars prefix './'; accept both
+@dataclasses.dataclass(frozen=True)
+class KubricView:
+  """One camera's tar, parsed once: its cameras, and where each member's bytes lie in the file
+  (so reading a frame is one seek + read, without rescanning the tar). Picklable.
+
+  Attributes:
+    path: the `output_{view:03d}.tar` file.
+    c2w: [F, 4, 4] float32 camera-to-world (OpenCV) of every frame.
+    intrinsics: [4] float32 (fx, fy, cx, cy) pixels, the same for every frame.
+    height, width: the metadata's resolution.
+    members: member name (without "./") -> (byte offset, size).
+  """
+  path: str
+  c2w: np.ndarray
+  intrinsics: np.ndarray
+  height: int
+  width: int
+  members: dict
+
+  @property
+  def num_frames(self) -> int:
+    return len(self.c2w)
+
+  def read(self, name: str) -> bytes:
+    """The bytes of member `name`; `KubricError` if it is missing or the tar is truncated."""
+    if name not in self.members:
+      raise KubricError(f"{self.path}: member '{name}' is missing")
+    offset, size = self.members[name]
     try:
-      handle = tar.extractfile(candidate)
-    except KeyError:
-      continue
-    if handle is not None:
-      return handle.read()
-  raise KubricError(f"{path}: member '{name}' is missing")
+      with open(self.path, "rb") as handle:
+        handle.seek(offset)
+        data = handle.read(size)
+    except OSError as error:
+      raise KubricError(f"{self.path}: cannot read member '{name}' ({error})") from error
+    if len(data) != size:
+      raise KubricError(f"{self.path}: member '{name}' is truncated ({len(data)} of {size} bytes)")
+    return data
+
+
+def parse_kubric_view(tar_path: str | os.PathLike) -> KubricView:
+  """Reads one camera's tar index and metadata (no pixels).  Raises `KubricError`."""
+  path = str(tar_path)
+  try:
+    check_regular_file(path)
+    with tarfile.open(path, "r") as tar:
+      members = {m.name.removeprefix("./"): (m.offset_data, m.size) for m in tar.getmembers()
+                 if m.isreg()}
+  except (ChunkError, tarfile.TarError, OSError, EOFError) as error:
+    raise KubricError(f"{path}: not a readable tar ({error})") from error
+  view = KubricView(path, np.zeros((0, 4, 4), np.float32), np.zeros(4, np.float32), 0, 0, members)
+  if members.get("metadata.json", (0, 0))[1] > _MAX_METADATA_BYTES:
+    raise KubricError(f"{path}: metadata.json larger than {_MAX_METADATA_BYTES} bytes")
+  try:
+    meta = json.loads(view.read("metadata.json"))
+    camera = meta["camera"]
+    height, width = (int(v) for v in meta["metadata"]["resolution"])
+    positions = np.asarray(camera["positions"], np.float64)
+    quats = np.asarray(camera["quaternions"], np.float64)
+    focal, sensor = float(camera["focal_length"]), float(camera["sensor_width"])
+  except (KeyError, TypeError, ValueError) as error:  # JSON and UTF-8 errors are ValueErrors
+    raise KubricError(f"{path}: bad metadata.json ({type(error).__name__}: {error})") from error
+  if positions.ndim != 2 or positions.shape[1] != 3 or quats.shape != (len(positions), 4):
+    raise KubricError(
+      f"{path}: camera positions {list(positions.shape)} / quaternions "
+      f"{list(quats.shape)} must be [F, 3] / [F, 4]"
+    )
+  if not (np.isfinite(positions).all() and np.isfinite(quats).all()):
+    raise KubricError(f"{path}: NaN/inf in the camera poses")
+  try:
+    intrinsics = intrinsics_from_metadata(focal, sensor, height, width)
+  except KubricError as error:
+    raise KubricError(f"{path}: metadata.json {error}") from None
+  c2w = kubric_pose_to_opencv(positions, quats).astype(np.float32)
+  return dataclasses.replace(view, c2w=c2w, intrinsics=intrinsics, height=height, width=width)
 
 
 def read_kubric_view(
@@ -187,74 +262,41 @@ def read_kubric_view(
     `frames` int [F], `num_frames` (in the file), `height`, `width`; `images` uint8 [F, H, W, 3]
     when `load_images`; `depths` float32 [F, H, W] (z-depth) when `load_depth`.
   """
-  path = str(tar_path)
-  try:
-    tar = tarfile.open(path, "r")
-  except (tarfile.TarError, OSError) as error:
-    raise KubricError(f"{path}: not a readable tar ({error})") from error
-  with tar:
-    try:
-      meta = json.loads(_member(tar, "metadata.json", path))
-      camera = meta["camera"]
-      height, width = (int(v) for v in meta["metadata"]["resolution"])
-      positions = np.asarray(camera["positions"], np.float64)
-      quats = np.asarray(camera["quaternions"], np.float64)
-      focal, sensor = float(camera["focal_length"]), float(camera["sensor_width"])
-    except (KeyError, TypeError, ValueError) as error:
-      raise KubricError(f"{path}: bad metadata.json ({type(error).__name__}: {error})") from error
-    if positions.ndim != 2 or positions.shape[1] != 3 or quats.shape != (len(positions), 4):
-      raise KubricError(
-        f"{path}: camera positions {list(positions.shape)} / quaternions "
-        f"{list(quats.shape)} must be [F, 3] / [F, 4]"
-      )
-    if not (np.isfinite(positions).all() and np.isfinite(quats).all()):
-      raise KubricError(f"{path}: NaN/inf in the camera poses")
-    num_frames = len(positions)
-    frames = np.arange(num_frames) if frames is None else np.asarray(frames, np.int64)
-    if frames.size and (frames.min() < 0 or frames.max() >= num_frames):
-      raise KubricError(f"{path}: frames {frames.tolist()} outside the {num_frames} in the file")
-    result = {
-      "c2w": kubric_pose_to_opencv(positions[frames], quats[frames]).astype(np.float32),
-      "intrinsics": np.tile(
-        intrinsics_from_metadata(focal, sensor, height, width), (len(frames), 1)
-      ),
-      "frames": frames,
-      "num_frames": num_frames,
-      "height": height,
-      "width": width,
-    }
-    if load_images:
-      result["images"] = (
-        np.stack([_decode_rgb(_member(tar, f"rgba_{f:05d}.png", path), path, f) for f in frames])
-        if frames.size
-        else np.zeros((0, height, width, 3), np.uint8)
-      )
-    if load_depth:
-      result["depths"] = (
-        np.stack(
-          [_decode_depth(_member(tar, f"depth_{f:05d}.tiff", path), path, f) for f in frames]
-        )
-        if frames.size
-        else np.zeros((0, height, width), np.float32)
-      )
+  view = parse_kubric_view(tar_path)
+  frames = np.arange(view.num_frames) if frames is None else np.asarray(frames, np.int64)
+  if frames.size and (frames.min() < 0 or frames.max() >= view.num_frames):
+    raise KubricError(f"{view.path}: frames {frames.tolist()} outside the {view.num_frames} in the file")
+  shape = (view.height, view.width)
+  result = {
+    "c2w": view.c2w[frames],
+    "intrinsics": np.tile(view.intrinsics, (len(frames), 1)),
+    "frames": frames,
+    "num_frames": view.num_frames,
+    "height": view.height,
+    "width": view.width,
+  }
+  if load_images:
+    images = [_decode(view, f"rgba_{f:05d}.png", shape) for f in frames]
+    result["images"] = np.stack(images) if images else np.zeros((0, *shape, 3), np.uint8)
+  if load_depth:
+    depths = [_decode(view, f"depth_{f:05d}.tiff", shape) for f in frames]
+    result["depths"] = np.stack(depths) if depths else np.zeros((0, *shape), np.float32)
   return result
 
 
-def _decode_rgb(data: bytes, path: str, frame: int) -> np.ndarray:
+def _decode(view: KubricView, name: str, shape: tuple[int, int]) -> np.ndarray:
+  """Member `name` as uint8 [H, W, 3] RGB (PNG, alpha dropped as official) or float32 [H, W]
+  depth (TIFF, read with PIL as official); its size must be the metadata's resolution."""
   try:
-    with Image.open(io.BytesIO(data)) as image:
-      return np.asarray(image.convert("RGB"))  # alpha dropped, as official
-  except (OSError, SyntaxError, ValueError) as error:
-    raise KubricError(f"{path}: corrupt rgba_{frame:05d}.png ({error})") from error
-
-
-def _decode_depth(data: bytes, path: str, frame: int) -> np.ndarray:
-  try:
-    with Image.open(io.BytesIO(data)) as image:
-      depth = np.asarray(image, np.float32)
-  except (OSError, SyntaxError, ValueError) as error:
-    raise KubricError(f"{path}: corrupt depth_{frame:05d}.tiff ({error})") from error
-  return depth[..., 0] if depth.ndim == 3 else depth
+    with Image.open(io.BytesIO(view.read(name))) as image:
+      pixels = np.asarray(image.convert("RGB")) if name.endswith(".png") else np.asarray(image, np.float32)
+  except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as error:
+    raise KubricError(f"{view.path}: corrupt {name} ({error})") from error
+  pixels = pixels[..., 0] if name.endswith(".tiff") and pixels.ndim == 3 else pixels
+  if pixels.shape[:2] != shape:
+    raise KubricError(f"{view.path}: {name} is {list(pixels.shape[:2])}, metadata.json resolution "
+                      f"is {list(shape)} (the intrinsics would be wrong)")
+  return pixels
 
 
 def sample_dynamic_indices(
@@ -291,15 +333,6 @@ def sample_dynamic_indices(
   return frames, views
 
 
-def normalize_times(frames: np.ndarray) -> np.ndarray:
-  """Official time normalisation: (t - min) / (max - min) over the example.  [V] -> [V] float32."""
-  frames = np.asarray(frames, np.float64)
-  span = frames.max() - frames.min()
-  if span <= 0:
-    raise ValueError(f"times of an example must not all be equal, got {frames.tolist()}")
-  return ((frames - frames.min()) / span).astype(np.float32)
-
-
 def pointmap_scale(
   depths: np.ndarray,
   c2w: np.ndarray,
@@ -332,209 +365,95 @@ def pointmap_scale(
   return float(max(distances.mean(), 1e-6))
 
 
-@dataclasses.dataclass(frozen=True)
-class KubricConfig:
-  """Kubric example options; defaults are official `finetune_dl3dv_kubric_dyn` + registry."""
-
-  root: str = "data/kubric"
-  subsets: tuple[str, ...] = DEFAULT_SUBSETS
-  num_context: int = 4
-  num_views: int = 8  # context + targets; targets <= context (official assertion)
-  image_shape: tuple[int, int] = (256, 256)
-  min_gap: int = 3
-  max_gap: int = 23
-  interp_target: bool = True
-  normalization: Literal["first_cam", "mean_cam"] = "mean_cam"
-  scale_method: Literal["constant", "distance", "bound", "pointmap"] = "pointmap"
-  base_scale: float = 1.0
-  pointmap_trim: tuple[float, float] = (0.0, 1.0)
-  random_flip: bool = True  # only applied when an example is made with training=True
-
-  def __post_init__(self):
-    num_targets = self.num_views - self.num_context
-    if not (0 < num_targets <= self.num_context):
-      raise ValueError(f"need 0 < targets ({num_targets}) <= context views ({self.num_context})")
-
-
-def make_kubric_example(
-  scene_dir: str | os.PathLike,
-  rng: np.random.Generator,
-  config: KubricConfig = KubricConfig(),
-  *,
-  training: bool = True,
-  scene_index: int = 0,
-) -> dict:
-  """One example from a scene directory, drawing every random choice from `rng`.
-
-  Returns:
-    dict of numpy arrays: `context_images` [Vc, H, W, 3] float32 in [0, 1], `context_c2w`
-    [Vc, 4, 4], `context_intrinsics` [Vc, 4] (pixels), `context_times` [Vc], the same four
-    `target_*` with Vt = num_views - num_context, and `scene_index` int64 [].
-  """
-  scene_dir = pathlib.Path(scene_dir)
-  views = sorted(scene_dir.glob("output_*.tar"))
-  if not views:
-    raise KubricError(f"{scene_dir}: no output_*.tar camera files")
-  first = read_kubric_view(views[0], frames=[], load_images=False)
-  frames, cameras = sample_dynamic_indices(
-    rng,
-    first["num_frames"],
-    len(views),
-    config.num_context,
-    config.min_gap,
-    config.max_gap,
-    config.interp_target,
-  )
-  num_context, num_targets = config.num_context, config.num_views - config.num_context
-  # (camera, frame) of every view: context v = (camera v, frame v); target v = (camera v, target)
-  picks = [(cameras[v], frames[v]) for v in range(num_context)]
-  picks += [(cameras[v], frames[-1]) for v in range(num_targets)]
-  want_depth = config.scale_method == "pointmap"
-  read = [
-    read_kubric_view(
-      scene_dir / f"output_{cam:03d}.tar", [frame], load_depth=want_depth and v < num_context
-    )
-    for v, (cam, frame) in enumerate(picks)
-  ]
-  images = np.concatenate([r["images"] for r in read])
-  c2w = np.concatenate([r["c2w"] for r in read])
-  raw_intrinsics = np.concatenate([r["intrinsics"] for r in read])
-  times = normalize_times(np.array([frame for _, frame in picks]))
-
-  images, intrinsics = transforms.resize_and_center_crop(images, raw_intrinsics, config.image_shape)
-  c2w = transforms.normalize_cameras(c2w, num_context, config.normalization)
-  if config.scale_method == "pointmap":
-    # official: on the full-resolution depth and intrinsics, with the normalised cameras
-    depths = np.concatenate([r["depths"] for r in read[:num_context]])
-    scale = config.base_scale / pointmap_scale(
-      depths, c2w[:num_context], raw_intrinsics[:num_context], config.pointmap_trim
-    )
-  else:
-    scale = transforms.translation_scale(c2w, num_context, config.base_scale, config.scale_method)
-  if training and config.random_flip and rng.uniform() < 0.5:
-    images, c2w, intrinsics = transforms.flip_horizontal(images, c2w, intrinsics)
-  c2w = np.array(c2w, np.float32)
-  c2w[:, :3, 3] *= scale
-  images = images.astype(np.float32) / 255.0
-  context, target = slice(0, num_context), slice(num_context, None)
-  return {
-    "context_images": images[context],
-    "context_c2w": c2w[context],
-    "context_intrinsics": intrinsics[context],
-    "context_times": times[context],
-    "target_images": images[target],
-    "target_c2w": c2w[target],
-    "target_intrinsics": intrinsics[target],
-    "target_times": times[target],
-    "scene_index": np.int64(scene_index),
-  }
-
-
-class KubricSource:
-  """Random-access source of Kubric examples (`len`, `[index]`), usable as a grain data source.
-
-  Example `i` draws its random choices from `np.random.default_rng([seed, epoch, i])`: the same
-  example for the same (seed, epoch, i) in any worker or process, new choices each epoch.
-  """
-
-  def __init__(
-    self,
-    config: KubricConfig = KubricConfig(),
-    *,
-    seed: int = 0,
-    epoch: int = 0,
-    training: bool = True,
-  ):
-    self.config = config
-    self.scenes = list_kubric_scenes(config.root, config.subsets)
-    self.seed, self.epoch, self.training = seed, epoch, training
-
-  def __len__(self) -> int:
-    return len(self.scenes)
-
-  def __getitem__(self, index: int) -> dict:
-    rng = np.random.default_rng([self.seed, self.epoch, int(index)])
-    return make_kubric_example(
-      self.scenes[index], rng, self.config, training=self.training, scene_index=int(index)
-    )
-
-  def __repr__(self) -> str:
-    return f"KubricSource({self.config.root!r}, scenes={len(self)}, epoch={self.epoch})"
-
-
 # ----------------------------------------------------------------------------------------------
-# Scene records for the generic input pipeline (`tokengs_jax.data.pipeline.InputPipeline`)
+# Scene records for the input pipeline (`tokengs_jax.data.pipeline.InputPipeline`)
 
 
 class _TarFrames:
-  """Lazy length-(C*F) sequence of one per-frame tar member's bytes, camera-major: item c * F + f
+  """Lazy length-(C*F) sequence of one per-frame member's bytes, camera-major: item c * F + f
   is camera c, frame f. `member` is a format string of the frame, e.g. "rgba_{:05d}.png".
 
-  The pipeline decodes only the items it picks (PIL reads the PNGs, tifffile the depth TIFFs).
+  The pipeline decodes only the items it picks.
   """
 
-  def __init__(self, scene_dir: pathlib.Path, num_cameras: int, num_frames: int, member: str):
-    self.scene_dir, self.num_cameras, self.num_frames = scene_dir, num_cameras, num_frames
-    self.member = member
+  def __init__(self, views: Sequence[KubricView], num_frames: int, member: str):
+    self.views, self.num_frames, self.member = tuple(views), num_frames, member
 
   def __len__(self) -> int:
-    return self.num_cameras * self.num_frames
+    return len(self.views) * self.num_frames
 
   def __getitem__(self, index: int) -> bytes:
     if not 0 <= index < len(self):
-      raise IndexError(f"{self.scene_dir}: view {index} of {len(self)}")
+      raise IndexError(f"{self.views[0].path}: view {index} of {len(self)}")
     camera, frame = divmod(int(index), self.num_frames)
-    path = str(self.scene_dir / f"output_{camera:03d}.tar")
-    with tarfile.open(path, "r") as tar:
-      return _member(tar, self.member.format(frame), path)
+    return self.views[camera].read(self.member.format(frame))
 
 
 class KubricSceneSource:
   """Random-access source of Kubric scene records in the pipeline's record contract.
 
   A scene's C cameras x F frames are flattened camera-major into C*F "frames": `c2w [C*F, 4, 4]`
-  (OpenCV), `intrinsics [C*F, 4]`, lazy PNG `images`, and `times [C*F]` = the frame index (the
-  pipeline min-max normalises times per example, as official), plus `num_cameras`, `num_frames`
-  for `kubric_view_selector`. Only metadata is read up front; pixels are read per sample.
+  (OpenCV), `intrinsics [C*F, 4]`, lazy PNG `images`, lazy TIFF `depths` (the pipeline's
+  "pointmap" scale reads the context views' ones), and `times [C*F]` = the frame index (the
+  pipeline min-max normalises times per example, as official), plus `num_cameras`,
+  `num_frames` for `kubric_view_selector`.
 
-  `depths` (lazy TIFF bytes, same indexing) feed the pipeline's depth-based "pointmap" camera
-  scale, which the official Kubric preset uses (`DATASET_PRESETS["kubric"]`).
+  Each scene's tars are parsed once per process (metadata and member offsets, cached for the
+  last 64 scenes); a sample then reads only its views' members. A malformed scene raises
+  `KubricError` on access (the pipeline's `skip_bad` counts and skips it).
+
+  Args:
+    root, subsets: list the scenes with `list_kubric_scenes(root, subsets)`...
+    scenes: ...or use exactly these scene directories (e.g. a train/held-out split of a listing).
   """
 
-  def __init__(self, root: str | os.PathLike, subsets: Sequence[str] = DEFAULT_SUBSETS):
-    self.scenes = list_kubric_scenes(root, subsets)
+  def __init__(self, root: str | os.PathLike | None = None, subsets: Sequence[str] = DEFAULT_SUBSETS,
+               *, scenes: Sequence[str | os.PathLike] | None = None):
+    if (root is None) == (scenes is None):
+      raise ValueError("give either root (with subsets) or scenes")
+    self.scenes = ([pathlib.Path(s) for s in scenes] if scenes is not None
+                   else list_kubric_scenes(root, subsets))
+    self._cache: collections.OrderedDict = collections.OrderedDict()
 
   def __len__(self) -> int:
     return len(self.scenes)
 
   def __getitem__(self, index: int) -> dict:
     scene_dir = self.scenes[index]
-    views = sorted(scene_dir.glob("output_*.tar"))
-    if not views:
+    key = (os.getpid(), scene_dir)
+    if key not in self._cache:
+      self._cache[key] = self._read_scene(scene_dir)
+      while len(self._cache) > 64:
+        self._cache.popitem(last=False)
+    self._cache.move_to_end(key)
+    return dict(self._cache[key])
+
+  def __getstate__(self):  # workers build their own cache
+    return {**self.__dict__, "_cache": collections.OrderedDict()}
+
+  @staticmethod
+  def _read_scene(scene_dir: pathlib.Path) -> dict:
+    count = len(list(scene_dir.glob("output_*.tar")))
+    if not count:
       raise KubricError(f"{scene_dir}: no output_*.tar camera files")
-    read = [
-      read_kubric_view(scene_dir / f"output_{c:03d}.tar", load_images=False)
-      for c in range(len(views))
-    ]
-    num_frames = read[0]["num_frames"]
-    if any(
-      r["num_frames"] != num_frames
-      or (r["height"], r["width"]) != (read[0]["height"], read[0]["width"])
-      for r in read
-    ):
+    views = [parse_kubric_view(scene_dir / f"output_{c:03d}.tar") for c in range(count)]
+    first = views[0]
+    if any((v.num_frames, v.height, v.width) != (first.num_frames, first.height, first.width)
+           for v in views):
       raise KubricError(f"{scene_dir}: cameras differ in frame count or resolution")
     return {
       "key": scene_dir.name,
       "source": str(scene_dir),
-      "c2w": np.concatenate([r["c2w"] for r in read]),
-      "intrinsics": np.concatenate([r["intrinsics"] for r in read]),
-      "height": read[0]["height"],
-      "width": read[0]["width"],
-      "images": _TarFrames(scene_dir, len(read), num_frames, "rgba_{:05d}.png"),
-      "depths": _TarFrames(scene_dir, len(read), num_frames, "depth_{:05d}.tiff"),
-      "times": np.tile(np.arange(num_frames, dtype=np.float64), len(read)),
-      "num_cameras": len(read),
-      "num_frames": num_frames,
+      "c2w": np.concatenate([v.c2w for v in views]),
+      "intrinsics": np.tile(np.stack([v.intrinsics for v in views])[:, None],
+                            (1, first.num_frames, 1)).reshape(-1, 4),
+      "height": first.height,
+      "width": first.width,
+      "images": _TarFrames(views, first.num_frames, "rgba_{:05d}.png"),
+      "depths": _TarFrames(views, first.num_frames, "depth_{:05d}.tiff"),
+      "times": np.tile(np.arange(first.num_frames, dtype=np.float64), len(views)),
+      "num_cameras": len(views),
+      "num_frames": first.num_frames,
     }
 
 

@@ -15,7 +15,6 @@ Batches are dicts of numpy arrays (BUILD_NOTES.md): `context_images [B, Vc, H, W
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import io
 from typing import Callable, Literal, Sequence
@@ -26,7 +25,7 @@ from PIL import Image
 
 from tokengs_jax.data.chunks import ChunkError, LazyTensor, decode_jpeg
 from tokengs_jax.data.dl3dv import DL3DVError
-from tokengs_jax.data.kubric import KubricConfig, KubricError, pointmap_scale
+from tokengs_jax.data.kubric import KubricError, pointmap_scale
 from tokengs_jax.data.rejections import Rejections, summarize_rejections
 from tokengs_jax.data.sampler import (
   SAMPLER_PRESETS,
@@ -49,8 +48,8 @@ __all__ = ["ExampleConfig", "DATASET_PRESETS", "TRANSLATION_SCALES", "make_examp
 
 # Paper, training details: camera translations scaled so that mean depths are roughly 1. The
 # synthetic RE10K-like rooms have a median depth of ~3.8 m (measured, BUILD_NOTES.md), so RE10K's
-# 0.25 also brings them to ~1.
-TRANSLATION_SCALES = {"re10k": 0.25, "dl3dv": 0.15, "kubric": 0.1, "synthetic": 0.25}
+# 0.25 also brings them to ~1. (Kubric scales by its depth maps instead: "pointmap".)
+TRANSLATION_SCALES = {"re10k": 0.25, "dl3dv": 0.15, "synthetic": 0.25}
 
 
 class BadExampleError(ValueError):
@@ -69,8 +68,8 @@ class ExampleConfig:
   Attributes:
     image_shape: (H, W) of every output view.
     sampler: bounded view sampling (ignored when an evaluation index or `select_views` is given).
-    translation_scale: base camera translation scale (RE10K 0.25, DL3DV 0.15, Kubric 0.1; the
-      official Kubric preset uses 1.0 with `pointmap`).
+    translation_scale: base camera translation scale (RE10K 0.25, DL3DV 0.15; the official
+      Kubric preset uses 1.0 with `pointmap`).
     normalization: `first_cam` (official default) or `mean_cam`.
     scale_method: `constant` (official default), `distance`, `bound`, or `pointmap`
       (`translation_scale` / mean distance from the origin of the context views' depth points,
@@ -101,20 +100,16 @@ class ExampleConfig:
   min_context_baseline: float | None = None
 
 
-_KUBRIC = KubricConfig()  # the official Kubric preset's camera handling, shared with `KubricSource`
-
 DATASET_PRESETS = {
     "re10k": ExampleConfig((256, 256), SAMPLER_PRESETS["depthsplat_re10k"], TRANSLATION_SCALES["re10k"]),
     "dl3dv": ExampleConfig((256, 448), SAMPLER_PRESETS["tokengs_dl3dv"], TRANSLATION_SCALES["dl3dv"]),
     # the embedded default (`tokengs_jax.data.synthetic`, generated at 64x64 by default)
     "synthetic": ExampleConfig((64, 64), SAMPLER_PRESETS["synthetic"], TRANSLATION_SCALES["synthetic"]),
-    # official Kubric: pass `kubric_view_selector(4, 4)` as `select_views` (the bounded sampler,
-    # here only a record of the official view counts and gaps, would mix cameras); needs `depths`
-    "kubric": ExampleConfig(
-        _KUBRIC.image_shape,
-        BoundedSamplerConfig(_KUBRIC.num_context, _KUBRIC.num_views - _KUBRIC.num_context, _KUBRIC.min_gap,
-                             _KUBRIC.max_gap, 0, 0, _KUBRIC.min_gap, _KUBRIC.max_gap),
-        _KUBRIC.base_scale, _KUBRIC.normalization, _KUBRIC.scale_method, _KUBRIC.random_flip),
+    # official `finetune_dl3dv_kubric_dyn` + registry: 256x256, mean_cam, pointmap scale 1.0.
+    # Pass `kubric_view_selector(4, 4, 3, 23)` as `select_views`: the bounded sampler, here only
+    # a record of the official view counts and gaps, would mix cameras. Needs the records' `depths`.
+    "kubric": ExampleConfig((256, 256), BoundedSamplerConfig(4, 4, 3, 23, 0, 0, 3, 23), 1.0,
+                            "mean_cam", "pointmap"),
 }
 
 # Errors that mean "this scene cannot make an example" (raised, or skipped with `skip_bad`).
