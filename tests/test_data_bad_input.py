@@ -327,3 +327,33 @@ def test_kubric_pipeline_keeps_the_good_scene_and_counts_the_bad_ones(tmp_path):
   assert counts == {"KubricError": 2, "BadExampleError": 1}
   assert any("d_resolution" in m and "(8, 8)" in m and "(32, 32)" in m
              for m in pipeline.rejections.messages)
+
+
+# ---- 1 (and issue 15). an evaluation index is checked against the data before any work
+
+
+def test_evaluation_index_is_validated_against_the_data(tmp_path, caplog):
+  from tokengs_jax.data import (EvaluationIndexError, load_evaluation_index,
+                                validate_evaluation_index)
+
+  write_chunk(tmp_path / "000000.torch", [_scene("a"), _scene("b")])
+  _index(tmp_path, {"a": "000000.torch", "b": "000000.torch"})
+  (tmp_path / "eval.json").write_text(json.dumps({
+      "a": {"context": [0, 4], "target": [2]}, "gone": {"context": [0, 1], "target": [1]},
+      "b": {"context": [0, 3], "target": [1]}}))
+  index = load_evaluation_index(tmp_path / "eval.json")
+  source = ChunkedSceneSource(tmp_path, keys=list(index), skip_bad=True)
+  with caplog.at_level(logging.WARNING, logger="tokengs_jax.data"):
+    report = validate_evaluation_index(index, source.keys, where="eval.json")
+  assert report.matched == ("a", "b") and report.missing == ("gone",)  # good ones all kept
+  assert report.as_dict() == {"requested": 3, "evaluated": 2, "missing": ["gone"]}
+  assert any("eval.json" in r.getMessage() and "'gone'" in r.getMessage() for r in caplog.records)
+  assert source.rejections.counts == {"missing_index_entry": 1}  # the source reports it too
+  with pytest.raises(EvaluationIndexError, match=r"missing 1: 'gone'"):
+    validate_evaluation_index(index, source.keys, allow_missing=False)
+  with pytest.raises(EvaluationIndexError, match=r"none of its 3 scenes.*'gone'.*data keys: 'x'"):
+    validate_evaluation_index(index, ["x", "y"])
+  frames = {key: 5 for key in source.keys}
+  assert validate_evaluation_index(index, frames).matched == ("a", "b")
+  with pytest.raises(EvaluationIndexError, match=r"'a': .*frame 4 of a 4-frame scene"):
+    validate_evaluation_index(index, {"a": 4, "b": 5})

@@ -42,12 +42,15 @@ from tokengs_jax.data.pipeline import (
 from tokengs_jax.data.sampler import (
     SAMPLER_PRESETS,
     BoundedSamplerConfig,
+    EvaluationIndexError,
+    EvaluationIndexReport,
     MissingIndexEntryError,
     NotEnoughFramesError,
     context_gap_bounds,
     evaluation_views,
     load_evaluation_index,
     sample_bounded,
+    validate_evaluation_index,
 )
 from tokengs_jax.data.transforms import (
     flip_horizontal,
@@ -65,6 +68,8 @@ __all__ = [
     "DATASET_PRESETS",
     "DL3DVError",
     "DL3DVSceneSource",
+    "EvaluationIndexError",
+    "EvaluationIndexReport",
     "ExampleConfig",
     "InputPipeline",
     "LazyTensor",
@@ -97,5 +102,6 @@ __all__ = [
     "save_tensor_archive",
     "summarize_rejections",
     "translation_scale",
+    "validate_evaluation_index",
     "write_chunk",
 ]

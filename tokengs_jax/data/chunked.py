@@ -135,6 +135,11 @@ class ChunkedSceneSource:
   def __len__(self) -> int:
     return len(self.entries)
 
+  @property
+  def keys(self) -> list[str]:
+    """The scene keys, in item order."""
+    return [entry.key for entry in self.entries]
+
   def __getitem__(self, index: int) -> dict:
     entry = self.entries[index]
     return {**self._chunk(entry.chunk)[entry.position], "source": entry.chunk}

@@ -253,6 +253,11 @@ class DL3DVSceneSource:
   def __len__(self) -> int:
     return len(self.scenes)
 
+  @property
+  def keys(self) -> list[str]:
+    """The scene keys (zip stem / directory name), in item order."""
+    return [path.stem if path.suffix == ".zip" else path.name for path in self.scenes]
+
   def __getitem__(self, index: int) -> dict:
     path = self.scenes[index]
     key = (os.getpid(), path)

@@ -418,6 +418,11 @@ class KubricSceneSource:
   def __len__(self) -> int:
     return len(self.scenes)
 
+  @property
+  def keys(self) -> list[str]:
+    """The scene keys (directory names), in item order."""
+    return [scene.name for scene in self.scenes]
+
   def __getitem__(self, index: int) -> dict:
     scene_dir = self.scenes[index]
     key = (os.getpid(), scene_dir)

@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import os
+from collections.abc import Iterable, Mapping
 
 import numpy as np
 
@@ -25,6 +27,9 @@ __all__ = [
     "sample_bounded",
     "load_evaluation_index",
     "evaluation_views",
+    "EvaluationIndexError",
+    "EvaluationIndexReport",
+    "validate_evaluation_index",
 ]
 
 
@@ -222,3 +227,86 @@ def evaluation_views(index: dict, key: str, num_frames: int) -> tuple[np.ndarray
     raise NotEnoughFramesError(
         f"evaluation index asks for frame {bad} of a {num_frames}-frame scene")
   return context, target
+
+
+class EvaluationIndexError(ValueError):
+  """An evaluation index does not fit the data (nothing matches, or frames out of range)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class EvaluationIndexReport:
+  """How an evaluation index matches the scenes available.
+
+  Attributes:
+    matched: index keys with a scene in the data, in index order (what gets evaluated).
+    missing: index keys with no scene in the data, in index order.
+    unindexed: number of available scenes the index does not name.
+  """
+  matched: tuple[str, ...]
+  missing: tuple[str, ...]
+  unindexed: int
+
+  def as_dict(self) -> dict:
+    """For metrics.json: what the scores cover and what was left out."""
+    return {"requested": len(self.matched) + len(self.missing), "evaluated": len(self.matched),
+            "missing": list(self.missing)}
+
+  def summary(self) -> str:
+    text = f"evaluation index: {len(self.matched)} of {len(self.matched) + len(self.missing)} scenes found"
+    if self.missing:
+      text += f"; missing {len(self.missing)}: {_listing(self.missing)}"
+    return text
+
+
+def _listing(keys, limit: int = 20) -> str:
+  keys = list(keys)
+  shown = ", ".join(repr(k) for k in keys[:limit])
+  return shown + (f", ... ({len(keys) - limit} more)" if len(keys) > limit else "")
+
+
+def validate_evaluation_index(index: Mapping, available: Iterable[str] | Mapping[str, int], *,
+                              where: str = "evaluation index", allow_missing: bool = True
+                              ) -> EvaluationIndexReport:
+  """Checks an evaluation index against the data before any work is done.
+
+  Args:
+    index: key -> (context, target) frames (`load_evaluation_index`).
+    available: the keys of the scenes in the data (e.g. a source's `keys`), or key -> number of
+      frames, which also checks every matched entry's frames are inside its scene.
+    where: names the index (its file) in messages.
+    allow_missing: False raises when any index key is missing; True (default) reports them (a
+      warning on the `tokengs_jax.data` logger and in the returned report).
+
+  Returns:
+    The report (put `report.as_dict()` next to the metrics, so a subset is never silent).
+
+  Raises:
+    EvaluationIndexError: no index key matches the data (listing some of each, so a key-format
+      mismatch is visible), any key is missing with `allow_missing=False`, or frames are out of
+      range.
+  """
+  frames = available if isinstance(available, Mapping) else None
+  available = list(available)
+  present = set(available)
+  matched = tuple(key for key in index if key in present)
+  missing = tuple(key for key in index if key not in present)
+  report = EvaluationIndexReport(matched, missing, len(present - set(index)))
+  if not matched:
+    raise EvaluationIndexError(
+        f"{where}: none of its {len(index)} scenes is in the data ({len(present)} scenes). "
+        f"Index keys: {_listing(index, 5)}; data keys: {_listing(sorted(present), 5)}")
+  if missing and not allow_missing:
+    raise EvaluationIndexError(f"{where}: {report.summary()}")
+  if frames is not None:
+    bad = []
+    for key in matched:
+      try:
+        evaluation_views(index, key, int(frames[key]))
+      except NotEnoughFramesError as error:
+        bad.append(f"'{key}': {error}")
+    if bad:
+      raise EvaluationIndexError(f"{where}: {len(bad)} entries ask for frames their scene does not "
+                                 f"have: {'; '.join(bad[:10])}")
+  if missing:
+    logging.getLogger("tokengs_jax.data").warning("%s: %s", where, report.summary())
+  return report
