@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from tokengs_jax import camera
-from tokengs_jax.data import DATASET_PRESETS, InputPipeline, kubric, make_example
+from tokengs_jax.data import (DATASET_PRESETS, InputPipeline, NotEnoughFramesError, kubric,
+                              make_example)
 from tokengs_jax.data.transforms import normalize_times
 from tokengs_jax.data.synthetic import generate
 from tokengs_jax.data.synthetic.scenes import random_rotation
@@ -177,7 +178,7 @@ def test_sample_dynamic_indices_properties():
     assert fixed[-1] in fixed[:-1]
   _, cycled = kubric.sample_dynamic_indices(np.random.default_rng(0), 24, 2, 4)
   assert sorted(cycled.tolist()) == [0, 0, 1, 1]
-  with pytest.raises(ValueError, match="fewer than"):
+  with pytest.raises(NotEnoughFramesError, match="fewer than"):  # skip_bad drops such scenes
     kubric.sample_dynamic_indices(np.random.default_rng(0), 3, 9, 4)
 
 

@@ -38,6 +38,7 @@ import numpy as np
 from PIL import Image
 
 from tokengs_jax.data.chunks import ChunkError, check_regular_file
+from tokengs_jax.data.sampler import NotEnoughFramesError
 
 __all__ = [
   "KubricError",
@@ -316,7 +317,7 @@ def sample_dynamic_indices(
     cameras [num_context] (distinct cameras; repeated in a shuffled cycle when there are fewer).
   """
   if num_frames < num_context:
-    raise ValueError(f"{num_frames} frames are fewer than {num_context} context views")
+    raise NotEnoughFramesError(f"{num_frames} frames are fewer than {num_context} context views")
   gap = int(rng.integers(min_gap, max_gap + 1))
   gap = max(min(num_frames - 1, gap), num_context - 1)
   start = int(rng.integers(0, num_frames - gap))
