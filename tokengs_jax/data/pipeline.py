@@ -147,7 +147,7 @@ def _depth(record: dict, index: int) -> np.ndarray:
     try:
       with Image.open(io.BytesIO(bytes(depth))) as image:
         depth = np.asarray(image, np.float32)
-    except (OSError, SyntaxError, ValueError) as error:
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as error:
       raise BadExampleError(f"{_where(record)} depth {index}: corrupt depth image ({error})") from error
   depth = depth[..., 0] if depth.ndim == 3 else depth
   if depth.shape != (record["height"], record["width"]):
