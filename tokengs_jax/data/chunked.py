@@ -142,7 +142,12 @@ class ChunkedSceneSource:
 
   def __getitem__(self, index: int) -> dict:
     entry = self.entries[index]
-    return {**self._chunk(entry.chunk)[entry.position], "source": entry.chunk}
+    scenes = self._chunk(entry.chunk)
+    scene = scenes[entry.position] if entry.position < len(scenes) else None
+    if not isinstance(scene, dict) or scene["key"] != entry.key:  # the file changed since the scan
+      raise scene if isinstance(scene, ChunkError) else ChunkError(
+          f"{entry.chunk}: scene '{entry.key}' is no longer at position {entry.position}")
+    return {**scene, "source": entry.chunk}
 
   def _chunk(self, path: str) -> list:
     """A per-process LRU of scanned chunks (cameras + lazy frame references, no pixels)."""
