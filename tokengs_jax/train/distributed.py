@@ -3,9 +3,11 @@
 Launch on N hosts (each with its local accelerators): run the same command on every host with
 
     TOKENGS_COORDINATOR=host0:1234 TOKENGS_NUM_PROCESSES=N TOKENGS_PROCESS_ID=i \
-        python experiments/...
+        python -m experiments.re10k ...
 
-(or nothing at all on Cloud TPU / SLURM, where `jax.distributed.initialize()` discovers them).
+or, on one machine, `python -m experiments.launch --processes N -- python -m experiments.re10k ...`
+(sets those variables); on SLURM, Cloud TPU, Open MPI and Kubernetes set TOKENGS_DISTRIBUTED=1
+and `jax.distributed.initialize()` reads the scheduler's variables (docs/multihost.md).
 Every process then builds the same mesh over all global devices, reads its own shard of the data
 (`process_index` / `process_count` pick the shard), and turns its local batch into one global
 array with `shard_batch`. Each process's local batch is `global_batch / process_count` examples.
@@ -25,16 +27,25 @@ def initialize() -> None:
   """Calls `jax.distributed.initialize` when a multi-process run is configured, else nothing.
 
   Reads TOKENGS_COORDINATOR / TOKENGS_NUM_PROCESSES / TOKENGS_PROCESS_ID when set; on managed
-  clusters (TPU pods, SLURM) set TOKENGS_DISTRIBUTED=1 to let JAX auto-detect. Must run before any
-  other JAX call.
+  clusters (TPU pods, SLURM, Open MPI, Kubernetes JobSet) TOKENGS_DISTRIBUTED=1 lets JAX
+  auto-detect them. TOKENGS_HEARTBEAT_TIMEOUT (seconds, jax's default 100) bounds how long the
+  survivors wait before aborting when a process dies without a launcher to stop them. CPU
+  processes talk through gloo collectives (jax's default). Must run before any other JAX call.
   """
   coordinator = os.environ.get("TOKENGS_COORDINATOR")
+  if coordinator is None and os.environ.get("TOKENGS_DISTRIBUTED") != "1":
+    return
+  timeouts = {}
+  if "TOKENGS_HEARTBEAT_TIMEOUT" in os.environ:
+    timeouts["heartbeat_timeout_seconds"] = int(os.environ["TOKENGS_HEARTBEAT_TIMEOUT"])
   if coordinator is not None:
     jax.distributed.initialize(coordinator_address=coordinator,
                                num_processes=int(os.environ["TOKENGS_NUM_PROCESSES"]),
-                               process_id=int(os.environ["TOKENGS_PROCESS_ID"]))
-  elif os.environ.get("TOKENGS_DISTRIBUTED") == "1":
-    jax.distributed.initialize()
+                               process_id=int(os.environ["TOKENGS_PROCESS_ID"]), **timeouts)
+  else:
+    jax.distributed.initialize(**timeouts)
+  print(f"[distributed] process {jax.process_index()} of {jax.process_count()}: "
+        f"{jax.local_device_count()} local of {jax.device_count()} devices", flush=True)
 
 
 def make_mesh(data: int | None = None, model: int = 1, devices=None) -> Mesh:
