@@ -399,3 +399,13 @@ def test_scene_metadata_is_parsed_once_per_process(kubric_root, monkeypatch):
   assert len(parsed) == CAMERAS
   frame = record["images"][CAMERAS * FRAMES - 1]
   assert frame[:8] == b"\x89PNG\r\n\x1a\n" and record["depths"][0][:2] in (b"II", b"MM")
+
+
+@pytest.mark.slow
+def test_worker_processes_give_the_same_kubric_batches(kubric_root):
+  root, _ = kubric_root
+  inline = [b for _, b in zip(range(3), _pipeline(root))]
+  workers = [b for _, b in zip(range(3), _pipeline(root, num_workers=2))]
+  for a, b in zip(inline, workers):
+    for key in a:
+      np.testing.assert_array_equal(a[key], b[key], err_msg=key)
