@@ -268,6 +268,16 @@ class Checkpointer:
   def close(self) -> None:
     self._manager.close()
 
+  def __enter__(self) -> Checkpointer:
+    return self
+
+  def __exit__(self, *exc_info) -> None:
+    """Waits for pending saves (a save in flight completes even when training failed), closes."""
+    try:
+      self.wait()
+    finally:
+      self.close()
+
 
 def iterator_state(iterator) -> Any:
   """JSON-able state of a data iterator (grain returns a dict or JSON bytes), or None."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 from collections.abc import Callable, Iterator
@@ -87,50 +88,52 @@ def train(loss_fn: LossFn, params, batches: Iterator[dict], optim_config: OptimC
                        out_shardings=replicated)
   state = init_state(replicate(jax.device_get(params), mesh))
 
-  checkpointer, history = None, []
+  checkpointer = None
   if loop_config.checkpoint_dir is not None:
     checkpointer = Checkpointer(loop_config.checkpoint_dir, loop_config.max_to_keep,
                                 loop_config.async_checkpoint)
-    if checkpointer.latest_step() is not None:
+  # Leaving the block waits for a pending save and closes the manager, also on an error.
+  with checkpointer or contextlib.nullcontext():
+    history = []
+    if checkpointer is not None and checkpointer.latest_step() is not None:
       state, host_state = checkpointer.restore(state)
       set_iterator_state(batches, host_state["iterator"])
       history = host_state["history"]
       print(f"[train] resuming from step {int(jax.device_get(state.step))} "
             f"({checkpointer.directory})", flush=True)
-  train_step = make_train_step(loss_fn, optimizer, mesh,
-                               precision=Precision() if precision is None else precision)
-  # A separate buffer: the state (and its rng) is donated to each step.
-  key = jnp.copy(state.rng)
+    train_step = make_train_step(loss_fn, optimizer, mesh,
+                                 precision=Precision() if precision is None else precision)
+    # A separate buffer: the state (and its rng) is donated to each step.
+    key = jnp.copy(state.rng)
 
-  pending = []
-  step = int(jax.device_get(state.step))
-  last_saved = checkpointer.latest_step() if checkpointer else None
-  tick = time.perf_counter()
+    pending = []
+    step = int(jax.device_get(state.step))
+    last_saved = checkpointer.latest_step() if checkpointer else None
+    tick = time.perf_counter()
 
-  def drain(step_now: int) -> None:
-    """Fetches pending metrics, stops on a non-finite one, logs their mean."""
-    nonlocal tick
-    if not pending:
-      return
-    fetched = jax.device_get(pending)
-    pending.clear()
-    first = step_now - len(fetched) + 1
-    for offset, metrics in enumerate(fetched):
-      if not metrics["finite"]:
-        raise NonFiniteError(
-            f"non-finite loss or gradient at step {first + offset - 1} (loss "
-            f"{float(metrics['loss'])}, grad_norm {float(metrics['grad_norm'])}); the update was "
-            f"skipped and training stopped. Last good checkpoint: step {last_saved} in "
-            f"{checkpointer.directory if checkpointer else '(checkpointing off)'}.")
-    logged = {k: float(np.mean([m[k] for m in fetched])) for k in fetched[0] if k != "finite"}
-    now = time.perf_counter()
-    logged["steps_per_s"] = len(fetched) / (now - tick)
-    tick = now
-    logged["step"] = step_now
-    history.append(logged)
-    log_fn(step_now, logged)
+    def drain(step_now: int) -> None:
+      """Fetches pending metrics, stops on a non-finite one, logs their mean."""
+      nonlocal tick
+      if not pending:
+        return
+      fetched = jax.device_get(pending)
+      pending.clear()
+      first = step_now - len(fetched) + 1
+      for offset, metrics in enumerate(fetched):
+        if not metrics["finite"]:
+          raise NonFiniteError(
+              f"non-finite loss or gradient at step {first + offset - 1} (loss "
+              f"{float(metrics['loss'])}, grad_norm {float(metrics['grad_norm'])}); the update was "
+              f"skipped and training stopped. Last good checkpoint: step {last_saved} in "
+              f"{checkpointer.directory if checkpointer else '(checkpointing off)'}.")
+      logged = {k: float(np.mean([m[k] for m in fetched])) for k in fetched[0] if k != "finite"}
+      now = time.perf_counter()
+      logged["steps_per_s"] = len(fetched) / (now - tick)
+      tick = now
+      logged["step"] = step_now
+      history.append(logged)
+      log_fn(step_now, logged)
 
-  try:
     while step < loop_config.total_steps:
       batch = shard_batch(next(batches), mesh)
       state, metrics = train_step(state, batch, key)
@@ -149,8 +152,4 @@ def train(loss_fn: LossFn, params, batches: Iterator[dict], optim_config: OptimC
       if save_now:
         checkpointer.save(state, {"iterator": iterator_state(batches), "history": history})
         last_saved = step
-  finally:
-    if checkpointer is not None:
-      checkpointer.wait()  # a pending save completes even when training stops on an error
-      checkpointer.close()
-  return state, history
+    return state, history
