@@ -1,7 +1,7 @@
 """DL3DV: 2/4/6-view train / finetune / eval; with no arguments, a synthetic 4-view run.
 
-    python -m experiments.dl3dv                                   # = run --preset synthetic-4view
-    python -m experiments.dl3dv eval --preset paper-6view --data-dir /data/dl3dv \\
+    python -m experiments.dl3dv                                   # = run synthetic-4view
+    python -m experiments.dl3dv eval paper-6view --data-dir /data/dl3dv \\
         --eval-index assets/dl3dv_start_0_distance_50_ctx_6v_tgt_8v.json \\
         --official-checkpoint tokengs_dl3dv_6view.safetensors
 
@@ -17,17 +17,20 @@ Presets:
 
 from __future__ import annotations
 
-from experiments.common import EvalSettings, Experiment, TrainSettings, main
+from experiments.cli import main
+from experiments.config import SYNTHETIC_MODEL, EvalSettings, Experiment, TrainSettings
+from tokengs_jax import model
 
 PRESETS = {}
 for _views in (2, 4, 6):
   PRESETS[f"synthetic-{_views}view"] = Experiment(
-      dataset="re10k", output_dir=f"outputs/dl3dv/synthetic_{_views}view", num_context_views=_views,
+      dataset="re10k", output_dir=f"outputs/dl3dv/synthetic_{_views}view",
+      model=SYNTHETIC_MODEL.replace(num_input_views=_views),
       train=TrainSettings(min_context_gap=10, max_context_gap=16),
       eval=EvalSettings(context_gap=16))
   PRESETS[f"paper-{_views}view"] = Experiment(
       dataset="dl3dv", data_dir="datasets/dl3dv", output_dir=f"outputs/dl3dv/paper_{_views}view",
-      model=f"dl3dv_{_views}view", model_overrides=(), image_size=(256, 448), num_context_views=_views,
+      model=model.preset(f"dl3dv_{_views}view"),
       train=TrainSettings(steps=10_000, batch_size=64, learning_rate=4e-5, warmup_steps=400,
                           log_every=50, checkpoint_every=2_000, num_workers=8),
       eval=EvalSettings(num_scenes=0, num_target_views=8, grid_scenes=8, video_frames=96))

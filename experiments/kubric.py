@@ -1,7 +1,7 @@
 """Kubric (dynamic scenes): train / finetune / eval TokenGS with dynamic Gaussian tokens.
 
-    python -m experiments.kubric                         # = run --preset synthetic-tiny
-    python -m experiments.kubric finetune --preset paper --data-dir /data/kubric4d \\
+    python -m experiments.kubric                         # = run synthetic-tiny
+    python -m experiments.kubric finetune paper --data-dir /data/kubric4d \\
         --checkpoint outputs/re10k/paper_4view/params.msgpack
 
 Besides the common results folder (metrics of mean colour / untrained / trained / trained +
@@ -45,8 +45,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments import common, plot
-from tokengs_jax import export, losses, model
+from experiments import plot
+from experiments.cli import main
+from experiments.config import EvalSettings, Experiment, SyntheticSettings, TrainSettings
+from experiments.tasks import Task
+from tokengs_jax import evaluation, export, losses, model
 from tokengs_jax.camera import invert_rigid, project_points
 from tokengs_jax.data import DATASET_PRESETS, ExampleConfig, InputPipeline, make_example
 from tokengs_jax.data.kubric import KubricSceneSource, kubric_view_selector, list_kubric_scenes
@@ -57,8 +60,8 @@ TRAIN_SUBSET, TEST_SUBSET = "v0", "test"
 
 
 @dataclasses.dataclass(frozen=True)
-class KubricExperiment(common.Experiment):
-  """`common.Experiment` plus the Kubric view sampling and the synthetic rig.
+class KubricExperiment(Experiment):
+  """`Experiment` plus the Kubric view sampling and the synthetic rig.
 
   Attributes:
     num_cameras: cameras of the synthetic rig.
@@ -99,7 +102,7 @@ def _subset_of(gaussians: Gaussians, part: slice) -> Gaussians:
   return jax.tree.map(lambda x: x[:, part], gaussians)
 
 
-class KubricTask(common.Task):
+class KubricTask(Task):
   """Kubric data (generated when synthetic), the dynamic loss and the dynamic pictures."""
   name = "kubric"
 
@@ -185,9 +188,10 @@ class KubricTask(common.Task):
     height, width = batch["target_images"].shape[-3:-1]
     camera = (batch["target_c2w"][:, :1], batch["target_intrinsics"][:, :1])
     times = np.linspace(0.0, 1.0, experiment.flow_times, dtype=np.float32)
-    per_time = [jax.device_get(common.reconstruct(params, batch, config, jnp.asarray([t])))
+    per_time = [jax.device_get(evaluation.reconstruct(params, batch, config, jnp.asarray([t])))
                 for t in times]
-    renders = [common.render_views(g, *camera, height, width)[0][0, 0] for g in per_time]
+    renders = [evaluation.render_targets(g, *camera, height=height, width=width).rgb[0, 0]
+               for g in per_time]
     inputs_row = list(batch["context_images"][0])
     grid = export.image_grid([inputs_row, renders])
     export.save_png(out / "in_between_times.png", grid)
@@ -195,10 +199,11 @@ class KubricTask(common.Task):
       writer.add_image("dynamic/in_between_times", grid, step, dataformats="HWC")
 
     split = config.num_static_gaussians
-    at_target = jax.device_get(common.reconstruct(params, batch, config))
+    at_target = jax.device_get(evaluation.reconstruct(params, batch, config,
+                                                      batch["target_times"][:, 0]))
     parts = [at_target, _subset_of(at_target, slice(0, split)), _subset_of(at_target, slice(split, None))]
-    row = [batch["target_images"][0, 0]] + [common.render_views(g, *camera, height, width)[0][0, 0]
-                                            for g in parts]
+    row = [batch["target_images"][0, 0]] + [
+        evaluation.render_targets(g, *camera, height=height, width=width).rgb[0, 0] for g in parts]
     export.save_png(out / "static_dynamic.png", export.image_grid([row]))
 
     # Scene flow: centres of the most opaque dynamic Gaussians over time, in the target camera.
@@ -226,23 +231,23 @@ class KubricTask(common.Task):
 PRESETS = {
     "synthetic-tiny": KubricExperiment(
         output_dir="outputs/kubric/tiny_synthetic", synthetic_dir="outputs/synthetic_kubric",
-        image_size=(32, 32),
-        model_overrides=("dec_patch_size=4", "num_dynamic_gs_tokens=8", "time_embedding=True",
-                         "gs_token_std=1.0", "clip_head_readout_std=0.003"),
-        synthetic=common.SyntheticSettings(num_train=24, num_test=4, frames=12, workers=2),
+        model=model.preset("tiny", image_size=(32, 32), num_input_views=2, dec_patch_size=4,
+                           num_dynamic_gs_tokens=8, time_embedding=True, gs_token_std=1.0,
+                           clip_head_readout_std=0.003),
+        synthetic=SyntheticSettings(num_train=24, num_test=4, frames=12, workers=2),
         min_gap=3, max_gap=8,
-        train=common.TrainSettings(steps=1200, batch_size=4, num_target_views=2, learning_rate=2e-3,
-                                   warmup_steps=100),
-        eval=common.EvalSettings(num_scenes=4, num_target_views=2, tuning_learning_rate=1e-2,
-                                 grid_scenes=2, video_frames=24)),
+        train=TrainSettings(steps=1200, batch_size=4, num_target_views=2, learning_rate=2e-3,
+                            warmup_steps=100),
+        eval=EvalSettings(num_scenes=4, num_target_views=2, tuning_learning_rate=1e-2,
+                          grid_scenes=2, video_frames=24)),
     "paper": KubricExperiment(
-        data_dir="datasets/kubric4d", output_dir="outputs/kubric/paper", model="kubric_dyn", model_overrides=(),
-        image_size=(256, 256), num_context_views=4,
-        train=common.TrainSettings(steps=50_000, batch_size=64, num_target_views=4,
-                                   learning_rate=4e-5, warmup_steps=400, log_every=50,
-                                   checkpoint_every=5_000),
-        eval=common.EvalSettings(num_scenes=16, num_target_views=4, grid_scenes=8, video_frames=96)),
+        data_dir="datasets/kubric4d", output_dir="outputs/kubric/paper",
+        model=model.preset("kubric_dyn"),
+        train=TrainSettings(steps=50_000, batch_size=64, num_target_views=4,
+                            learning_rate=4e-5, warmup_steps=400, log_every=50,
+                            checkpoint_every=5_000),
+        eval=EvalSettings(num_scenes=16, num_target_views=4, grid_scenes=8, video_frames=96)),
 }
 
 if __name__ == "__main__":
-  common.main(PRESETS, "synthetic-tiny", "python -m experiments.kubric", task=KubricTask())
+  main(PRESETS, "synthetic-tiny", "python -m experiments.kubric", task=KubricTask())

@@ -1,11 +1,11 @@
 """RE10K: train / finetune / eval TokenGS; with no arguments, the offline synthetic default.
 
-    python -m experiments.re10k                          # = run --preset synthetic-tiny
+    python -m experiments.re10k                          # = run synthetic-tiny
     python -m experiments.re10k run --train.steps 200    # any field can be overridden
-    python -m experiments.re10k train --preset paper --data-dir /data/re10k
-    python -m experiments.re10k finetune --preset paper-4096 --data-dir /data/re10k \\
+    python -m experiments.re10k train paper --data-dir /data/re10k
+    python -m experiments.re10k finetune paper-4096 --data-dir /data/re10k \\
         --checkpoint outputs/re10k/paper/params.msgpack
-    python -m experiments.re10k eval --preset paper --data-dir /data/re10k \\
+    python -m experiments.re10k eval paper --data-dir /data/re10k \\
         --eval-index assets/evaluation_index_re10k.json --official-checkpoint tokengs.safetensors
 
 Presets:
@@ -14,9 +14,9 @@ Presets:
   `dec_patch_size=2`: 512 Gaussians, 4x cheaper renders than the preset's 2048 on a 2-core CPU)
   and a 150x larger head initialisation (`clip_head_readout_std=0.3`: the official 0.002 starts
   every Gaussian in one clump, which a few CPU minutes cannot spread over a room) for 1500 steps
-  (batch 4, 2 context + 2 target views, lr 3e-3 cosine, 100 warm-up) and scores mean colour /
-  untrained / trained / trained + 50-step token tuning (lr 1e-4, the paper's) on the 8 test rooms
-  (3 targets each).
+  (batch 4, 2 context + 2 target views, lr 3e-3 cosine, 100 warm-up) and scores the baselines
+  (mean colour, input-view average, nearest input view) / untrained / trained / trained + 50-step
+  token tuning (lr 1e-4, the paper's) on the 8 test rooms (3 targets each).
 - `smoke`: the same pipeline at 32x32 with a one-block model, for tests (seconds, not minutes).
 - `paper`: the paper's RE10K base training (256x256, 6/24 layers, 1024 tokens, global batch 64,
   150k steps, cosine lr 4e-4 with 2k warm-up, DepthSplat sampler, translation scale 0.25).
@@ -27,7 +27,9 @@ from __future__ import annotations
 
 import dataclasses
 
-from experiments.common import EvalSettings, Experiment, SyntheticSettings, TrainSettings, main
+from experiments.cli import main
+from experiments.config import EvalSettings, Experiment, SyntheticSettings, TrainSettings
+from tokengs_jax import model
 
 _PAPER_TRAIN = TrainSettings(steps=150_000, batch_size=64, num_target_views=4, learning_rate=4e-4,
                              warmup_steps=2_000, log_every=50, checkpoint_every=5_000,
@@ -39,20 +41,20 @@ PRESETS = {
     "synthetic-tiny": Experiment(),
     "smoke": Experiment(
         output_dir="outputs/re10k/smoke", synthetic_dir="outputs/synthetic_re10k_smoke",
-        image_size=(32, 32),
-        model_overrides=("enc_depth=1", "dec_depth=1", "enc_embed_dim=32", "enc_num_heads=2",
-                         "num_gs_tokens=4", "dec_patch_size=4"),
+        model=model.preset("tiny", image_size=(32, 32), num_input_views=2, enc_depth=1,
+                           dec_depth=1, enc_embed_dim=32, enc_num_heads=2, num_gs_tokens=4,
+                           dec_patch_size=4),
         synthetic=SyntheticSettings(num_train=4, num_test=2, frames=10, workers=1),
         train=TrainSettings(steps=3, batch_size=2, num_target_views=2, min_context_gap=3,
                             max_context_gap=6, warmup_steps=1, log_every=1),
         eval=EvalSettings(num_scenes=2, num_target_views=2, context_gap=6, tuning_steps=2,
                           tuning_learning_rate=1e-3, grid_scenes=1, video_frames=4)),
     "paper": Experiment(
-        data_dir="datasets/re10k", output_dir="outputs/re10k/paper", model="re10k", model_overrides=(),
-        image_size=(256, 256), train=_PAPER_TRAIN, eval=_PAPER_EVAL),
+        data_dir="datasets/re10k", output_dir="outputs/re10k/paper", model=model.preset("re10k"),
+        train=_PAPER_TRAIN, eval=_PAPER_EVAL),
     "paper-4096": Experiment(
-        data_dir="datasets/re10k", output_dir="outputs/re10k/paper_4096", model="re10k_4096", model_overrides=(),
-        image_size=(256, 256), eval=_PAPER_EVAL,
+        data_dir="datasets/re10k", output_dir="outputs/re10k/paper_4096",
+        model=model.preset("re10k_4096"), eval=_PAPER_EVAL,
         train=dataclasses.replace(_PAPER_TRAIN, steps=10_000, learning_rate=4e-5, warmup_steps=400)),
 }
 

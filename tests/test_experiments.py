@@ -1,4 +1,4 @@
-"""experiments/: command-line parsing, baselines, results writing, plots, and the entry point end to end."""
+"""experiments/: command line, data, results writing, pictures, plots, and the entry point end to end."""
 
 import dataclasses
 import json
@@ -7,62 +7,124 @@ import pathlib
 import subprocess
 import sys
 
+import jax
 import numpy as np
 import pytest
 from PIL import Image
 
-from experiments import common, plot, re10k
-from tokengs_jax import export
+from experiments import cli, data, pictures, plot, re10k, results, training
+from tokengs_jax import evaluation, export
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
 
 
 def test_parse_defaults_to_run_with_default_preset():
-  command, experiment = common.parse([], re10k.PRESETS, "synthetic-tiny", "prog")
+  command, experiment = cli.parse([], re10k.PRESETS, "synthetic-tiny", "prog")
   assert command == "run"
   assert experiment == re10k.PRESETS["synthetic-tiny"]
+  command, experiment = cli.parse(["--train.steps", "9"], re10k.PRESETS, "synthetic-tiny", "prog")
+  assert command == "run" and experiment.train.steps == 9
+  assert experiment.model == re10k.PRESETS["synthetic-tiny"].model
 
 
-def test_parse_command_preset_and_overrides():
-  command, experiment = common.parse(
-      ["eval", "--preset", "paper", "--data-dir", "/x", "--train.steps", "7",
-       "--official-checkpoint", "w.safetensors", "--model-overrides", "enc_depth=1"],
+def test_parse_command_preset_and_typed_overrides():
+  command, experiment = cli.parse(
+      ["eval", "paper", "--data-dir", "/x", "--train.steps", "7",
+       "--official-checkpoint", "w.safetensors", "--model.enc-depth", "1"],
       re10k.PRESETS, "synthetic-tiny", "prog")
   assert command == "eval"
   assert experiment.data_dir == "/x" and experiment.train.steps == 7
   assert experiment.official_checkpoint == "w.safetensors"
-  assert experiment.model == "re10k"  # from the preset, not the default
-  assert common.model_config(experiment).enc_depth == 1
+  paper = re10k.PRESETS["paper"]
+  assert experiment.model == paper.model.replace(enc_depth=1)  # the preset's model, one field set
+  assert experiment.image_size == (256, 256) and experiment.num_context_views == 2
 
 
 def test_parse_rejects_unknown_preset():
   with pytest.raises(SystemExit):
-    common.parse(["--preset=nope"], re10k.PRESETS, "synthetic-tiny", "prog")
+    cli.parse(["run", "nope"], re10k.PRESETS, "synthetic-tiny", "prog")
 
 
-def test_mean_colour_baseline_is_the_context_mean():
-  rng = np.random.default_rng(0)
-  batch = {"context_images": rng.uniform(size=(1, 2, 4, 5, 3)),
-           "target_images": np.zeros((1, 3, 4, 5, 3))}
-  images = common.mean_colour_images(batch)
-  assert images.shape == (1, 3, 4, 5, 3)
-  np.testing.assert_allclose(images[0, 2, 1, 1], batch["context_images"][0].mean(axis=(0, 1, 2)))
+def _evaluation(per_scene: dict[str, list[dict]]) -> evaluation.Evaluation:
+  return evaluation.Evaluation({name: evaluation.MethodScores(per_scene=rows)
+                                for name, rows in per_scene.items()}, kept=[])
 
 
-def test_write_metrics_means_over_scenes_and_markdown(tmp_path):
-  result = common.MethodResult("trained", per_scene=[
-      {"key": "a", "psnr": 10.0, "ssim": 0.5}, {"key": "b", "psnr": 20.0, "ssim": 0.7}])
-  base = common.MethodResult("mean_colour", per_scene=[
-      {"key": "a", "psnr": 8.0, "ssim": 0.1}, {"key": "b", "psnr": 9.0, "ssim": 0.2}])
-  results = {"mean_colour": base, "trained": result}
-  info = {"title": "t", "checks": common.score_checks({k: r.summary() for k, r in results.items()})}
-  payload = common.write_metrics(tmp_path, results, info)
+def test_write_metrics_means_over_scenes_markdown_and_checks(tmp_path):
+  primary = _evaluation({
+      "mean_colour": [{"key": "a", "psnr": 8.0, "ssim": 0.1}, {"key": "b", "psnr": 9.0, "ssim": 0.2}],
+      "nearest_view": [{"key": "a", "psnr": 16.0, "ssim": 0.5}, {"key": "b", "psnr": 17.0,
+                                                                 "ssim": 0.5}],
+      "trained": [{"key": "a", "psnr": 10.0, "ssim": 0.5}, {"key": "b", "psnr": 20.0, "ssim": 0.7}]})
+  other = _evaluation({"nearest_view": [{"key": "c", "psnr": 12.0, "ssim": 0.3}],
+                       "trained": [{"key": "c", "psnr": 14.0, "ssim": 0.4}]})
+  payload = results.write_metrics(tmp_path, {"test": primary, "ood": other}, {"title": "t"})
+  assert payload["test_sets"] == ["test", "ood"]
   assert payload["metrics"]["trained"]["mean"]["psnr"] == pytest.approx(15.0)
-  assert json.loads((tmp_path / "metrics.json").read_text())["metrics"]["mean_colour"]["mean"][
-      "ssim"] == pytest.approx(0.15)
+  written = json.loads((tmp_path / "metrics.json").read_text())
+  assert written["metrics"]["mean_colour"]["mean"]["ssim"] == pytest.approx(0.15)
+  assert written["other_test_sets"]["ood"]["metrics"]["trained"]["mean"]["psnr"] == 14.0
+  assert written["checks"]["trained beats nearest_view"].startswith("False (PSNR margin -1.500")
+  assert written["other_test_sets"]["ood"]["checks"]["trained beats nearest_view"].startswith("True")
   text = (tmp_path / "metrics.md").read_text()
   assert "| trained | 15.0000 | 0.6000 |" in text
   assert "trained beats mean_colour: True (PSNR margin +6.500 dB)" in text
+  assert "## Test set `ood`" in text and "| trained | 14.0000 | 0.4000 |" in text
+
+
+def test_write_metrics_survives_a_method_that_scored_no_scene(tmp_path):
+  """An evaluation that matched nothing for a method says so instead of crashing."""
+  scored = _evaluation({"trained": [], "nearest_view": [{"key": "a", "psnr": 9.0}]})
+  payload = results.write_metrics(tmp_path, {"test": scored}, {"title": "t"})
+  assert payload["metrics"]["trained"]["mean"] == {}
+  assert payload["checks"] == {}
+  assert "Scored no scene: trained." in (tmp_path / "metrics.md").read_text()
+  assert "Scored no scene" in results.summary_text({"test": scored})
+
+
+def test_only_process_zero_writes_results(tmp_path, monkeypatch):
+  monkeypatch.setattr(jax, "process_index", lambda: 1)
+  scored = _evaluation({"trained": [{"key": "a", "psnr": 9.0}]})
+  payload = results.write_metrics(tmp_path / "out", {"test": scored}, {"title": "t"})
+  assert payload["metrics"]["trained"]["mean"]["psnr"] == 9.0  # computed everywhere
+  assert results.tensorboard_writer(tmp_path / "out") is None
+  entry = {"key": "s", "batch": {"context_images": np.zeros((1, 2, 16, 16, 3)),
+                                 "target_images": np.zeros((1, 1, 16, 16, 3))},
+           "trained": {"rgb": np.zeros((1, 16, 16, 3)), "depth": None, "alpha": None}}
+  assert results.write_grids(tmp_path / "out" / "grids", [entry], ["trained"]) == []
+  assert not (tmp_path / "out").exists()
+
+
+def test_scene_grid_is_readable_upscaled_labelled_with_a_depth_colour_bar():
+  rng = np.random.default_rng(0)
+  depth = rng.uniform(1.0, 3.0, size=(2, 16, 16, 1)).astype(np.float32)
+  entry = {"key": "s", "batch": {"context_images": rng.uniform(size=(1, 2, 16, 16, 3)),
+                                 "target_images": rng.uniform(size=(1, 2, 16, 16, 3))},
+           "nearest_view": {"rgb": rng.uniform(size=(2, 16, 16, 3)), "depth": None, "alpha": None},
+           "trained": {"rgb": rng.uniform(size=(2, 16, 16, 3)), "depth": depth,
+                       "alpha": np.ones_like(depth)}}
+  grid = results.scene_grid(entry, ["nearest_view", "trained"])
+  # five rows (inputs, targets, two methods, depth) of 16-px views upscaled 8x to 128 px
+  assert grid.dtype == np.uint8 and grid.shape[0] >= 5 * 128
+  no_labels = pictures.labelled_grid([("", [np.zeros((16, 16, 3))])])
+  labels = pictures.labelled_grid([("nearest_view", [np.zeros((16, 16, 3))])])
+  assert labels.shape[1] > no_labels.shape[1]  # the label column holds the text
+  assert (labels[:, :40] < 128).any()  # dark text left of the cells
+  # the depth row carries a colour bar: the ramp from near (top, t = 1) to far (bottom, t = 0)
+  rows = [("depth", [export.colorize_depth(depth[0])])]
+  assert (pictures.labelled_grid(rows, depth_range=(1.0, 3.0)).shape[1]
+          > pictures.labelled_grid(rows).shape[1])
+  bar = np.asarray(pictures._colour_bar(128, (1.0, 3.0), pictures._font()))
+  np.testing.assert_array_equal(bar[0, 0], export.to_uint8(export.depth_ramp(1.0)))
+  np.testing.assert_array_equal(bar[-1, 0], export.to_uint8(export.depth_ramp(0.0)))
+
+
+def test_upscale_is_nearest_neighbour_to_at_least_the_minimum():
+  image = np.arange(2 * 3 * 3).reshape(2, 3, 3).astype(np.uint8)
+  big = pictures.upscale(image, 128)
+  assert big.shape == (128, 192, 3)
+  np.testing.assert_array_equal(big[::64, ::64], image)
+  assert pictures.upscale(np.zeros((200, 300, 3))).shape == (200, 300, 3)
 
 
 def test_line_plot_draws_every_series(tmp_path):
@@ -82,15 +144,16 @@ def test_trajectory_plot_on_background(tmp_path):
 
 
 def test_entry_point_end_to_end(tmp_path):
-  """`python -m experiments.re10k --preset smoke`: generate, train, evaluate, write every file."""
+  """`python -m experiments.re10k run smoke`: generate, train, evaluate, write every file."""
   out = tmp_path / "results"
   completed = subprocess.run(
-      [sys.executable, "-m", "experiments.re10k", "--preset", "smoke", "--output-dir", str(out),
+      [sys.executable, "-m", "experiments.re10k", "run", "smoke", "--output-dir", str(out),
        "--synthetic-dir", str(tmp_path / "data")],
       cwd=REPO, capture_output=True, text=True, timeout=600, check=False)
   assert completed.returncode == 0, completed.stderr[-4000:]
   payload = json.loads((out / "metrics.json").read_text())
-  assert set(payload["metrics"]) == {"mean_colour", "untrained", "trained", "trained+token_tuning"}
+  assert set(payload["metrics"]) == {"mean_colour", "input_average", "nearest_view", "untrained",
+                                     "trained", "trained+token_tuning"}
   for method in payload["metrics"].values():
     assert len(method["per_scene"]) == 2
     for value in method["mean"].values():
@@ -99,6 +162,7 @@ def test_entry_point_end_to_end(tmp_path):
                "train_history.json"):
     assert (out / name).stat().st_size > 0, name
   assert list((out / "grids").glob("*.png"))
+  assert "trained beats nearest_view" in payload["checks"]
   assert list((out / "tensorboard").glob("events.out.tfevents.*"))
   ply = export.read_ply(out / "gaussians.ply")
   assert ply["means"].shape == (64, 3) and np.isfinite(ply["means"]).all()
@@ -115,13 +179,14 @@ def test_kubric_entry_point_end_to_end(tmp_path):
        "--num-cameras", "2", "--max-gap", "4", "--train.steps", "2", "--train.batch-size", "2",
        "--train.log-every", "1", "--eval.num-scenes", "1", "--eval.video-frames", "2",
        "--eval.tuning-steps", "2",
-       "--flow-times", "3", "--model-overrides", "dec_patch_size=4", "num_dynamic_gs_tokens=2",
-       "time_embedding=True", "enc_depth=1", "dec_depth=1", "enc_embed_dim=32", "enc_num_heads=2",
-       "num_gs_tokens=4"],
+       "--flow-times", "3", "--model.dec-patch-size", "4", "--model.num-dynamic-gs-tokens", "2",
+       "--model.enc-depth", "1", "--model.dec-depth", "1", "--model.enc-embed-dim", "32",
+       "--model.enc-num-heads", "2", "--model.num-gs-tokens", "4"],
       cwd=REPO, capture_output=True, text=True, timeout=600, check=False)
   assert completed.returncode == 0, completed.stderr[-4000:]
   payload = json.loads((out / "metrics.json").read_text())
-  assert set(payload["metrics"]) == {"mean_colour", "untrained", "trained", "trained+token_tuning"}
+  assert set(payload["metrics"]) == {"mean_colour", "input_average", "nearest_view", "untrained",
+                                     "trained", "trained+token_tuning"}
   for method in ("trained", "trained+token_tuning"):
     assert math.isfinite(payload["metrics"][method]["mean"]["psnr"])
   history = json.loads((out / "train_history.json").read_text())
@@ -164,26 +229,71 @@ def test_evaluation_examples_read_a_list_format_index(tmp_path):
   experiment = dataclasses.replace(
       smoke, synthetic_dir=str(tmp_path / "data"),
       synthetic=dataclasses.replace(smoke.synthetic, num_train=1, num_test=1, workers=1))
-  common.ensure_synthetic(experiment)
-  key = common.evaluation_examples(experiment)[0][0]
+  data.ensure_synthetic(experiment)
+  key = data.evaluation_scenes(experiment)[0][0]
   index = tmp_path / "index.json"
   index.write_text(json.dumps([{"scene_name": key, "fold_8_kmeans_2_input": [1, 7]}]))
-  (got_key, batch), = common.evaluation_examples(
+  (got_key, batch), = data.evaluation_scenes(
       dataclasses.replace(experiment, eval_index=str(index)))
   assert got_key == key
   frames = smoke.synthetic.frames
   assert batch["context_images"].shape[1] == 2 and batch["target_images"].shape[1] == frames
   for view, frame in enumerate([1, 7]):  # the listed inputs are frames 1 and 7 of the targets
     np.testing.assert_array_equal(batch["context_images"][0, view], batch["target_images"][0, frame])
+  # the batch names its frames (the nearest-view baseline reads them)
+  np.testing.assert_array_equal(batch["context_frames"], [[1, 7]])
+  np.testing.assert_array_equal(batch["target_frames"], [np.arange(frames)])
   with pytest.raises(ValueError, match="fold_8_kmeans_3_input"):
-    common.evaluation_examples(dataclasses.replace(experiment, eval_index=str(index),
-                                                   num_context_views=3))
+    data.evaluation_scenes(dataclasses.replace(experiment, eval_index=str(index)).with_views(3))
+
+
+def test_an_index_matching_no_scene_fails_before_any_work_and_lists_unknown_keys(tmp_path, capsys):
+  smoke = re10k.PRESETS["smoke"]
+  experiment = dataclasses.replace(
+      smoke, synthetic_dir=str(tmp_path / "data"),
+      synthetic=dataclasses.replace(smoke.synthetic, num_train=1, num_test=1, workers=1))
+  data.ensure_synthetic(experiment)
+  key = data.evaluation_scenes(experiment)[0][0]
+  index = tmp_path / "index.json"
+  index.write_text(json.dumps({"nope": {"context": [0, 4], "target": [2]}}))
+  with pytest.raises(ValueError, match="matches no scene.*nope"):
+    data.check_evaluation_data(dataclasses.replace(experiment, eval_index=str(index)))
+  index.write_text(json.dumps({"nope": {"context": [0, 4], "target": [2]},
+                               key: {"context": [0, 4], "target": [2]}}))
+  scenes = data.evaluation_scenes(dataclasses.replace(experiment, eval_index=str(index)))
+  assert [k for k, _ in scenes] == [key]
+  assert "1 of 2 evaluation-index scenes are not in" in capsys.readouterr().out
+  index.write_text(json.dumps({key: {"context": [0, 4], "target": [99]}}))
+  with pytest.raises(ValueError, match="frame 99"):
+    data.check_evaluation_data(dataclasses.replace(experiment, eval_index=str(index)))
 
 
 def test_merge_history_keeps_the_log_of_a_resumed_run():
   earlier = [{"step": 5, "loss": 1.0}, {"step": 10, "loss": 0.9}, {"step": 15, "loss": 0.8}]
-  assert common.merge_history(earlier, []) == earlier  # re-evaluation only: log kept
+  assert training.merge_history(earlier, []) == earlier  # re-evaluation only: log kept
   resumed = [{"step": 15, "loss": 0.7}, {"step": 20, "loss": 0.6}]
-  assert [e["loss"] for e in common.merge_history(earlier, resumed)] == [1.0, 0.9, 0.7, 0.6]
+  assert [e["loss"] for e in training.merge_history(earlier, resumed)] == [1.0, 0.9, 0.7, 0.6]
   fresh = [{"step": 5, "loss": 2.0}]
-  assert common.merge_history(earlier, fresh) == fresh
+  assert training.merge_history(earlier, fresh) == fresh
+
+
+def test_novel_targets_are_inside_the_span_and_never_inputs():
+  np.testing.assert_array_equal(data.novel_targets(np.array([0, 12]), 3), [1, 6, 11])
+  targets = data.novel_targets(np.array([0, 5, 11, 16]), 4)
+  assert not set(targets.tolist()) & {0, 5, 11, 16} and targets.min() > 0 and targets.max() < 16
+  with pytest.raises(ValueError, match="widen"):
+    data.novel_targets(np.array([0, 2]), 2)
+
+
+def test_default_evaluation_scores_no_input_view_as_a_target(tmp_path):
+  """Without an index, every evaluated target is a frame that is not an input."""
+  smoke = re10k.PRESETS["smoke"]
+  experiment = dataclasses.replace(
+      smoke, synthetic_dir=str(tmp_path / "data"),
+      synthetic=dataclasses.replace(smoke.synthetic, num_train=1, num_test=2, workers=1))
+  data.ensure_synthetic(experiment)
+  for _, batch in data.evaluation_scenes(experiment):
+    context, target = batch["context_frames"][0], batch["target_frames"][0]
+    assert len(target) == smoke.eval.num_target_views
+    assert not set(target.tolist()) & set(context.tolist())
+    assert context.min() < target.min() and target.max() < context.max()

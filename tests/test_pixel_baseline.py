@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from experiments import common, pixel_baseline, re10k
+from experiments import pixel_baseline, re10k
 from tokengs_jax.camera import invert_rigid, pixel_centers, project_points
 
 HEIGHT, WIDTH, VIEWS = 32, 32, 2
@@ -43,7 +43,7 @@ def _cameras(views: int, height: int, width: int):
 def baseline():
   """(config, params) of the smoke-sized baseline; the head readout is enlarged so that depths,
   colours and scales vary from pixel to pixel (the default 0.002 makes them nearly constant)."""
-  config = common.model_config(re10k.PRESETS["smoke"]).replace(clip_head_readout_std=0.5)
+  config = re10k.PRESETS["smoke"].model.replace(clip_head_readout_std=0.5)
   return config, pixel_baseline.init_params(jax.random.key(0), config)
 
 
@@ -146,7 +146,7 @@ def test_training_loss_has_finite_nonzero_gradients(baseline):
            "target_images": jax.random.uniform(jax.random.fold_in(key, 1), (1, 1, height, width, 3)),
            "target_c2w": target_c2w[:, 2:], "target_intrinsics": target_k[:, 2:]}
   compute = pixel_baseline.loss_fn(config)
-  (loss, terms), grads = jax.jit(jax.value_and_grad(compute, has_aux=True))(params, batch, key)
+  (loss, terms), grads = jax.jit(jax.value_and_grad(compute, has_aux=True))(params, batch, key, 0)
   assert np.isfinite(float(loss)) and float(loss) > 0
   assert np.isfinite(float(terms["psnr"]))
   for path, leaf in jax.tree_util.tree_leaves_with_path(grads):

@@ -14,10 +14,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from experiments import common, re10k
+from experiments import data, re10k, weights
 from experiments.studies import (
   StudySettings,
   camera_noise,
+  held_out,
   psnr_of,
   test_time_scaling,
   token_assignment,
@@ -26,7 +27,7 @@ from experiments.studies import (
   view_extrapolation,
   write_table,
 )
-from tokengs_jax import model
+from tokengs_jax import evaluation, model
 from tokengs_jax.gaussians import Gaussians
 
 SMOKE = re10k.PRESETS["smoke"]
@@ -171,7 +172,7 @@ def test_test_time_scaling_targets_are_novel_views_at_every_context_size():
 @pytest.fixture(scope="module")
 def smoke_model():
   """(config, params) of the smoke preset's model (4 tokens x 16 Gaussians), fresh weights."""
-  config = common.model_config(SMOKE)
+  config = SMOKE.model
   return config, model.init_params(jax.random.key(0), config)
 
 
@@ -202,7 +203,7 @@ def test_token_count_retrain_reuses_a_saved_model(smoke_model, tmp_path):
   config, params = smoke_model
   saved = jax.tree.map(lambda x: np.full_like(x, 0.25), token_count.model_for(
       token_count.TokenCount(experiment=SMOKE), config, params, 2, tmp_path)[1])
-  common.save_params(tmp_path / "tokens_2.msgpack", saved)
+  weights.save_params(tmp_path / "tokens_2.msgpack", saved)
   settings = token_count.TokenCount(experiment=SMOKE, retrain=True)
   config_k, loaded = token_count.model_for(settings, config, params, 2, tmp_path)
   assert config_k.num_gs_tokens == 2
@@ -244,8 +245,8 @@ def smoke_study(tmp_path_factory, smoke_model):
       SMOKE, synthetic_dir=str(root / "data"), output_dir=str(root / "run"),
       synthetic=dataclasses.replace(SMOKE.synthetic, num_train=1, num_test=2, workers=1),
       eval=dataclasses.replace(SMOKE.eval, num_scenes=2))
-  common.ensure_synthetic(experiment)
-  params_path = common.save_params(root / "params.msgpack", smoke_model[1])
+  data.ensure_synthetic(experiment)
+  params_path = weights.save_params(root / "params.msgpack", smoke_model[1])
   return StudySettings(experiment=experiment, params=str(params_path),
                        output_dir=str(root / "studies"))
 
@@ -259,7 +260,7 @@ def test_trained_tokengs_loads_saved_weights_without_training(smoke_study, smoke
 
 def test_psnr_of_scores_every_scene_and_times_the_first_twice(smoke_study, smoke_model):
   """Invisible Gaussians render the grey background: PSNR = that of grey vs the targets."""
-  examples = common.evaluation_examples(smoke_study.experiment)
+  examples = held_out(smoke_study.experiment)
   assert len(examples) == 2
   calls = []
   n = smoke_model[0].num_gaussians  # the e2e test's Gaussian count: the render compiles once
@@ -271,7 +272,8 @@ def test_psnr_of_scores_every_scene_and_times_the_first_twice(smoke_study, smoke
                      quats=np.tile([[[1.0, 0.0, 0.0, 0.0]]], (1, n, 1)).astype(np.float32),
                      colors=np.ones((1, n, 3), np.float32))
 
-  scores, seconds = psnr_of(method, examples, common.Scorer(use_lpips=False))
+  scores, seconds = psnr_of(evaluation.Method(reconstruct=method), examples,
+                            evaluation.Scorer(lpips=False))
   assert [id(b) for b in calls] == [id(examples[0][1])] * 2 + [id(examples[1][1])]
   assert seconds >= 0 and len(scores) == 2
   for score, (_, batch) in zip(scores, examples):
@@ -298,15 +300,15 @@ def test_token_assignment_main_end_to_end(smoke_study, smoke_model):
   table = (out / "token_assignment.md").read_text()
   assert table.count("\n| ") == 1 + len(rows)  # header + one line per token
   assert (out / "spread.png").stat().st_size > 0
-  # num_scenes=1: one picture, of the first scene: 5 rows (inputs, targets, renders, token
-  # colours at the targets, at the inputs) of two 32x32 views with 2-pixel padding
+  # num_scenes=1: one picture, of the first scene: 5 labelled rows (inputs, targets, renders,
+  # token colours at the targets, at the inputs) of two 32x32 views upscaled 4x to 128x128
   pictures = list((out / "scenes").glob("*.png"))
-  key = common.evaluation_examples(settings.experiment)[0][0]
+  key = held_out(settings.experiment)[0][0]
   assert [p.name for p in pictures] == [f"{key}.png"]
   image = np.asarray(Image.open(pictures[0]))
-  assert image.shape == (5 * 32 + 6 * 2, 2 * 32 + 3 * 2, 3)
+  assert image.shape[0] == 5 * 128 + 6 * 4 and image.shape[1] > 2 * 128 + 2 * 4
   # the token-colour rows differ from the RGB render row (the palette replaced the colours)
-  render, tokens = image[2 + 2 * 34:2 + 2 * 34 + 32], image[2 + 3 * 34:2 + 3 * 34 + 32]
+  render, tokens = image[4 + 2 * 132:4 + 2 * 132 + 128], image[4 + 3 * 132:4 + 3 * 132 + 128]
   assert np.abs(render.astype(int) - tokens.astype(int)).max() > 10
 
 

@@ -28,10 +28,9 @@ _PUBLIC = {
     "load_official_checkpoint": "tokengs_jax.model",
     "tune": "tokengs_jax.tuning",
     "TuningConfig": "tokengs_jax.tuning",
-    "evaluate": "tokengs_jax.tuning",
 }
 _SUBMODULES = ("camera", "math", "gaussians", "splatting", "model", "losses", "metrics", "data",
-               "train", "tuning", "export")
+               "train", "tuning", "evaluation", "export")
 
 __all__ = sorted(_PUBLIC) + list(_SUBMODULES)
 

@@ -76,23 +76,50 @@ def to_uint8(image) -> np.ndarray:
   return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
-def colorize_depth(depth, alpha=None) -> np.ndarray:
-  """Depth [H, W] or [H, W, 1] -> [H, W, 3] in [0, 1], near = bright, using robust percentiles.
-
-  Pixels with alpha < 0.5 (nothing rendered) are black.
-  """
-  depth = np.asarray(depth, np.float32).reshape(np.shape(depth)[:2])
+def _valid_depth(depth, alpha) -> np.ndarray:
   valid = np.isfinite(depth) & (depth > 0)
   if alpha is not None:
     valid &= np.asarray(alpha).reshape(depth.shape) >= 0.5
-  if not valid.any():
+  return valid
+
+
+def inverse_depth_range(depths, alphas=None) -> tuple[float, float] | None:
+  """Robust (2nd, 98th percentile) range of 1 / depth over rendered pixels (alpha >= 0.5) of
+  one or more depth maps, as `colorize_depth` maps it; None when nothing was rendered."""
+  alphas = [None] * len(depths) if alphas is None else alphas
+  values = []
+  for depth, alpha in zip(depths, alphas):
+    depth = np.asarray(depth, np.float32).reshape(np.shape(depth)[:2])
+    values.append(1.0 / depth[_valid_depth(depth, alpha)])
+  values = np.concatenate(values) if values else np.zeros(0)
+  if not values.size:
+    return None
+  lo, hi = np.percentile(values, [2, 98])
+  return float(lo), float(hi)
+
+
+def depth_ramp(t) -> np.ndarray:
+  """The depth colour map: t [...] in [0, 1] (1 = near) -> [..., 3]; readable without matplotlib."""
+  t = np.asarray(t, np.float32)
+  return np.stack([t ** 1.5, np.sqrt(t) * 0.9, 0.6 * (1.0 - t) + 0.1], axis=-1)
+
+
+def colorize_depth(depth, alpha=None, inverse_range: tuple[float, float] | None = None
+                   ) -> np.ndarray:
+  """Depth [H, W] or [H, W, 1] -> [H, W, 3] in [0, 1], near = bright (`depth_ramp`).
+
+  inverse_range: (lo, hi) of 1 / depth mapped to the ends of the ramp (several maps on one scale);
+  default this map's `inverse_depth_range`. Pixels with alpha < 0.5 (nothing rendered) are black.
+  """
+  depth = np.asarray(depth, np.float32).reshape(np.shape(depth)[:2])
+  valid = _valid_depth(depth, alpha)
+  inverse_range = inverse_range or inverse_depth_range([depth], [alpha])
+  if not valid.any() or inverse_range is None:
     return np.zeros(depth.shape + (3,), np.float32)
+  lo, hi = inverse_range
   inv = np.where(valid, 1.0 / np.where(valid, depth, 1.0), 0.0)
-  lo, hi = np.percentile(inv[valid], [2, 98])
   t = np.clip((inv - lo) / max(hi - lo, 1e-8), 0.0, 1.0)
-  # A small blue -> green -> yellow ramp; readable without matplotlib.
-  ramp = np.stack([t ** 1.5, np.sqrt(t) * 0.9, 0.6 * (1.0 - t) + 0.1], axis=-1)
-  return np.where(valid[..., None], ramp, 0.0)
+  return np.where(valid[..., None], depth_ramp(t), 0.0)
 
 
 def image_grid(rows: Sequence[Sequence[np.ndarray]], pad: int = 2) -> np.ndarray:

@@ -24,20 +24,17 @@ the result is decoded at `output_times` (evaluation: the target views' times). T
 Context extension needs nothing here: pass more input views than the model was trained with; the
 Gaussian count stays `config.num_gaussians`.
 
-`evaluate` scores a batch (PSNR / SSIM / LPIPS per target view, Gaussian count, seconds per
-scene) with or without tuning.
+Scoring (feed-forward or tuned) is `tokengs_jax.evaluation` (`feed_forward`, `tuned`, `evaluate`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
-import time
 from typing import Literal
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
 
 from tokengs_jax import losses, model, splatting
@@ -224,88 +221,3 @@ def tune(params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array, *, mo
   else:
     gaussians = gaussians_of(variables)
   return TuningResult(gaussians=gaussians, losses=jnp.append(step_losses, final_loss))
-
-
-@functools.partial(jax.jit, static_argnames=("model_config",))
-def _feed_forward(params, images, c2w, intrinsics, times=None, output_times=None, *,
-                  model_config) -> Gaussians:
-  """Gaussians [B], or [B, T] at `output_times` [B, T] (time-conditioned, `times` [B, V])."""
-  if times is None:
-    return model.reconstruct(params, images, c2w, intrinsics, config=model_config)
-  height, width = images.shape[-3], images.shape[-2]
-  encoded = model.encode(params, model.normalize_images(images),
-                         plucker_rays(c2w, intrinsics, height, width), model_config, times=times)
-  return decode_at_times(params, encoded, model_config, output_times)
-
-
-@functools.partial(jax.jit, static_argnames=("height", "width", "render_config", "objective"))
-def _render_targets(gaussians, c2w, intrinsics, *, height, width, render_config, objective):
-  """Target views [B, V] from Gaussians [B] (all views) or [B, V] (one set per view)."""
-  gaussians = jax.tree.map(lambda x: x.astype(jnp.float32), gaussians)
-  world_to_camera = invert_rigid(c2w)
-  per_view = len(gaussians.batch_shape) == world_to_camera.ndim - 2
-  if per_view:  # each set seen by its own view only: a batch [B, V] of single-view renders
-    world_to_camera, intrinsics = world_to_camera[:, :, None], intrinsics[:, :, None]
-  rendered = splatting.render(gaussians, world_to_camera, intrinsics, height=height, width=width,
-                              background=jnp.asarray(objective.background, jnp.float32),
-                              near=objective.near, far=objective.far, config=render_config)
-  rgb = rendered.rgb[:, :, 0] if per_view else rendered.rgb
-  return jnp.clip(rgb, 0.0, 1.0)
-
-
-def evaluate(params, batch: dict, *, model_config, tuning: TuningConfig | None = None,
-             loss_config=None, render_config=None, objective: ObjectiveConfig | None = None,
-             lpips_params=None) -> dict:
-  """Scores one evaluation batch, feed-forward (`tuning=None`) or after test-time tuning.
-
-  Reconstruction (+ tuning) is timed with `block_until_ready`; the first call for a given shape
-  also compiles, so warm up on one batch before reading `seconds_per_scene`.
-
-  Args:
-    params: network parameters.
-    batch: the data contract's dict (`context_*`, `target_*`), batch size B. For a
-      time-conditioned model with `context_times` / `target_times`, every target view is rendered
-      from the Gaussians decoded (and tuned, see `tune`) at its own time.
-    model_config, tuning, loss_config, render_config, objective: as `tune`.
-    lpips_params: `tokengs_jax.lpips.load_vgg_params()` (loaded here when None).
-
-  Returns:
-    dict of numpy values: "psnr", "ssim", "lpips" `[B, Vt]` per target view (average per scene,
-    then over scenes: `metrics.mean_over_scenes`), "num_gaussians" (per scene), "seconds_per_scene"
-    (reconstruction and tuning, excluding target rendering and scoring), and "tuning_losses"
-    `[steps + 1]` when tuning.
-  """
-  from tokengs_jax import lpips as lpips_lib
-  from tokengs_jax import metrics
-
-  render_config = splatting.RenderConfig() if render_config is None else render_config
-  objective = ObjectiveConfig() if objective is None else objective
-  context = (batch["context_images"], batch["context_c2w"], batch["context_intrinsics"])
-  # time-conditioned models with timed data: Gaussians decoded at every target view's time
-  times, output_times = ((batch["context_times"], batch["target_times"])
-                         if model_config.time_embedding and "context_times" in batch
-                         else (None, None))
-  start = time.perf_counter()
-  if tuning is None:
-    gaussians = _feed_forward(params, *context, times, output_times, model_config=model_config)
-    tuning_losses = None
-  else:
-    result = tune(params, *context, model_config=model_config, tuning=tuning,
-                  loss_config=loss_config, render_config=render_config, objective=objective,
-                  times=times, output_times=output_times)
-    gaussians, tuning_losses = result.gaussians, result.losses
-  jax.block_until_ready(gaussians)
-  seconds = time.perf_counter() - start
-  targets = jnp.asarray(batch["target_images"], jnp.float32)
-  pred = _render_targets(gaussians, batch["target_c2w"], batch["target_intrinsics"],
-                         height=targets.shape[-3], width=targets.shape[-2],
-                         render_config=render_config, objective=objective)
-  lpips_params = lpips_lib.load_vgg_params() if lpips_params is None else lpips_params
-  scores = {"psnr": metrics.psnr(pred, targets), "ssim": metrics.ssim(pred, targets),
-            "lpips": metrics.lpips(pred, targets, lpips_params)}
-  out = {name: np.asarray(value) for name, value in jax.device_get(scores).items()}
-  out["num_gaussians"] = int(gaussians.means.shape[-2])
-  out["seconds_per_scene"] = seconds / targets.shape[0]
-  if tuning_losses is not None:
-    out["tuning_losses"] = np.asarray(tuning_losses)
-  return out

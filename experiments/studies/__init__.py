@@ -17,14 +17,15 @@ from __future__ import annotations
 import dataclasses
 import json
 import pathlib
-import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import jax
 import numpy as np
 
-from experiments import common
-from tokengs_jax import model
+from experiments import data, tasks, training, weights
+from experiments.cli import enable_compile_cache
+from experiments.config import Experiment
+from tokengs_jax import evaluation, model
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,68 +37,64 @@ class StudySettings:
     params: trained TokenGS weights; trained with `experiment` (and saved there) when missing.
     output_dir: where the study's table and plot go.
   """
-  experiment: common.Experiment = dataclasses.field(default_factory=common.Experiment)
+  experiment: Experiment = dataclasses.field(default_factory=Experiment)
   params: str = "outputs/re10k/tiny_synthetic/params.msgpack"
   output_dir: str = "outputs/studies"
 
 
+def train(experiment: Experiment, params, loss_fn=None) -> dict:
+  """Trains with the experiment's settings (default loss: TokenGS's); returns the weights."""
+  task = tasks.Task()
+  loss_fn = task.loss_fn(experiment, experiment.model) if loss_fn is None else loss_fn
+  params, history, seconds = training.train_model(experiment, params, loss_fn,
+                                                  task.training_batches(experiment))
+  print(f"[study] trained in {seconds:.0f} s, final loss {history[-1]['loss']:.4f}", flush=True)
+  return params
+
+
 def trained_tokengs(settings: StudySettings) -> tuple[model.ModelConfig, dict]:
   """The model config and trained weights (training them with the experiment when missing)."""
-  common.enable_compile_cache()
-  config = common.model_config(settings.experiment)
+  enable_compile_cache()
+  config = settings.experiment.model
   path = pathlib.Path(settings.params)
   if path.exists():
-    return config, common.load_params(path)
+    return config, weights.load_params(path)
   print(f"[study] {path} is missing: training the TokenGS model first", flush=True)
   experiment = dataclasses.replace(settings.experiment, output_dir=str(path.parent))
-  params = model.init_params(jax.random.key(experiment.seed), config)
-  params, _, _ = common.train_model(experiment, config, params)
-  common.save_params(path, params)
+  params = train(experiment, model.init_params(jax.random.key(experiment.seed), config))
+  weights.save_params(path, params)
   return config, params
 
 
-def timed(function: Callable, *args) -> tuple[object, float]:
-  """(result, seconds) with the result's arrays ready (device work included)."""
-  start = time.perf_counter()
-  result = jax.block_until_ready(function(*args))
-  return result, time.perf_counter() - start
+def held_out(experiment: Experiment, views: data.ViewChooser | None = None
+             ) -> list[evaluation.Scene]:
+  """The experiment's held-out scenes (optionally with chosen views)."""
+  return data.evaluation_scenes(experiment, views=views)
 
 
-def scene_psnr(scorer: common.Scorer, rgb: np.ndarray, batch: dict) -> float:
-  """Mean PSNR over a batch-of-one's target views."""
-  return float(np.mean(scorer(rgb[0], batch["target_images"][0])["psnr"]))
-
-
-def psnr_of(method: Callable, examples: Sequence[tuple[str, dict]], scorer: common.Scorer
-            ) -> tuple[list[float], float]:
-  """Per-scene PSNR of a `batch -> Gaussians` method, and its mean seconds per scene (the first
-  scene's call, which compiles, is timed again after it)."""
-  scores, seconds = [], []
-  for position, (_, batch) in enumerate(examples):
-    height, width = batch["target_images"].shape[-3:-1]
-    gaussians, elapsed = timed(method, batch)
-    if position == 0:  # exclude compilation from the run time
-      gaussians, elapsed = timed(method, batch)
-    seconds.append(elapsed)
-    rgb, _, _ = common.render_views(gaussians, batch["target_c2w"], batch["target_intrinsics"],
-                                    height, width)
-    scores.append(scene_psnr(scorer, rgb, batch))
-  return scores, float(np.mean(seconds))
+def psnr_of(method: evaluation.Method, scenes: Sequence[evaluation.Scene],
+            scorer: evaluation.Scorer) -> tuple[list[float], float]:
+  """Per-scene PSNR of a method and its mean seconds per scene of reconstruction (+ tuning),
+  compilation excluded: the first scene is evaluated once before the timed pass."""
+  evaluation.evaluate(scenes[:1], {"method": method}, scorer)
+  scores = evaluation.evaluate(scenes, {"method": method}, scorer).scores["method"]
+  return [s["psnr"] for s in scores.per_scene], float(np.mean(scores.predict_seconds))
 
 
 def write_table(out_dir, name: str, title: str, rows: list[dict], columns: Sequence[str],
                 notes: Sequence[str] = ()) -> pathlib.Path:
-  """`<name>.json` (rows + notes) and `<name>.md` (a table) in `out_dir`."""
+  """`<name>.json` (rows + notes) and `<name>.md` (a table) in `out_dir` (process 0 only)."""
   out_dir = pathlib.Path(out_dir)
-  out_dir.mkdir(parents=True, exist_ok=True)
-  (out_dir / f"{name}.json").write_text(json.dumps({"title": title, "rows": rows,
-                                                    "notes": list(notes)}, indent=1))
   lines = [f"# {title}\n", "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
   for row in rows:
     lines.append("| " + " | ".join(f"{row[c]:.4g}" if isinstance(row[c], float) else str(row[c])
                                    for c in columns) + " |")
   lines += [""] + [f"- {n}" for n in notes]
   path = out_dir / f"{name}.md"
-  path.write_text("\n".join(lines) + "\n")
   print("\n".join(lines), flush=True)
+  if evaluation.writes_results():
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / f"{name}.json").write_text(json.dumps({"title": title, "rows": rows,
+                                                      "notes": list(notes)}, indent=1))
+    path.write_text("\n".join(lines) + "\n")
   return path

@@ -19,8 +19,9 @@ import jax
 import numpy as np
 import tyro
 
-from experiments import common, pixel_baseline, plot
-from experiments.studies import StudySettings, psnr_of, trained_tokengs, write_table
+from experiments import pixel_baseline, plot, weights
+from experiments.studies import StudySettings, held_out, psnr_of, train, trained_tokengs, write_table
+from tokengs_jax import evaluation
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,15 +63,12 @@ def noisy(examples, degrees: float, seed: int):
 def baseline_params(settings: CameraNoise, config, out: pathlib.Path):
   path = pathlib.Path(settings.baseline_params or out / "pixel_baseline.msgpack")
   if path.exists():
-    return common.load_params(path)
+    return weights.load_params(path)
   experiment = dataclasses.replace(settings.experiment, output_dir=str(out / "pixel_baseline"))
-  params = pixel_baseline.init_params(jax.random.key(experiment.seed), config)
   print("[study] training the pixel-aligned baseline with the TokenGS settings", flush=True)
-  params, history, seconds = common.train_model(experiment, config, params,
-                                                loss_fn=pixel_baseline.loss_fn(config))
-  print(f"[study] baseline trained in {seconds:.0f} s, final loss {history[-1]['loss']:.4f}",
-        flush=True)
-  common.save_params(path, params)
+  params = train(experiment, pixel_baseline.init_params(jax.random.key(experiment.seed), config),
+                 loss_fn=pixel_baseline.loss_fn(config))
+  weights.save_params(path, params)
   return params
 
 
@@ -78,13 +76,14 @@ def main(settings: CameraNoise) -> list[dict]:
   out = pathlib.Path(settings.output_dir) / "camera_noise"
   config, params = trained_tokengs(settings)
   baseline = baseline_params(settings, config, out)
-  examples = common.evaluation_examples(settings.experiment)
-  scorer = common.Scorer(use_lpips=False)
+  examples = held_out(settings.experiment)
+  scorer = evaluation.Scorer(lpips=False)
   methods = {
-      "TokenGS": common.feed_forward(params, config),
-      "pixel-aligned (GS-LRM-style)": lambda batch: pixel_baseline.jitted_reconstruct(
-          baseline, batch["context_images"], batch["context_c2w"], batch["context_intrinsics"],
-          config),
+      "TokenGS": evaluation.feed_forward(params, config),
+      "pixel-aligned (GS-LRM-style)": evaluation.Method(
+          reconstruct=lambda batch: pixel_baseline.jitted_reconstruct(
+              baseline, batch["context_images"], batch["context_c2w"], batch["context_intrinsics"],
+              config)),
   }
   rows, curves = [], {name: ([], []) for name in methods}
   for degrees in settings.angles:

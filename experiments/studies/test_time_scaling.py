@@ -19,8 +19,10 @@ import pathlib
 import numpy as np
 import tyro
 
-from experiments import common, plot
-from experiments.studies import StudySettings, psnr_of, trained_tokengs, write_table
+from experiments import plot
+from experiments.studies import StudySettings, held_out, psnr_of, trained_tokengs, write_table
+from tokengs_jax import evaluation
+from tokengs_jax.tuning import TuningConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,28 +61,27 @@ def main(settings: TestTimeScaling) -> list[dict]:
   out = pathlib.Path(settings.output_dir) / "test_time_scaling"
   config, params = trained_tokengs(settings)
   e = settings.experiment.eval
-  scorer = common.Scorer(use_lpips=False)
+  scorer = evaluation.Scorer(lpips=False)
+  feed_forward = evaluation.feed_forward(params, config)
   rows = []
   view_curve = ([], [])
   targets = shared_targets(settings.views, e.context_gap, e.num_target_views)
   for count in settings.views:
-    experiment = dataclasses.replace(settings.experiment, num_context_views=count)
-    examples = common.evaluation_examples(
-        experiment, views=spaced_views(count, e.context_gap, targets))
-    scores, seconds = psnr_of(common.feed_forward(params, config), examples, scorer)
+    examples = held_out(settings.experiment.with_views(count),
+                        views=spaced_views(count, e.context_gap, targets))
+    scores, seconds = psnr_of(feed_forward, examples, scorer)
     rows.append({"axis": "input views", "value": count, "psnr": float(np.mean(scores)),
                  "seconds_per_scene": seconds})
     view_curve[0].append(count)
     view_curve[1].append(float(np.mean(scores)))
-  examples = common.evaluation_examples(
-      settings.experiment, views=spaced_views(2, e.context_gap, targets))
-  base, base_seconds = psnr_of(common.feed_forward(params, config), examples, scorer)
+  examples = held_out(settings.experiment, views=spaced_views(2, e.context_gap, targets))
+  base, base_seconds = psnr_of(feed_forward, examples, scorer)
   step_curves = {}
   for target in settings.targets:
     xs, ys = [0], [float(np.mean(base))]
     for steps in settings.steps:
-      scores, seconds = psnr_of(common.tuned(params, config, steps, settings.learning_rate, target),
-                                examples, scorer)
+      tuning = TuningConfig(target=target, steps=steps, learning_rate=settings.learning_rate)
+      scores, seconds = psnr_of(evaluation.tuned(params, config, tuning), examples, scorer)
       rows.append({"axis": f"{target} tuning steps", "value": steps, "psnr": float(np.mean(scores)),
                    "seconds_per_scene": seconds})
       xs.append(steps)

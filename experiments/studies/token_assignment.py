@@ -22,9 +22,9 @@ import jax
 import numpy as np
 import tyro
 
-from experiments import common, plot
-from experiments.studies import StudySettings, trained_tokengs, write_table
-from tokengs_jax import export
+from experiments import pictures, plot
+from experiments.studies import StudySettings, held_out, trained_tokengs, write_table
+from tokengs_jax import evaluation, export
 from tokengs_jax.gaussians import Gaussians
 
 
@@ -49,32 +49,36 @@ def per_token_statistics(gaussians: Gaussians, per_token: int) -> dict[str, np.n
   return {"relative_spread": spread / max(scene_spread, 1e-12), "opacity": opacity}
 
 
+def scene_picture(gaussians: Gaussians, coloured: Gaussians, batch: dict) -> np.ndarray:
+  """inputs | targets | renders | token colours at the targets | token colours at the inputs."""
+  height, width = batch["target_images"].shape[-3:-1]
+
+  def render(g, prefix):
+    return list(evaluation.render_targets(g, batch[f"{prefix}_c2w"], batch[f"{prefix}_intrinsics"],
+                                          height=height, width=width).rgb[0])
+
+  return pictures.labelled_grid([
+      ("inputs", list(batch["context_images"][0])), ("targets", list(batch["target_images"][0])),
+      ("render", render(gaussians, "target")), ("tokens (targets)", render(coloured, "target")),
+      ("tokens (inputs)", render(coloured, "context"))])
+
+
 def main(settings: TokenAssignment) -> list[dict]:
   out = pathlib.Path(settings.output_dir) / "token_assignment"
   config, params = trained_tokengs(settings)
   per_token = config.gaussians_per_token
   palette = np.repeat(token_colours(config.num_tokens), per_token, axis=0)  # [N, 3]
-  predict = common.feed_forward(params, config)
-  examples = common.evaluation_examples(settings.experiment)
+  examples = held_out(settings.experiment)
   spreads, opacities = [], []
   for position, (key, batch) in enumerate(examples):
-    gaussians = jax.device_get(predict(batch))
+    gaussians = jax.device_get(evaluation.reconstruct(params, batch, config))
     stats = per_token_statistics(jax.tree.map(lambda x: x[0], gaussians), per_token)
     spreads.append(stats["relative_spread"])
     opacities.append(stats["opacity"])
-    if position >= settings.num_scenes:
-      continue
-    coloured = dataclasses.replace(gaussians, colors=palette[None])
-    height, width = batch["target_images"].shape[-3:-1]
-    rgb, _, _ = common.render_views(gaussians, batch["target_c2w"], batch["target_intrinsics"],
-                                    height, width)
-    tokens_at_targets, _, _ = common.render_views(coloured, batch["target_c2w"],
-                                                  batch["target_intrinsics"], height, width)
-    tokens_at_inputs, _, _ = common.render_views(coloured, batch["context_c2w"],
-                                                 batch["context_intrinsics"], height, width)
-    export.save_png(out / "scenes" / f"{key}.png", export.image_grid([
-        list(batch["context_images"][0]), list(batch["target_images"][0]), list(rgb[0]),
-        list(tokens_at_targets[0]), list(tokens_at_inputs[0])]))
+    if position < settings.num_scenes and evaluation.writes_results():
+      export.save_png(out / "scenes" / f"{key}.png",
+                      scene_picture(gaussians, dataclasses.replace(gaussians, colors=palette[None]),
+                                    batch))
   spreads, opacities = np.stack(spreads), np.stack(opacities)  # [S, T]
   mean_spread = spreads.mean(axis=0)
   order = np.argsort(mean_spread)

