@@ -86,8 +86,8 @@ def loss_fn(config: ModelConfig, loss_config=None, render_config=None, objective
   render_config = splatting.RenderConfig() if render_config is None else render_config
   objective = ObjectiveConfig() if objective is None else objective
 
-  def compute(params, batch, key):
-    del key
+  def compute(params, batch, key, step):
+    del key, step
     gaussians = reconstruct(params, batch["context_images"], batch["context_c2w"],
                             batch["context_intrinsics"], config=config)
     return supervision_loss(gaussians, batch["target_images"], invert_rigid(batch["target_c2w"]),

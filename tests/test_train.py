@@ -36,8 +36,9 @@ def toy_params(seed=0, num_tokens=4):
           "gs_tokens": jax.random.normal(k3, (num_tokens, 2)) * 0.1}
 
 
-def toy_loss(params, batch, key, noise=0.01):
+def toy_loss(params, batch, key, step, noise=0.01):
   """MLP regression with key-dependent input noise (so the step key matters)."""
+  del step
   x = batch["x"] + noise * jax.random.normal(key, batch["x"].shape, batch["x"].dtype)
   hidden = jnp.tanh(x.astype(params["dense1"]["kernel"].dtype) @ params["dense1"]["kernel"]
                     + params["dense1"]["bias"])
@@ -131,6 +132,22 @@ def test_one_vs_four_devices_equal():
   jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7),
                jax.device_get(state1.params), jax.device_get(state4.params))
   assert int(state4.step) == 3
+
+
+def test_loss_receives_the_step_and_the_batch_unchanged():
+  """The step reaches the loss as its own argument; the batch carries only the data."""
+  seen = []
+
+  def loss_fn(params, batch, key, step):
+    seen.append(sorted(batch))
+    loss, aux = noiseless_loss(params, batch, key, step)
+    return loss, {**aux, "step_seen": step.astype(jnp.float32)}
+
+  mesh = make_mesh(devices=jax.devices()[:1])
+  _, metrics = run_steps(mesh, OptimConfig(learning_rate=1e-2, schedule="constant"),
+                         [toy_batch(0), toy_batch(1), toy_batch(2)], loss_fn=loss_fn)
+  assert [float(m["step_seen"]) for m in metrics] == [0.0, 1.0, 2.0]
+  assert seen[0] == ["x", "y"]
 
 
 def test_accumulation_equals_full_batch():

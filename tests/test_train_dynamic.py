@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from tokengs_jax import losses, model, splatting
-from tokengs_jax.camera import invert_rigid, plucker_rays
+from tokengs_jax.camera import invert_rigid
 from tokengs_jax.train import (
   Checkpointer,
   LoopConfig,
@@ -68,8 +68,7 @@ def test_decode_at_times_equals_reconstruct_at_each_time():
 
   @jax.jit
   def decoded(params, images, c2w, intrinsics, times, target_times):
-    encoded = model.encode(params, model.normalize_images(images),
-                           plucker_rays(c2w, intrinsics, HEIGHT, WIDTH), DYNAMIC_CONFIG, times=times)
+    encoded = model.encode_views(params, images, c2w, intrinsics, DYNAMIC_CONFIG, times=times)
     return decode_at_times(params, encoded, DYNAMIC_CONFIG, target_times)
 
   reconstruct = jax.jit(lambda *args, **kwargs: model.reconstruct(*args, config=DYNAMIC_CONFIG,
@@ -89,7 +88,8 @@ def test_decode_at_times_equals_reconstruct_at_each_time():
 
 
 def _loss_and_grads(loss_fn, params, batch):
-  return jax.jit(jax.value_and_grad(loss_fn, has_aux=True))(params, batch, jax.random.PRNGKey(0))
+  return jax.jit(jax.value_and_grad(loss_fn, has_aux=True))(params, batch, jax.random.PRNGKey(0),
+                                                            0)
 
 
 def _assert_same(result, expected):
@@ -110,8 +110,8 @@ def test_time_conditioned_loss_matches_the_static_path_when_targets_share_a_time
   batch = dynamic_batch([[0.0, 1.0]], [[0.4, 0.4]])
   loss_config = losses.LossConfig()
 
-  def reference(params, batch, key):
-    del key
+  def reference(params, batch, key, step):
+    del key, step
     gaussians = model.reconstruct(
       params, batch["context_images"], batch["context_c2w"], batch["context_intrinsics"],
       config=DYNAMIC_CONFIG, times=batch["context_times"], target_times=batch["target_times"][:, 0])
@@ -146,12 +146,10 @@ def test_dynamic_aux_loss_is_the_loss_of_the_dynamic_gaussians_alone_with_its_sc
   loss_fn = jax.jit(tokengs_loss_fn(DYNAMIC_CONFIG, loss_config,
                                     objective=ObjectiveConfig(decode_times="first")))
   for step, weight in ((0, 0.3), (2, 0.3), (4, 0.15), (7, 0.0)):
-    loss, terms = loss_fn(params, {**batch, "step": np.array([step], np.int32)}, None)
+    loss, terms = loss_fn(params, batch, None, step)
     np.testing.assert_allclose(terms["dyn_aux_weight"], weight, rtol=1e-6)
     np.testing.assert_allclose(terms["dyn_aux"], dyn if weight else 0.0, rtol=1e-5)
     np.testing.assert_allclose(loss, main + weight * dyn, rtol=1e-5)
-  with pytest.raises(ValueError, match="needs 'step'"):
-    loss_fn(params, batch, None)
 
 
 @pytest.fixture(scope="module")

@@ -44,7 +44,7 @@ def test_chunked_objective_matches_one_shot(tiny):
   results = []
   for chunk_size in (None, 1):
     loss_fn = tokengs_loss_fn(config, objective=ObjectiveConfig(view_chunk_size=chunk_size))
-    results.append(jax.jit(jax.value_and_grad(loss_fn, has_aux=True))(params, batch, key))
+    results.append(jax.jit(jax.value_and_grad(loss_fn, has_aux=True))(params, batch, key, 0))
   ((loss, terms), grads), ((chunked_loss, chunked_terms), chunked_grads) = results
   np.testing.assert_allclose(chunked_loss, loss, rtol=1e-5)
   for name in ("rgb", "ssim", "visibility", "psnr"):

@@ -8,8 +8,11 @@ argument of `jax.jit` or be closed over; all of them are jit-, vmap- and grad-co
 
 For test-time tuning, encode once and decode many times:
 
-    encoded = encode(params, images_normalised, plucker, config)
+    encoded = encode_views(params, images, c2w, intrinsics, config)
     flat = decode(params, encoded, config, tokens=my_tokens)
+
+`encode_views` and `reconstruct` check their inputs' shapes and dtypes at trace time
+(`model.inputs.check_views`); the lower-level `encode` / `predict_gaussians` take what they get.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import numpy as np
 from tokengs_jax.camera import plucker_rays
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.model.configs import IMAGE_MEAN, IMAGE_STD, ModelConfig
+from tokengs_jax.model.inputs import check_times, check_views
 from tokengs_jax.model.network import EncoderOutput, TokenGS
 
 Params = dict
@@ -165,14 +169,39 @@ def predict_gaussians(params: Params, images: jax.Array, plucker: jax.Array,
   return TokenGS(config).apply({"params": params}, images, plucker, times, target_times)
 
 
-def reconstruct(params: Params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array, *,
-                config: ModelConfig, times: jax.Array | None = None,
-                target_times: jax.Array | None = None) -> Gaussians:
-  """Images in [0, 1] and cameras -> Gaussians (normalisation + Plücker rays + network).
+def encode_views(params: Params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array,
+                 config: ModelConfig, times: jax.Array | None = None) -> EncoderOutput:
+  """Images in [0, 1] and cameras -> encoder output (normalisation + Plücker rays + encoder).
+
+  The one prelude every caller that starts from views uses (`reconstruct`, training, tuning).
+  Inputs are checked at trace time (`model.inputs.check_views`: ValueError for shapes,
+  TypeError for dtypes).
 
   Args:
     params: the params pytree.
-    images: [B, V, H, W, 3] RGB in [0, 1].
+    images: [B, V, H, W, 3] RGB, float in [0, 1] or uint8; H, W divisible by the patch size.
+    c2w: [B, V, 4, 4] camera-to-world (OpenCV), already normalised as the data pipeline does.
+    intrinsics: [B, V, 4] fx, fy, cx, cy in pixels.
+    config: the architecture.
+    times: [B, V] normalised input-view times (time-embedding models only; required there).
+
+  Returns:
+    EncoderOutput (keys/values [B, heads, V * H * W / p², head_dim]; latents if any).
+  """
+  check_views(images, c2w, intrinsics, config, times)
+  height, width = images.shape[-3:-1]
+  plucker = plucker_rays(c2w, intrinsics, height, width)
+  return encode(params, normalize_images(images), plucker, config, times)
+
+
+def reconstruct(params: Params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array, *,
+                config: ModelConfig, times: jax.Array | None = None,
+                target_times: jax.Array | None = None) -> Gaussians:
+  """Images in [0, 1] and cameras -> Gaussians (`encode_views` + `decode`).
+
+  Args:
+    params: the params pytree.
+    images: [B, V, H, W, 3] RGB, float in [0, 1] or uint8.
     c2w: [B, V, 4, 4] camera-to-world (OpenCV), already normalised as the data pipeline does.
     intrinsics: [B, V, 4] fx, fy, cx, cy in pixels.
     config: the architecture (static).
@@ -181,9 +210,11 @@ def reconstruct(params: Params, images: jax.Array, c2w: jax.Array, intrinsics: j
 
   Returns:
     `tokengs_jax.gaussians.Gaussians` with N = config.num_gaussians Gaussians per scene.
+
+  Raises:
+    ValueError / TypeError: at trace time, for inputs of the wrong shape / dtype.
   """
-  height, width = images.shape[-3:-1]
-  plucker = plucker_rays(c2w, intrinsics, height, width)
-  flat = predict_gaussians(params, normalize_images(images), plucker, config, times,
-                           target_times)
-  return Gaussians.from_flat(flat)
+  encoded = encode_views(params, images, c2w, intrinsics, config, times)
+  if target_times is not None:
+    check_times("target_times", target_times, images.shape[:1], "[B]")
+  return Gaussians.from_flat(decode(params, encoded, config, times=target_times))

@@ -11,6 +11,11 @@ shared), inside the view chunks, so the memory-lean path bounds the decoder's ac
 each view is rendered from the Gaussians of its own time (`time_conditioned_loss`), plus the
 dynamic auxiliary loss of the official Kubric models (the same loss on a render of the dynamic
 Gaussians alone) weighted by `losses.dynamic_aux_weight(step)`.
+
+Structure: the terms are small top-level functions (`render_views`, `photometric_loss`,
+`add_visibility`, `render_diagnostics`, `losses.add_dynamic_aux`) composed by `supervision_loss`
+and `time_conditioned_loss`; `tokengs_loss_fn` picks `static_model_loss` or `dynamic_model_loss`
+and receives the training step as an argument (`loss_fn(params, batch, key, step)`).
 """
 
 from __future__ import annotations
@@ -84,14 +89,59 @@ class ObjectiveConfig:
       raise ValueError(f"decode_times must be 'per_view' or 'first', got {self.decode_times!r}")
 
 
+def render_views(gaussians: Gaussians, world_to_camera: jax.Array, intrinsics: jax.Array,
+                 height: int, width: int, render_config, objective: ObjectiveConfig):
+  """Float32 renders of Gaussians [B(, ...)] into views [B, V(, ...)] (`splatting.render`)."""
+  from tokengs_jax import splatting  # the heavy areas only when this objective is used
+
+  return splatting.render(
+      gaussians, world_to_camera, intrinsics, height=height, width=width,
+      background=jnp.asarray(objective.background, jnp.float32), near=objective.near,
+      far=objective.far, config=render_config)
+
+
+def render_diagnostics(stats) -> dict:
+  """Logged render health: "render_overflow" (fraction of renders whose tile budget overflowed)
+  and "visible" (mean number of Gaussians drawn per view)."""
+  return {"render_overflow": jnp.mean(stats.overflow.astype(jnp.float32)),
+          "visible": jnp.mean(stats.num_visible.astype(jnp.float32))}
+
+
+def add_visibility(loss: jax.Array, terms: dict, means: jax.Array, world_to_camera: jax.Array,
+                   intrinsics: jax.Array, height: int, width: int, loss_config):
+  """`loss + lambda_vis * visibility` (terms gain "visibility" and the new "loss").
+
+  means: [B, ..., N, 3] projected into every view [B, V] (min over views, as official).
+  The visibility term only projects centres, so it is taken over all views at once even when
+  the photometric terms are chunked (its minimum over views does not split into chunks).
+  """
+  from tokengs_jax import losses
+
+  if loss_config.lambda_vis <= 0:
+    return loss, terms
+  visibility = jnp.mean(losses.visibility_loss(
+      means, world_to_camera, intrinsics, height, width,
+      threshold=loss_config.visibility_threshold, near=loss_config.near))
+  loss = loss + loss_config.lambda_vis * visibility
+  return loss, {**terms, "visibility": visibility, "loss": loss}
+
+
+def photometric_loss(rgb: jax.Array, images: jax.Array, loss_config, lpips_params=None):
+  """RGB, SSIM and LPIPS terms of renders against images (`losses.render_loss` without the
+  visibility term, which `add_visibility` adds over all views)."""
+  from tokengs_jax import losses
+
+  return losses.render_loss(rgb, images, dataclasses.replace(loss_config, lambda_vis=0.0),
+                            lpips_params=lpips_params)
+
+
 def supervision_loss(gaussians, images, world_to_camera, intrinsics, loss_config, render_config,
                      objective: ObjectiveConfig = ObjectiveConfig(), lpips_params=None):
   """Loss of Gaussians against supervision views (training targets, or the inputs when tuning).
 
   The views are rendered in chunks of `objective.view_chunk_size` under remat and scored with
-  `losses.render_loss` (RGB, SSIM, LPIPS terms) averaged over chunks; the visibility loss is taken
-  over all views at once (its minimum over views does not split into chunks; it only projects
-  centres, so it is cheap). Equals `losses.render_loss` on the one-shot render.
+  `photometric_loss` averaged over chunks, then `add_visibility` over all views. Equals
+  `losses.render_loss` on the one-shot render.
 
   Args:
     gaussians: `Gaussians` with batch shape [B] (rendered in float32).
@@ -104,38 +154,24 @@ def supervision_loss(gaussians, images, world_to_camera, intrinsics, loss_config
     lpips_params: VGG weights when `loss_config.lambda_lpips > 0`.
 
   Returns:
-    `(loss, terms)`: the loss terms, "psnr", and render diagnostics ("render_overflow": fraction
-    of renders whose tile budget overflowed, "visible": mean number of Gaussians drawn per view).
+    `(loss, terms)`: the loss terms, "psnr", and `render_diagnostics`.
   """
-  from tokengs_jax import losses, splatting  # the heavy areas only when this objective is used
-
   gaussians = jax.tree.map(lambda x: x.astype(jnp.float32), gaussians)
   height, width = images.shape[-3], images.shape[-2]
   world_to_camera = world_to_camera.astype(jnp.float32)
   intrinsics = intrinsics.astype(jnp.float32)
-  photometric = dataclasses.replace(loss_config, lambda_vis=0.0)
 
   def chunk_loss(views):
-    rendered = splatting.render(
-        gaussians, views["world_to_camera"], views["intrinsics"], height=height, width=width,
-        background=jnp.asarray(objective.background, jnp.float32), near=objective.near,
-        far=objective.far, config=render_config)
-    loss, terms = losses.render_loss(rendered.rgb, views["images"], photometric,
-                                     lpips_params=lpips_params)
-    terms["render_overflow"] = jnp.mean(rendered.stats.overflow.astype(jnp.float32))
-    terms["visible"] = jnp.mean(rendered.stats.num_visible.astype(jnp.float32))
-    return loss, terms
+    rendered = render_views(gaussians, views["world_to_camera"], views["intrinsics"], height,
+                            width, render_config, objective)
+    loss, terms = photometric_loss(rendered.rgb, views["images"], loss_config, lpips_params)
+    return loss, {**terms, **render_diagnostics(rendered.stats)}
 
   loss, terms = mean_over_view_chunks(
       chunk_loss, {"world_to_camera": world_to_camera, "intrinsics": intrinsics,
                    "images": images.astype(jnp.float32)}, objective.view_chunk_size)
-  if loss_config.lambda_vis > 0:
-    terms["visibility"] = jnp.mean(losses.visibility_loss(
-        gaussians.means, world_to_camera, intrinsics, height, width,
-        threshold=loss_config.visibility_threshold, near=loss_config.near))
-    loss = loss + loss_config.lambda_vis * terms["visibility"]
-    terms["loss"] = loss
-  return loss, terms
+  return add_visibility(loss, terms, gaussians.means, world_to_camera, intrinsics, height, width,
+                        loss_config)
 
 
 def decode_at_times(params, encoded, model_config, times: jax.Array,
@@ -207,13 +243,11 @@ def time_conditioned_loss(gaussians_at: Callable[[jax.Array], Gaussians], times:
     `(loss, terms)`: as `supervision_loss`, plus "dyn_aux" (the auxiliary loss, 0 while its
     weight is 0), "dyn_aux_weight" and "dyn_aux_psnr" when the auxiliary loss is on.
   """
-  from tokengs_jax import losses, splatting
+  from tokengs_jax import losses
 
   height, width = images.shape[-3], images.shape[-2]
   world_to_camera = world_to_camera.astype(jnp.float32)
   intrinsics = intrinsics.astype(jnp.float32)
-  photometric = dataclasses.replace(loss_config, lambda_vis=0.0)
-  background = jnp.asarray(objective.background, jnp.float32)
   with_aux = num_static_gaussians is not None and loss_config.lambda_dyn_aux > 0
   aux_weight = losses.dynamic_aux_weight(step, loss_config)
 
@@ -224,26 +258,20 @@ def time_conditioned_loss(gaussians_at: Callable[[jax.Array], Gaussians], times:
 
   def scored(gaussians, views):
     """Loss of Gaussians [B, Vc or 1, N] rendered into the chunk's views [B, Vc]."""
-    rendered = splatting.render(
-        gaussians, views["world_to_camera"][:, :, None], views["intrinsics"][:, :, None],
-        height=height, width=width, background=background, near=objective.near,
-        far=objective.far, config=render_config)
-    loss, terms = losses.render_loss(rendered.rgb[:, :, 0], views["images"], photometric,
-                                     lpips_params=lpips_params)
-    if loss_config.lambda_vis > 0:
-      # the Gaussians of each time against every view: [B, Vc or 1]
-      terms["visibility"] = jnp.mean(losses.visibility_loss(
-          gaussians.means, world_to_camera[:, None], intrinsics[:, None], height, width,
-          threshold=loss_config.visibility_threshold, near=loss_config.near))
-      loss = loss + loss_config.lambda_vis * terms["visibility"]
-      terms["loss"] = loss
+    rendered = render_views(gaussians, views["world_to_camera"][:, :, None],
+                            views["intrinsics"][:, :, None], height, width, render_config,
+                            objective)
+    loss, terms = photometric_loss(rendered.rgb[:, :, 0], views["images"], loss_config,
+                                   lpips_params)
+    # the Gaussians of each time against every view: [B, Vc or 1]
+    loss, terms = add_visibility(loss, terms, gaussians.means, world_to_camera[:, None],
+                                 intrinsics[:, None], height, width, loss_config)
     return loss, terms, rendered.stats
 
   def chunk_loss(views):
     gaussians = decoded(views["times"]) if shared is None else shared
     loss, terms, stats = scored(gaussians, views)
-    terms["render_overflow"] = jnp.mean(stats.overflow.astype(jnp.float32))
-    terms["visible"] = jnp.mean(stats.num_visible.astype(jnp.float32))
+    terms.update(render_diagnostics(stats))
     if with_aux:
       dynamic = _slice_gaussians(gaussians, num_static_gaussians)
 
@@ -263,20 +291,48 @@ def time_conditioned_loss(gaussians_at: Callable[[jax.Array], Gaussians], times:
   return mean_over_view_chunks(chunk_loss, views, objective.view_chunk_size)
 
 
+def static_model_loss(params, batch: dict, *, model_config, loss_config, render_config,
+                      objective: ObjectiveConfig, lpips_params=None):
+  """Static models: context views -> `model.reconstruct` -> `supervision_loss` on the targets."""
+  from tokengs_jax import model
+  from tokengs_jax.camera import invert_rigid
+
+  gaussians = model.reconstruct(params, batch["context_images"], batch["context_c2w"],
+                                batch["context_intrinsics"], config=model_config)
+  return supervision_loss(gaussians, batch["target_images"], invert_rigid(batch["target_c2w"]),
+                          batch["target_intrinsics"], loss_config, render_config, objective,
+                          lpips_params)
+
+
+def dynamic_model_loss(params, batch: dict, step: jax.Array | int, *, model_config, loss_config,
+                       render_config, objective: ObjectiveConfig, lpips_params=None):
+  """Time-conditioned models: context views and `batch["context_times"]` -> `encode_views` once
+  -> `decode_at_times` at `batch["target_times"]` -> `time_conditioned_loss`, plus the dynamic
+  auxiliary loss (weight scheduled by `step`) when the model has static and dynamic tokens and
+  `loss_config.lambda_dyn_aux > 0`, as official."""
+  from tokengs_jax import model
+  from tokengs_jax.camera import invert_rigid
+
+  with_aux = (loss_config.lambda_dyn_aux > 0 and model_config.num_dynamic_gs_tokens > 0
+              and model_config.num_gs_tokens > 0)
+  encoded = model.encode_views(params, batch["context_images"], batch["context_c2w"],
+                               batch["context_intrinsics"], model_config,
+                               times=batch["context_times"])
+  return time_conditioned_loss(
+      lambda times: decode_at_times(params, encoded, model_config, times),
+      batch["target_times"], batch["target_images"], invert_rigid(batch["target_c2w"]),
+      batch["target_intrinsics"], loss_config, render_config, objective, lpips_params,
+      num_static_gaussians=model_config.num_static_gaussians if with_aux else None, step=step)
+
+
 def tokengs_loss_fn(model_config, loss_config=None, render_config=None,
                     objective: ObjectiveConfig = ObjectiveConfig(), lpips_params=None):
-  """The TokenGS training loss `(params, batch, key) -> (loss, terms)` for `train_step`.
+  """The TokenGS training loss `(params, batch, key, step) -> (loss, terms)` for `train_step`.
 
-  Static models: context views -> `model.reconstruct` -> Gaussians -> `supervision_loss` on the
-  target views. Time-conditioned models (`model_config.time_embedding`): context views and
-  `batch["context_times"]` -> `model.encode` once -> `decode_at_times` at `batch["target_times"]`
-  -> `time_conditioned_loss` (each target view rendered from the Gaussians at its time, plus the
-  dynamic auxiliary loss when `loss_config.lambda_dyn_aux > 0` and the model has static and
-  dynamic tokens, as official).
-
-  The auxiliary weight's schedule reads `batch["step"]` ([B] int, every entry the step; the
-  train step in `train.step` adds it); without it the step is taken as 0, which is refused when the weight
-  decays (`dyn_aux_decay_steps > 0`).
+  `static_model_loss`, or `dynamic_model_loss` for time-conditioned models
+  (`model_config.time_embedding`). `step` ([] int, the train step passes `state.step`) drives
+  the dynamic auxiliary weight's schedule; static models ignore it, as they do the key (the
+  network is deterministic; augmentation belongs to the data pipeline).
 
   Args:
     model_config: `tokengs_jax.model.ModelConfig` (its `dtype` is the network's compute dtype).
@@ -288,46 +344,17 @@ def tokengs_loss_fn(model_config, loss_config=None, render_config=None,
   Returns:
     The loss function (see `supervision_loss` / `time_conditioned_loss` for the terms).
   """
-  from tokengs_jax import losses, model, splatting
-  from tokengs_jax.camera import invert_rigid, plucker_rays
+  from tokengs_jax import losses, splatting
 
-  loss_config = losses.LossConfig() if loss_config is None else loss_config
-  render_config = splatting.RenderConfig() if render_config is None else render_config
-  # the official model adds the auxiliary loss only when it has both kinds of tokens
-  with_aux = (loss_config.lambda_dyn_aux > 0 and model_config.num_dynamic_gs_tokens > 0
-              and model_config.num_gs_tokens > 0)
+  settings = {"model_config": model_config,
+              "loss_config": losses.LossConfig() if loss_config is None else loss_config,
+              "render_config": splatting.RenderConfig() if render_config is None else render_config,
+              "objective": objective, "lpips_params": lpips_params}
 
-  def static_loss(params, batch):
-    gaussians = model.reconstruct(params, batch["context_images"], batch["context_c2w"],
-                                  batch["context_intrinsics"], config=model_config)
-    return supervision_loss(gaussians, batch["target_images"], invert_rigid(batch["target_c2w"]),
-                            batch["target_intrinsics"], loss_config, render_config, objective,
-                            lpips_params)
-
-  def dynamic_loss(params, batch):
-    if "step" in batch:
-      step = batch["step"][0]
-    elif with_aux and loss_config.dyn_aux_decay_steps > 0:
-      raise ValueError("the dynamic auxiliary weight decays with the step: the batch needs "
-                       "'step' ([B] int), which the train step adds")
-    else:
-      step = 0
-    images = batch["context_images"]
-    height, width = images.shape[-3], images.shape[-2]
-    encoded = model.encode(
-        params, model.normalize_images(images),
-        plucker_rays(batch["context_c2w"], batch["context_intrinsics"], height, width),
-        model_config, times=batch["context_times"])
-    return time_conditioned_loss(
-        lambda times: decode_at_times(params, encoded, model_config, times),
-        batch["target_times"], batch["target_images"], invert_rigid(batch["target_c2w"]),
-        batch["target_intrinsics"], loss_config, render_config, objective, lpips_params,
-        num_static_gaussians=model_config.num_static_gaussians if with_aux else None, step=step)
-
-  def loss_fn(params, batch, key):
-    del key  # the network is deterministic; augmentation belongs to the data pipeline
+  def loss_fn(params, batch, key, step):
+    del key
     if model_config.time_embedding:
-      return dynamic_loss(params, batch)
-    return static_loss(params, batch)
+      return dynamic_model_loss(params, batch, step, **settings)
+    return static_model_loss(params, batch, **settings)
 
   return loss_fn

@@ -1,4 +1,4 @@
-"""One jitted, sharded training step around a model-agnostic `loss_fn(params, batch, key)`.
+"""One jitted, sharded training step around a model-agnostic `loss_fn(params, batch, key, step)`.
 
 Sharding is GSPMD over a `jax.make_mesh` mesh with axes ("data", "model"): the batch is split over
 "data" along its leading axis, the state is replicated (a `state_sharding` pytree can put
@@ -22,7 +22,8 @@ from jax.sharding import PartitionSpec as P
 from tokengs_jax.train.optim import current_learning_rate
 from tokengs_jax.train.state import TrainState
 
-LossFn = Callable[[Any, dict, jax.Array], tuple[jax.Array, dict]]
+# (params, batch, key, step [] int32) -> (scalar loss, aux dict of scalars)
+LossFn = Callable[[Any, dict, jax.Array, jax.Array], tuple[jax.Array, dict]]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,20 +59,17 @@ def train_step_fn(loss_fn: LossFn, optimizer: optax.GradientTransformation,
                   precision: Precision = Precision()):
   """The unjitted step `(state, batch, key) -> (state, metrics)`.
 
-  The step key is `fold_in(key, state.step)`; the loss sees the batch plus "step" `[B]` int32
-  (`state.step` in every entry). When the loss or any gradient is non-finite the
-  returned state is the input state (update skipped, step not advanced) and `metrics["finite"]`
-  is False; the loop turns that into a loud stop.
+  The loss is called as `loss_fn(params, batch, fold_in(key, state.step), state.step)`: the step
+  is passed explicitly for step-scheduled terms (the dynamic auxiliary weight). When the loss or
+  any gradient is non-finite the returned state is the input state (update skipped, step not
+  advanced) and `metrics["finite"]` is False; the loop turns that into a loud stop.
   """
   def step(state: TrainState, batch: dict, key: jax.Array):
     step_key = jax.random.fold_in(key, state.step)
-    # Step-scheduled loss terms (the dynamic auxiliary weight) read "step": one entry per example,
-    # so it is laid out like every other batch leaf.
-    batch_size = jax.tree.leaves(batch)[0].shape[0]
-    batch = {**batch, "step": jnp.full((batch_size,), state.step, jnp.int32)}
 
     def compute_loss(params):
-      loss, aux = loss_fn(cast_floating(params, precision.compute_dtype), batch, step_key)
+      loss, aux = loss_fn(cast_floating(params, precision.compute_dtype), batch, step_key,
+                          state.step)
       return loss.astype(jnp.float32), aux
 
     (loss, aux), grads = jax.value_and_grad(compute_loss, has_aux=True)(state.params)
@@ -92,7 +90,8 @@ def make_train_step(loss_fn: LossFn, optimizer: optax.GradientTransformation, me
   """Jits the step with shardings over `mesh` and the state buffers donated.
 
   Args:
-    loss_fn: `(params, batch, key) -> (scalar loss, aux dict of scalars)`, a mean over the batch.
+    loss_fn: `(params, batch, key, step) -> (scalar loss, aux dict of scalars)`, a mean over the
+      batch.
     optimizer: from `make_optimizer`.
     mesh: a mesh with a "data" axis (see `distributed.make_mesh`).
     precision: compute-dtype policy.
