@@ -54,7 +54,7 @@ def init_params() -> dict:
   return {"hidden": jax.random.normal(k1, (6, 16)) * 0.5, "out": jax.random.normal(k2, (16, 3)) * 0.5}
 
 
-def loss_fn(params, batch, key, step=None):
+def loss_fn(params, batch, key, step):
   """Predicts the target view's mean colour from the context views' mean colour and position
   (`step`: the train step passes it; unused)."""
   del step

@@ -79,7 +79,7 @@ def flip_one_bit(step_dir):
 
 # (damage, a fragment of the logged reason)
 DAMAGE = {
-  "emptied": (empty_directory, 'Item "data" was not found'),
+  "emptied": (empty_directory, "FileNotFoundError"),
   "array_metadata_removed": (remove_array_metadata, "pytree structure"),
   "json_truncated": (truncate_json, "JSONDecodeError"),
   "array_file_truncated": (truncate_array_file, "reading array"),

@@ -199,13 +199,21 @@ class Checkpointer:
     skipped = []
     for candidate in steps:
       self._check_process_count(candidate)
+      restored, error = None, None
       try:
-        restored, error = self._restore_verified(candidate, abstract), None
-      except Exception as failure:  # orbax/tensorstore/json raise many types for damaged files
-        restored, error = None, failure
+        # This process's own JSON files first, agreed on before orbax's restore: orbax ends a
+        # restore with a barrier that a process failing alone would leave the others waiting at.
+        self._read_own_files(candidate)
+      except Exception as failure:
+        error = failure
       if _all_agree(error is None):
-        self._set_aside(skipped)
-        return restored
+        try:
+          restored = self._restore_verified(candidate, abstract)
+        except Exception as failure:  # orbax/tensorstore/json raise many types for damaged files
+          error = failure
+        if _all_agree(error is None):
+          self._set_aside(skipped)
+          return restored
       reason = _short(error) if error is not None else "another process could not restore it"
       log.warning("checkpoint step %d in %s is unusable, skipped (%s)", candidate,
                   self.directory, reason)
@@ -231,6 +239,14 @@ class Checkpointer:
       log.warning("checkpoint step %d in %s has no checksums/%s: restored unverified", step,
                   self.directory, name)
     return state, host["iterator"]
+
+  def _read_own_files(self, step: int) -> None:
+    """Parses this process's JSON files of `step` (raises on a missing or damaged data file)."""
+    name = data_state_file(self.process_index, self.process_count)
+    json.loads((self.directory / str(step) / "data" / name).read_text())
+    checksums = self.directory / str(step) / "checksums" / name
+    if checksums.is_file():
+      json.loads(checksums.read_text())
 
   def _check_process_count(self, step: int) -> None:
     """Refuses a step written by another number of processes (not damage: walking back would
