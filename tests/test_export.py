@@ -1,4 +1,5 @@
 import numpy as np
+import plyfile
 import pytest
 
 from tokengs_jax import export
@@ -22,6 +23,41 @@ def test_ply_round_trip_in_viewer_layout(tmp_path):
   np.testing.assert_allclose(back["quats"], q, atol=1e-6)
   for k in ("means", "opacities", "scales", "colors"):
     np.testing.assert_allclose(back[k], g[k], rtol=1e-4, atol=1e-5)
+
+
+def test_ply_read_by_plyfile_in_the_3dgs_layout(tmp_path):
+  """An independent reader (plyfile) sees the reference 3DGS vertex layout, float32 little endian,
+  and the pre-activation values viewers decode: SH DC colour, logit opacity, log scale, unit
+  wxyz."""
+  g = _gaussians(37, seed=3)
+  ply = plyfile.PlyData.read(str(export.write_ply(tmp_path / "g.ply", **g)))
+  assert ply.byte_order == "<" and not ply.text
+  vertex = ply["vertex"]
+  names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
+           "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+  assert [p.name for p in vertex.properties] == names
+  assert all(vertex.data.dtype[name] == np.dtype("<f4") for name in names)
+  assert vertex.count == 37
+  column = lambda *keys: np.stack([vertex[k] for k in keys], axis=-1)
+  sh_c0 = 1.0 / (2.0 * np.sqrt(np.pi))  # Y_0^0
+  np.testing.assert_allclose(column("x", "y", "z"), g["means"], rtol=1e-6, atol=1e-6)
+  np.testing.assert_array_equal(column("nx", "ny", "nz"), 0.0)
+  np.testing.assert_allclose(column("f_dc_0", "f_dc_1", "f_dc_2"), (g["colors"] - 0.5) / sh_c0,
+                             rtol=1e-5, atol=1e-5)
+  np.testing.assert_allclose(vertex["opacity"], np.log(g["opacities"] / (1 - g["opacities"])),
+                             rtol=1e-4, atol=1e-5)
+  np.testing.assert_allclose(column("scale_0", "scale_1", "scale_2"), np.log(g["scales"]),
+                             rtol=1e-5, atol=1e-5)
+  rot = column("rot_0", "rot_1", "rot_2", "rot_3")
+  np.testing.assert_allclose(np.linalg.norm(rot, axis=-1), 1.0, atol=1e-6)
+  np.testing.assert_allclose(rot, g["quats"] / np.linalg.norm(g["quats"], axis=-1, keepdims=True),
+                             atol=1e-6)
+  # what a viewer decodes: colour = 0.5 + C0 f_dc, opacity = sigmoid, scale = exp
+  np.testing.assert_allclose(0.5 + sh_c0 * column("f_dc_0", "f_dc_1", "f_dc_2"), g["colors"],
+                             atol=1e-5)
+  np.testing.assert_allclose(1 / (1 + np.exp(-vertex["opacity"])), g["opacities"], atol=1e-5)
+  np.testing.assert_allclose(np.exp(column("scale_0", "scale_1", "scale_2")), g["scales"],
+                             rtol=1e-5)
 
 
 def test_ply_refuses_non_finite(tmp_path):

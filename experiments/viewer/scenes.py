@@ -1,0 +1,269 @@
+"""What the viewer shows, host-side: held-out scenes of a results folder (or a PLY) as Gaussians,
+cameras and renders by our own renderer, and the selection (opacity threshold, static / dynamic).
+
+A results folder (`experiments.tasks.run_eval`) holds `metrics.json` with the run's `experiment`
+settings (the model's architecture included) and `params.msgpack`; from them the held-out scenes
+are rebuilt exactly as the evaluation saw them (same views) and reconstructed on demand.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+
+import numpy as np
+
+from tokengs_jax import export
+from tokengs_jax.gaussians import Gaussians
+
+
+@dataclasses.dataclass(frozen=True)
+class Cameras:
+  """Views of one scene (numpy).  images: [V, H, W, 3] in [0, 1], c2w: [V, 4, 4] OpenCV,
+  intrinsics: [V, 4] (fx, fy, cx, cy) in pixels."""
+  images: np.ndarray
+  c2w: np.ndarray
+  intrinsics: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class ViewScene:
+  """One reconstruction to look at.
+
+  Attributes:
+    key: scene name.
+    gaussians: unbatched numpy Gaussians [N].
+    num_static: the first `num_static` Gaussians come from static tokens, the rest from dynamic
+      ones (Kubric models); N for static models.
+    inputs / targets: the evaluation's input and target views; None for a bare PLY.
+    time: the time the dynamic Gaussians were decoded at (None: static model).
+  """
+  key: str
+  gaussians: Gaussians
+  num_static: int
+  inputs: Cameras | None = None
+  targets: Cameras | None = None
+  time: float | None = None
+
+  @property
+  def num_gaussians(self) -> int:
+    return len(self.gaussians.opacities)
+
+
+def covariances(scales: np.ndarray, quats: np.ndarray) -> np.ndarray:
+  """World covariances R diag(s^2) R^T, which viser's splat renderer takes.
+
+  scales: [N, 3] linear std devs, quats: [N, 4] wxyz (any norm) -> [N, 3, 3].
+  """
+  q = quats / np.maximum(np.linalg.norm(quats, axis=-1, keepdims=True), 1e-12)
+  w, x, y, z = np.moveaxis(q, -1, 0)
+  rot = np.stack([
+      1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+      2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+      2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=-1).reshape(-1, 3, 3)
+  scaled = rot * scales[:, None, :]
+  return scaled @ np.swapaxes(scaled, -1, -2)
+
+
+def selection(scene: ViewScene, threshold: float, show_static: bool = True,
+              show_dynamic: bool = True) -> np.ndarray:
+  """Which Gaussians are shown: opacity >= threshold, in the parts switched on.  -> bool [N]."""
+  part = np.arange(scene.num_gaussians) < scene.num_static
+  wanted = np.where(part, show_static, show_dynamic)
+  return wanted & (np.asarray(scene.gaussians.opacities) >= threshold)
+
+
+def opacity_census(opacities: np.ndarray, thresholds=(0.01, 0.05, 0.1, 0.5)
+                   ) -> list[tuple[float, int]]:
+  """(threshold, how many Gaussians reach it): how many of the predicted Gaussians matter."""
+  opacities = np.asarray(opacities)
+  return [(t, int(np.sum(opacities >= t))) for t in thresholds]
+
+
+def masked(gaussians: Gaussians, visible: np.ndarray) -> Gaussians:
+  """The same Gaussians with the hidden ones made fully transparent: a render of these equals a
+  render of the subset (a zero-opacity splat adds nothing), and the shapes stay fixed, so one
+  compiled renderer serves every threshold."""
+  return dataclasses.replace(gaussians, opacities=np.where(visible, gaussians.opacities, 0.0)
+                             .astype(np.float32))
+
+
+def scaled_intrinsics(intrinsics: np.ndarray, factor: float) -> np.ndarray:
+  """Intrinsics of the same camera with `factor` times as many pixels per side (pixel-centre
+  convention: continuous image coordinates scale, so fx, fy, cx, cy all scale)."""
+  return np.asarray(intrinsics, np.float32) * np.float32(factor)
+
+
+def render(gaussians: Gaussians, c2w: np.ndarray, intrinsics: np.ndarray, height: int,
+           width: int) -> np.ndarray:
+  """One view by our renderer on the training background.  c2w: [4, 4], intrinsics: [4]
+  -> rgb [H, W, 3] numpy.
+
+  Uses `splatting.render_exact` (no tile budgets) where the library has it, else `render`.
+  """
+  import jax.numpy as jnp
+
+  from tokengs_jax import splatting
+  from tokengs_jax.camera import invert_rigid
+  from tokengs_jax.train.objective import ObjectiveConfig
+
+  objective = ObjectiveConfig()
+  renderer = getattr(splatting, "render_exact", splatting.render)
+  result = renderer(gaussians, invert_rigid(jnp.asarray(c2w, jnp.float32))[None],
+                    jnp.asarray(intrinsics, jnp.float32)[None], height=height, width=width,
+                    background=jnp.asarray(objective.background, jnp.float32),
+                    near=objective.near, far=objective.far)
+  return np.asarray(result.rgb[0])
+
+
+def psnr(image: np.ndarray, target: np.ndarray) -> float:
+  mse = float(np.mean((np.clip(image, 0.0, 1.0) - target) ** 2))
+  return float("inf") if mse == 0 else -10.0 * np.log10(mse)
+
+
+# ----------------------------------------------------------------------------------------------
+# Sources: a results folder, or a bare PLY
+
+
+def _from_fields(cls, fields: dict):
+  """A (nested, frozen) settings dataclass from its `dataclasses.asdict` JSON (lists -> tuples)."""
+  default = cls()
+  known = {f.name for f in dataclasses.fields(cls)}
+  unknown = set(fields) - known
+  if unknown:
+    raise ValueError(f"{cls.__name__} has no fields {sorted(unknown)}")
+  values = {}
+  for name, value in fields.items():
+    current = getattr(default, name)
+    if dataclasses.is_dataclass(current):
+      value = _from_fields(type(current), value)
+    elif isinstance(value, list):
+      value = tuple(value)
+    values[name] = value
+  return cls(**values)
+
+
+def experiment_from_fields(fields: dict):
+  """(experiment, task) from `metrics.json["experiment"]`: a Kubric run when the fields hold the
+  Kubric-only ones (`KubricExperiment` extends `Experiment`)."""
+  from experiments import kubric
+  from experiments.config import Experiment
+  from experiments.tasks import Task
+
+  if set(fields) <= {f.name for f in dataclasses.fields(Experiment)}:
+    return _from_fields(Experiment, fields), Task()
+  return _from_fields(kubric.KubricExperiment, fields), kubric.KubricTask()
+
+
+class ResultsSource:
+  """The held-out scenes of a results folder, reconstructed by its trained weights on demand.
+
+  Args:
+    folder: results folder with `metrics.json` and `params.msgpack`.
+    checkpoint: other weights (`params.msgpack`) to look at with the folder's settings; default
+      the folder's trained `params.msgpack`, else the weights the run evaluated.
+    data_dir / synthetic_dir: where the held-out scenes are, if not where the run had them.
+    num_scenes: held-out scenes offered (0: the run's `eval.num_scenes`).
+  """
+
+  def __init__(self, folder, checkpoint=None, data_dir: str | None = None,
+               synthetic_dir: str | None = None, num_scenes: int = 0):
+    from experiments.weights import initial_params
+
+    folder = pathlib.Path(folder)
+    saved = json.loads((folder / "metrics.json").read_text())
+    experiment, task = experiment_from_fields(saved["experiment"])
+    changes = {}
+    trained = checkpoint or (folder / "params.msgpack" if (folder / "params.msgpack").exists()
+                             else None)
+    if trained:
+      changes.update(checkpoint=str(trained), official_checkpoint=None)
+    if data_dir is not None:
+      changes["data_dir"] = data_dir
+    if synthetic_dir is not None:
+      changes["synthetic_dir"] = synthetic_dir
+    experiment = dataclasses.replace(experiment, **changes)
+    if num_scenes:
+      experiment = dataclasses.replace(
+          experiment, eval=dataclasses.replace(experiment.eval, num_scenes=num_scenes))
+    task.prepare(experiment)  # regenerates a missing synthetic set (before JAX starts threads)
+    self.folder, self.experiment, self.config = folder, experiment, experiment.model
+    self.params = initial_params(experiment, finetune=False)
+    self.examples = task.evaluation_examples(experiment)
+    self.title = saved.get("title", str(folder))
+    self._scenes: dict[tuple[int, float | None], ViewScene] = {}
+
+  @property
+  def keys(self) -> list[str]:
+    return [key for key, _ in self.examples]
+
+  @property
+  def time_conditioned(self) -> bool:
+    return bool(self.config.time_embedding)
+
+  def default_time(self, index: int) -> float | None:
+    batch = self.examples[index][1]
+    return float(batch["target_times"][0, 0]) if self.time_conditioned else None
+
+  def scene(self, index: int, time: float | None = None) -> ViewScene:
+    """Scene `index` reconstructed; dynamic models decode at `time` (default the first target's)."""
+    if (index, time) not in self._scenes:
+      self._scenes[index, time] = self._reconstruct(index, time)
+    return self._scenes[index, time]
+
+  def _reconstruct(self, index: int, time: float | None) -> ViewScene:
+    import jax
+    import jax.numpy as jnp
+
+    from tokengs_jax import evaluation
+
+    key, batch = self.examples[index]
+    if self.time_conditioned and time is None:
+      time = self.default_time(index)
+    target_times = jnp.asarray([time], jnp.float32) if self.time_conditioned else None
+    gaussians = evaluation.reconstruct(self.params, batch, self.config, target_times)
+    gaussians = jax.tree.map(lambda x: np.asarray(x[0], np.float32), jax.device_get(gaussians))
+    if not all(np.all(np.isfinite(x)) for x in jax.tree.leaves(gaussians)):
+      raise FloatingPointError(f"scene {key}: the model predicted non-finite Gaussians")
+    views = lambda prefix: Cameras(np.asarray(batch[f"{prefix}_images"][0], np.float32),
+                                   np.asarray(batch[f"{prefix}_c2w"][0], np.float32),
+                                   np.asarray(batch[f"{prefix}_intrinsics"][0], np.float32))
+    return ViewScene(key, gaussians, self.config.num_static_gaussians, views("context"),
+                     views("target"), time)
+
+
+class PlySource:
+  """A bare PLY (e.g. `gaussians.ply` of a results folder): one scene, no cameras, no renders."""
+  time_conditioned = False
+
+  def __init__(self, path):
+    path = pathlib.Path(path)
+    fields = export.read_ply(path)
+    self._scene = ViewScene(path.stem, Gaussians(**{k: v.astype(np.float32)
+                                                    for k, v in fields.items()}),
+                            num_static=len(fields["opacities"]))
+    self.title = str(path)
+
+  @property
+  def keys(self) -> list[str]:
+    return [self._scene.key]
+
+  def default_time(self, index: int) -> None:
+    return None
+
+  def scene(self, index: int, time: float | None = None) -> ViewScene:
+    return self._scene
+
+
+def open_source(path, **options):
+  """A results folder or a `.ply` file -> its source of scenes."""
+  path = pathlib.Path(path)
+  if path.suffix == ".ply":
+    if any(options.values()):
+      raise ValueError(f"{sorted(k for k, v in options.items() if v)} apply to results folders, "
+                       "not to a PLY")
+    return PlySource(path)
+  if not (path / "metrics.json").exists():
+    raise FileNotFoundError(f"{path}: neither a .ply nor a results folder with metrics.json")
+  return ResultsSource(path, **options)
