@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import pathlib
 import time
 from collections.abc import Callable
@@ -22,6 +23,7 @@ from tokengs_jax.data import (
   make_example,
   sample_bounded,
 )
+from tokengs_jax.data.sampler import EvaluationIndexReport, validate_evaluation_index
 
 # (record, scene position) -> (context frames, target frames)
 ViewChooser = Callable[[dict, int], tuple[np.ndarray, np.ndarray]]
@@ -80,32 +82,28 @@ def training_batches(experiment: Experiment) -> InputPipeline:
                        skip_bad=bool(experiment.data_dir))
 
 
-def _test_source(experiment: Experiment, index: dict | None) -> ChunkedSceneSource:
-  """The test split (only the index's scenes when there is one), checked against the index:
-  index keys that are not in the data are listed; none matching is an error."""
+def _test_source(experiment: Experiment, index: dict | None
+                 ) -> tuple[ChunkedSceneSource, EvaluationIndexReport | None]:
+  """The test split (only the index's scenes when there is one) and, with an index, how it matches
+  the data (`validate_evaluation_index`: unknown keys listed, an error when none matches or a
+  frame is out of range), before any scene is decoded."""
   root = data_root(experiment) / "test"
-  keys = list(index) if index is not None else None
-  source = ChunkedSceneSource(root, keys=keys, skip_bad=bool(experiment.data_dir) or bool(keys))
   if index is None:
-    return source
-  found = {entry.key for entry in source.entries}
-  unknown = [key for key in index if key not in found]
-  listed = ", ".join(unknown[:10]) + (" ..." if len(unknown) > 10 else "")
-  if not found:
-    raise ValueError(f"evaluation index {experiment.eval_index} matches no scene of {root} "
-                     f"({len(unknown)} unknown keys: {listed})")
-  if unknown:
-    print(f"[eval] {len(unknown)} of {len(index)} evaluation-index scenes are not in {root}; "
-          f"skipped: {listed}", flush=True)
-  for entry in source.entries:  # every requested frame exists, before anything is decoded
-    evaluation_views(index, entry.key, entry.num_frames)
-  return source
+    return ChunkedSceneSource(root, skip_bad=bool(experiment.data_dir)), None
+  source = ChunkedSceneSource(root, keys=list(index), skip_bad=True)
+  available = {entry.key: entry.num_frames for entry in source.entries}
+  if not available:  # name the split's scenes in the error, whatever their state
+    available = list(json.loads((root / "index.json").read_text()))
+  report = validate_evaluation_index(index, available, where=str(experiment.eval_index))
+  return source, report
 
 
-def check_evaluation_data(experiment: Experiment) -> None:
-  """Raises before any training or scoring if the evaluation index cannot be used."""
-  if experiment.eval_index:
-    _test_source(experiment, _load_index(experiment))
+def check_evaluation_data(experiment: Experiment) -> dict | None:
+  """Raises before any training or scoring if the evaluation index cannot be used; returns how
+  it matches the data (for metrics.json), None without an index."""
+  if not experiment.eval_index:
+    return None
+  return _test_source(experiment, _load_index(experiment))[1].as_dict()
 
 
 def novel_targets(context: np.ndarray, num_targets: int) -> np.ndarray:
@@ -139,7 +137,7 @@ def evaluation_scenes(experiment: Experiment, views: ViewChooser | None = None
     evaluation index, else the deterministic sampler's inputs and `novel_targets`.
   """
   index = _load_index(experiment)
-  source = _test_source(experiment, index)
+  source, _ = _test_source(experiment, index)
   count = len(source) if experiment.eval.num_scenes <= 0 else min(experiment.eval.num_scenes,
                                                                    len(source))
   config = example_config(experiment, training=False)

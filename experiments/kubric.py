@@ -4,7 +4,7 @@
     python -m experiments.kubric finetune paper --data-dir /data/kubric4d \\
         --checkpoint outputs/re10k/paper_4view/params.msgpack
 
-Besides the common results folder (metrics of mean colour / untrained / trained / trained +
+Besides the common results folder (metrics of the baselines / untrained / trained / trained +
 token tuning, grids, PLY, MP4), the evaluation writes `dynamic/`:
 - `in_between_times.png`: one target camera rendered at times between (and at) the input times;
 - `static_dynamic.png`: target | full render | static Gaussians only | dynamic Gaussians only;

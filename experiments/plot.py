@@ -41,6 +41,20 @@ def _label(value: float, ticks: np.ndarray | None = None) -> str:
   return f"{value:.3g}"
 
 
+def _draw_series(draw, points: list[tuple[float, float]], color, *, dashed: bool) -> None:
+  """Line segments (dashed: 5 dashes per segment) and a marker at every pixel point."""
+  for (u0, v0), (u1, v1) in itertools.pairwise(points):
+    if dashed:
+      for t0 in np.arange(0.0, 1.0, 0.2):
+        t1 = t0 + 0.1
+        draw.line([u0 + t0 * (u1 - u0), v0 + t0 * (v1 - v0), u0 + t1 * (u1 - u0),
+                   v0 + t1 * (v1 - v0)], fill=color, width=2)
+    else:
+      draw.line([u0, v0, u1, v1], fill=color, width=2)
+  for u, v in points:
+    draw.ellipse([u - 3, v - 3, u + 3, v + 3], fill=color)
+
+
 def line_plot(path, series: dict[str, tuple[Sequence[float], Sequence[float]]], *, title: str,
               xlabel: str, ylabel: str, log_x: bool = False, size: tuple[int, int] = (640, 420),
               dashed: Sequence[str] = ()) -> pathlib.Path:
@@ -103,17 +117,8 @@ def line_plot(path, series: dict[str, tuple[Sequence[float], Sequence[float]]], 
   for index, (name, (xs, ys)) in enumerate(clean.items()):
     color = PALETTE[index % len(PALETTE)]
     order = np.argsort(xs)
-    points = [to_pixel(x, y) for x, y in zip(xs[order], ys[order])]
-    for (u0, v0), (u1, v1) in itertools.pairwise(points):
-      if name in dashed:
-        for t0 in np.arange(0.0, 1.0, 0.2):
-          t1 = t0 + 0.1
-          draw.line([u0 + t0 * (u1 - u0), v0 + t0 * (v1 - v0), u0 + t1 * (u1 - u0),
-                     v0 + t1 * (v1 - v0)], fill=color, width=2)
-      else:
-        draw.line([u0, v0, u1, v1], fill=color, width=2)
-    for u, v in points:
-      draw.ellipse([u - 3, v - 3, u + 3, v + 3], fill=color)
+    _draw_series(draw, [to_pixel(x, y) for x, y in zip(xs[order], ys[order])], color,
+                 dashed=name in dashed)
     draw.line([width - right - 150, legend_y + 5, width - right - 130, legend_y + 5], fill=color,
               width=3)
     draw.text((width - right - 125, legend_y), name, fill=(0, 0, 0), font=font)

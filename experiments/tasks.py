@@ -33,9 +33,10 @@ class Task:
     worker processes are forked and forking after JAX has started threads is unsafe."""
     data.data_root(experiment)
 
-  def check_evaluation(self, experiment: Experiment) -> None:
-    """Raises before any work if the held-out data cannot be evaluated (index vs data)."""
-    data.check_evaluation_data(experiment)
+  def check_evaluation(self, experiment: Experiment) -> dict | None:
+    """Raises before any work if the held-out data cannot be evaluated (index vs data); returns
+    facts for metrics.json (how the index matched), None when there is nothing to report."""
+    return data.check_evaluation_data(experiment)
 
   def training_batches(self, experiment: Experiment):
     return iter(data.training_batches(experiment))
@@ -158,13 +159,13 @@ def execute(command: Command, experiment: Experiment, task: Task | None = None,
   task = Task() if task is None else task
   task.prepare(experiment)  # synthetic data only (real data is never written), before JAX starts
   initialize()  # multi-host runs (no-op otherwise); before any other JAX call
-  if command in ("run", "eval"):
-    task.check_evaluation(experiment)  # a bad index fails now, not after training
+  info = {"command": invocation}
+  if command in ("run", "eval"):  # a bad index fails now, not after training
+    info["evaluation_index"] = task.check_evaluation(experiment)
   out = pathlib.Path(experiment.output_dir)
   out.mkdir(parents=True, exist_ok=True)
   writer = results.tensorboard_writer(out)
   started = time.perf_counter()
-  info = {"command": invocation}
   try:
     if command == "eval":
       if not (experiment.checkpoint or experiment.official_checkpoint):
