@@ -81,7 +81,8 @@ class Task:
 
   def extra_visuals(self, experiment: Experiment, config: model.ModelConfig, params,
                     examples: list[evaluation.Scene], writer, step: int) -> dict:
-    """Task-specific pictures; returns facts to add to metrics.json."""
+    """Task-specific pictures (called on the writing process only); returns facts to add to
+    metrics.json."""
     return {}
 
 
@@ -120,8 +121,9 @@ def run_eval(experiment: Experiment, params, *, task: Task, writer=None, step: i
           "experiment": dataclasses.asdict(experiment),
           "devices": [str(d) for d in jax.devices()], **(extra_info or {})}
   _write_pictures(experiment, scored, methods, writer, step)
-  info.update(task.extra_visuals(experiment, experiment.model, params,
-                                 next(iter(test_sets.values())), writer, step))
+  if evaluation.writes_results():  # pictures only: the other processes write nothing
+    info.update(task.extra_visuals(experiment, experiment.model, params,
+                                   next(iter(test_sets.values())), writer, step))
   info["eval_seconds"] = time.perf_counter() - start
   info["total_seconds"] = time.perf_counter() - (start if started is None else started)
   payload = results.write_metrics(experiment.output_dir, scored, info)
