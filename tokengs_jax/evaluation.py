@@ -295,6 +295,14 @@ def _predict(method: Method, batch: dict, render_config) -> tuple[dict, float]:
           "gaussians": gaussians}, seconds
 
 
+def _on_host(prediction: dict) -> dict:
+  """A batch-of-one prediction kept for pictures: rgb / depth / alpha without the batch axis,
+  Gaussians fetched with it ([1] or [1, Vt])."""
+  views = {field: None if prediction[field] is None else prediction[field][0]
+           for field in ("rgb", "depth", "alpha")}
+  return {**views, "gaussians": jax.device_get(prediction["gaussians"])}
+
+
 def evaluate(scenes: Sequence[Scene], methods: Mapping[str, Method], scorer: Scorer, *,
              render_config: splatting.RenderConfig | None = None, keep: int = 0) -> Evaluation:
   """Scores every method on every scene.
@@ -319,11 +327,7 @@ def evaluate(scenes: Sequence[Scene], methods: Mapping[str, Method], scorer: Sco
       scores[name].per_view.append(views)
       scores[name].per_scene.append({"key": key, **{k: float(np.mean(v)) for k, v in views.items()}})
       if position < keep:
-        prediction["rgb"], prediction["gaussians"] = (
-            prediction["rgb"][0], jax.device_get(prediction["gaussians"]))
-        for field in ("depth", "alpha"):
-          prediction[field] = None if prediction[field] is None else prediction[field][0]
-        entry[name] = prediction
+        entry[name] = _on_host(prediction)
     if position < keep:
       kept.append(entry)
   return Evaluation(scores, kept)
