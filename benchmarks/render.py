@@ -100,10 +100,17 @@ def measure(gaussians, height, width, config, repeats):
 def stage_times(gaussians, height, width, config, repeats):
   """Times of each stage under jit: projection + binning, compositing, compositing fwd+bwd."""
   w2c, intr = make_camera(height, width)
-  budget = config.intersection_budget(gaussians.num_gaussians)
-  bin_one = jax.jit(lambda g: pipeline._project_and_bin(
-      g, w2c[0], intr[0], 0.025, 125.0, height=height, width=width, config=config, budget=budget))
-  camera = jax.tree.map(lambda x: x[None], bin_one(gaussians))
+  tiles = -(-height // config.tile_size) * -(-width // config.tile_size)
+  ladder = config.budget_ladder(gaussians.num_gaussians, tiles)
+
+  def project_and_bin(g):
+    camera = jax.tree.map(lambda x: x[None], pipeline._project(
+        g, w2c[0], intr[0], 0.025, 125.0, height=height, width=width, config=config))
+    return camera._replace(bins=pipeline._bin(camera, height=height, width=width, config=config,
+                                              ladder=ladder))
+
+  bin_one = jax.jit(project_and_bin)
+  camera = bin_one(gaussians)
   tiling = rasterize.Tiling(height, width, config.tile_size, -(-width // config.tile_size),
                             -(-height // config.tile_size), 1, config.chunk_size,
                             config.tiles_per_step, config.max_alpha, config.alpha_threshold,

@@ -5,13 +5,14 @@ import functools
 import hypothesis
 import hypothesis.strategies as st
 import jax
+import jax.extend.core as jax_core
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import FIXTURES
 
 from tokengs_jax.gaussians import Gaussians
-from tokengs_jax.splatting import RenderConfig, binning, render
+from tokengs_jax.splatting import RenderConfig, binning, exact, render
 from tokengs_jax.splatting.reference import render_dense
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
@@ -264,3 +265,132 @@ def test_min_sigma_over_tile_is_the_minimum_over_its_pixels(seed):
     assert bound[i] <= sigma.min() * (1 + 1e-4) + 1e-4, i
     inside = cols[0] <= means[i, 0] <= cols[-1] and rows[0] <= means[i, 1] <= rows[-1]
     assert (bound[i] == 0) == inside, i  # zero only where the mean lies inside the pixel rectangle
+
+
+# ---- exactness: render_exact re-renders what overflowed ------------------------------------------
+
+def _crowded_scene(num=64, seed=3):
+  """Half-transparent Gaussians spread over the image: many tiles each, no pixel saturates."""
+  rng = np.random.default_rng(seed)
+  return Gaussians(
+      means=rng.uniform([-1.0, -0.8, -0.5], [1.0, 0.8, 0.5], (num, 3)).astype(np.float32),
+      opacities=np.full(num, 0.05, np.float32),
+      scales=rng.uniform(0.2, 0.4, (num, 3)).astype(np.float32),
+      quats=rng.normal(size=(num, 4)).astype(np.float32),
+      colors=rng.uniform(0, 1, (num, 3)).astype(np.float32))
+
+
+def test_render_exact_rerenders_an_overflowing_scene(monkeypatch):
+  g = _crowded_scene()
+  tight = RenderConfig(max_intersections=64, chunk_size=8)
+  cut = render(g, W2C[None], INTR[None], height=HEIGHT, width=WIDTH, config=tight)
+  assert bool(cut.stats.overflow[0]) and int(cut.stats.num_intersections[0]) > 64
+  calls = []
+  monkeypatch.setattr(exact, "render", lambda *a, **k: calls.append(k["config"]) or render(*a, **k))
+  out = exact.render_exact(g, W2C[None], INTR[None], height=HEIGHT, width=WIDTH, config=tight)
+  assert len(calls) == 2 and not bool(out.stats.overflow[0]) and not bool(out.stats.truncated[0])
+  rgb, alpha, _ = render_dense(jax.tree.map(jnp.asarray, g), W2C, INTR, height=HEIGHT, width=WIDTH)
+  np.testing.assert_allclose(out.rgb[0], rgb, atol=1e-5)
+  np.testing.assert_allclose(out.alpha[0], alpha, atol=1e-5)
+  assert float(jnp.max(jnp.abs(cut.rgb[0] - rgb))) > 1e-3  # the tight render was wrong
+  # the learnt budget is where the next call of these shapes starts: one render
+  again = exact.render_exact(g, W2C[None], INTR[None], height=HEIGHT, width=WIDTH, config=tight)
+  assert len(calls) == 3 and calls[-1] == calls[1]
+  np.testing.assert_array_equal(again.rgb, out.rgb)
+
+
+def test_render_exact_refuses_transformations_and_impossible_budgets(monkeypatch):
+  g = _crowded_scene()
+  with pytest.raises(TypeError, match="outside|cannot run under"):
+    jax.jit(lambda g: exact.render_exact(g, W2C[None], INTR[None], height=HEIGHT,
+                                         width=WIDTH).rgb)(g)
+  monkeypatch.setattr(exact, "BUDGET_LIMIT", 100)
+  with pytest.raises(exact.RenderBudgetError, match="BUDGET_LIMIT"):
+    exact.render_exact(g, W2C[None], INTR[None], height=HEIGHT, width=WIDTH,
+                       config=RenderConfig(max_intersections=64, chunk_size=8, tile_size=8))
+
+
+def test_budget_ladder_sorts_small_scenes_in_a_small_buffer():
+  config = RenderConfig()
+  assert config.budget_ladder(65536, 256) == (262144, 524288, 1048576)
+  assert config.budget_ladder(100, 256) == (4096,)  # small scenes: one size
+  assert config.intersection_budget(100, 4) == 416  # never above N x tiles (chunk multiple)
+  # whichever ladder step a scene is binned at, the image is the same
+  g = random_scene(5)
+  tiles = 3 * 4
+  ladder = RenderConfig(min_intersections=32, chunk_size=8)
+  single = RenderConfig(min_intersections=NUM * tiles, chunk_size=8)
+  assert len(ladder.budget_ladder(NUM, tiles)) == 3 and len(single.budget_ladder(NUM, tiles)) == 1
+  a = render(g, W2C[None], INTR[None], height=HEIGHT, width=WIDTH, config=ladder)
+  b = render(g, W2C[None], INTR[None], height=HEIGHT, width=WIDTH, config=single)
+  assert int(a.stats.num_intersections[0]) <= ladder.budget_ladder(NUM, tiles)[1]  # a lower step
+  assert not bool(a.stats.truncated[0])
+  np.testing.assert_array_equal(a.rgb, b.rgb)
+  np.testing.assert_array_equal(a.depth, b.depth)
+
+
+# ---- precision: every dot of the renderer (and losses / metrics) at full float32 ----------------
+
+def _dot_precisions(jaxpr):
+  """Precision of every dot_general / conv in a closed jaxpr, sub-jaxprs included."""
+  found = []
+  for eqn in jaxpr.eqns:
+    if eqn.primitive.name in ("dot_general", "conv_general_dilated"):
+      found.append(eqn.params["precision"])
+    for value in eqn.params.values():
+      for sub in (value if isinstance(value, (tuple, list)) else (value,)):
+        if isinstance(sub, jax_core.ClosedJaxpr):
+          found += _dot_precisions(sub.jaxpr)
+        elif isinstance(sub, jax_core.Jaxpr):
+          found += _dot_precisions(sub)
+  return found
+
+
+def test_renderer_losses_and_metrics_pin_full_float32_matmuls():
+  from tokengs_jax import losses, metrics
+  highest = (jax.lax.Precision.HIGHEST, jax.lax.Precision.HIGHEST)
+  g = random_scene(0)
+  images = jnp.zeros((1, HEIGHT, WIDTH, 3))
+
+  def loss(g):
+    out = render(g, W2C[None], INTR[None], height=HEIGHT, width=WIDTH)
+    config = losses.LossConfig(lambda_ssim=0.2, lambda_vis=0.0)
+    value, _ = losses.render_loss(out.rgb, images, config)
+    vis = losses.visibility_loss(g.means, W2C[None], INTR[None], HEIGHT, WIDTH)
+    return value + vis + metrics.ssim(out.rgb, images).sum()
+
+  precisions = _dot_precisions(jax.make_jaxpr(jax.grad(loss))(g).jaxpr)
+  assert len(precisions) >= 10  # projection, compositor forward and backward, SSIM, visibility
+  assert all(p == highest for p in precisions), precisions
+
+
+# ---- input validation (trace time, ValueError naming the argument) -------------------------------
+
+@pytest.mark.parametrize("change, match", [
+    (dict(intrinsics=INTR[None, :3]), "intrinsics must be"),
+    (dict(intrinsics=np.eye(3, dtype=np.float32), world_to_camera=np.stack([W2C] * 3)),
+     "3x3 K"),
+    (dict(world_to_camera=W2C), "view axis"),
+    (dict(intrinsics=np.stack([INTR] * 2)), "number of views"),
+    (dict(colors=np.zeros((NUM, 4), np.float32)), r"Gaussians.colors must be \[..., N, 3\]"),
+    (dict(opacities=np.zeros((NUM, 1), np.float32)), "Gaussians.opacities"),
+    (dict(scales=np.zeros((NUM - 1, 3), np.float32)), "N = "),
+    (dict(height=0), "height must be a positive int"),
+    (dict(width=-3), "width must be a positive int"),
+    (dict(height=40.0), "height must be a positive int"),
+    (dict(background=np.zeros(4, np.float32)), "background"),
+])
+def test_render_refuses_bad_inputs_by_name(change, match):
+  g = random_scene(0)
+  fields = {name: change.pop(name) for name in FIELDS if name in change}
+  args = dict(gaussians=Gaussians(**{**vars(g), **fields}), world_to_camera=W2C[None],
+              intrinsics=INTR[None], height=HEIGHT, width=WIDTH)
+  args.update(change)
+  with pytest.raises(ValueError, match=match):
+    render(**args)
+
+
+@pytest.mark.parametrize("knob", ["tile_size", "chunk_size", "tiles_per_step"])
+def test_render_config_refuses_non_positive_sizes(knob):
+  with pytest.raises(ValueError, match=knob):
+    RenderConfig(**{knob: 0})

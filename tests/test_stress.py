@@ -299,3 +299,36 @@ def test_bfloat16_inputs_compute_in_float32():
   grads = jax.grad(lambda g: jnp.sum(render(g, W2C[None], INTR[None], height=H, width=W).rgb))(g16)
   assert grads.means.dtype == jnp.bfloat16
   assert np.all(np.isfinite(np.asarray(grads.means, np.float32)))
+
+
+# ---- non-finite values stay local ----------------------------------------------------------------
+
+def _four_gaussians():
+  return dict(means=[[0, 0, 2.0], [0.1, 0.1, 3.0], [-0.2, 0.1, 4.0], [0.3, -0.2, 5.0]],
+              opacities=[0.5, 0.6, 0.7, 0.8], scales=[[0.3] * 3] * 4,
+              colors=[[0.9, 0.1, 0.1], [0.1, 0.9, 0.1], [0.1, 0.1, 0.9], [0.5, 0.5, 0.5]])
+
+
+@pytest.mark.parametrize("field, value", [("colors", np.nan), ("means", np.nan),
+                                          ("scales", np.inf), ("quats", np.nan),
+                                          ("opacities", np.nan)])
+def test_a_non_finite_gaussian_is_absent_and_its_gradient_zero(field, value):
+  # Gaussian 0 is the nearest and covers the middle tiles: were its NaN to leak, whole tiles
+  # (forward) or every Gaussian's gradient (backward) would turn NaN.
+  fields = _four_gaussians()
+  fields["quats"] = [[1.0, 0, 0, 0]] * 4
+  bad = {name: np.array(v, np.float32) for name, v in fields.items()}
+  bad[field][0] = value
+  absent = {name: np.array(v, np.float32) for name, v in fields.items()}
+  absent["opacities"][0] = 0.0  # the reference: Gaussian 0 culled by opacity
+  out, grads = run(scene(**bad))
+  ref, ref_grads = run(scene(**absent))
+  assert int(out.stats.num_culled_nonfinite) == 1
+  for leaf in jax.tree.leaves((out.rgb, out.alpha, out.depth, grads)):
+    assert np.all(np.isfinite(leaf))
+  np.testing.assert_allclose(out.rgb, ref.rgb, atol=1e-6)
+  np.testing.assert_allclose(out.depth, ref.depth, atol=1e-5)
+  for name in ("means", "opacities", "scales", "quats", "colors"):
+    np.testing.assert_allclose(getattr(grads, name)[1:], getattr(ref_grads, name)[1:], rtol=1e-5,
+                               atol=1e-6)
+    np.testing.assert_array_equal(getattr(grads, name)[0], 0.0)

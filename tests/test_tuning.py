@@ -6,7 +6,15 @@ import numpy as np
 import pytest
 
 from tokengs_jax.gaussians import Gaussians
-from tokengs_jax.tuning import TuningConfig, _constrained, _offset, _unconstrained, tune
+from tokengs_jax.splatting import RenderConfig, larger_budget
+from tokengs_jax.tuning import (
+    TuningConfig,
+    _constrained,
+    _offset,
+    _tune_once,
+    _unconstrained,
+    tune,
+)
 
 HEIGHT = WIDTH = 32
 
@@ -107,3 +115,22 @@ def test_dynamic_tuning_decodes_at_each_views_time():
   means = np.asarray(result.gaussians.means)
   np.testing.assert_allclose(means[:, 1, :static], means[:, 0, :static], rtol=1e-6, atol=1e-7)
   assert np.abs(means[:, 1, static:] - means[:, 0, static:]).max() > 1e-3
+
+
+def test_overflowing_tuning_renders_are_redone_with_a_larger_budget(tiny):
+  # 32x32 views are 4 tiles: 4 N pairs hold every Gaussian in every tile, a quarter of it does
+  # not (the tiny model's initial Gaussians cover the views with low opacity: nothing saturates).
+  config, params = tiny
+  settings = TuningConfig(target="gaussians", steps=2, gaussian_learning_rate=1e-2)
+  tight = RenderConfig(max_intersections=config.num_gaussians, chunk_size=32)
+  ample = larger_budget(tight, config.num_gaussians, HEIGHT, WIDTH)
+  assert ample.max_intersections == 4 * config.num_gaussians  # no scene can overflow it
+  kwargs = dict(model_config=config, tuning=settings)
+  cut, overflowed = _tune_once(params, *scene(), render_config=tight, **kwargs)
+  full, full_overflowed = _tune_once(params, *scene(), render_config=ample, **kwargs)
+  assert bool(overflowed) and not bool(full_overflowed)
+  # the truncated renders steered the tuning elsewhere
+  assert np.abs(np.asarray(cut.gaussians.means - full.gaussians.means)).max() > 1e-5
+  result = tune(params, *scene(), render_config=tight, **kwargs)
+  np.testing.assert_array_equal(result.losses, full.losses)
+  jax.tree.map(np.testing.assert_array_equal, result.gaussians, full.gaussians)

@@ -14,6 +14,7 @@ import importlib
 _PUBLIC = {
     "Gaussians": "tokengs_jax.gaussians",
     "render": "tokengs_jax.splatting",
+    "render_exact": "tokengs_jax.splatting",
     "RenderConfig": "tokengs_jax.splatting",
     "RenderResult": "tokengs_jax.splatting",
     "plucker_rays": "tokengs_jax.camera",

@@ -10,6 +10,8 @@ import jax.numpy as jnp
 # Channel layout of the official flat tensor: [xyz 3, opacity 1, scale 3, quat 4 (wxyz), rgb 3].
 FLAT_SPLITS = (3, 4, 7, 11)
 FLAT_CHANNELS = 14
+# Trailing shape of each field after its [..., N] axes.
+_FIELD_TAILS = {"means": (3,), "opacities": (), "scales": (3,), "quats": (4,), "colors": (3,)}
 
 
 @jax.tree_util.register_dataclass
@@ -43,6 +45,33 @@ class Gaussians:
     """To the official flat layout.  -> [..., N, 14]."""
     return jnp.concatenate(
         [self.means, self.opacities[..., None], self.scales, self.quats, self.colors], axis=-1)
+
+  def validate(self) -> tuple[int, ...]:
+    """Checks the field shapes and dtypes (trace time: shapes only); returns the batch shape [...].
+
+    Every field must be real-valued with the trailing shape of its docstring and the same N; the
+    batch shapes must broadcast. Raises ValueError naming the field and the expected shape.
+    """
+    num = None
+    batches = []
+    for name, tail in _FIELD_TAILS.items():
+      value = getattr(self, name)
+      shape, dtype = jnp.shape(value), jnp.result_type(value)
+      if not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)):
+        raise ValueError(f"Gaussians.{name} must be real numbers, got dtype {dtype}")
+      expected = "[..., N" + "".join(f", {d}" for d in tail) + "]"
+      if len(shape) < 1 + len(tail) or shape[len(shape) - len(tail):] != tail:
+        raise ValueError(f"Gaussians.{name} must be {expected}, got shape {shape}")
+      field_num = shape[len(shape) - len(tail) - 1]
+      if num is not None and field_num != num:
+        raise ValueError(f"Gaussians.{name} has N = {field_num}, Gaussians.means has N = {num}")
+      num = field_num
+      batches.append(shape[:len(shape) - len(tail) - 1])
+    try:
+      return jnp.broadcast_shapes(*batches)
+    except ValueError:
+      raise ValueError(f"Gaussians fields have batch shapes that do not broadcast: "
+                       f"{dict(zip(_FIELD_TAILS, batches))}") from None
 
   @property
   def num_gaussians(self) -> int:

@@ -109,7 +109,8 @@ def visibility_loss(
   Returns:
     [...] the loss per scene.
   """
-  uv, depth = camera.project_points(means, world_to_camera, intrinsics)  # [...,V,N,2], [...,V,N]
+  with jax.default_matmul_precision("float32"):  # full float32 dots on GPU / TPU too
+    uv, depth = camera.project_points(means, world_to_camera, intrinsics)  # [...,V,N,2], [...,V,N]
   size = jnp.asarray([width, height], uv.dtype)
   uv_normalised = uv / size * 2.0 - 1.0
   outside = jnp.sum(jax.nn.relu(jnp.abs(uv_normalised) - 1.0), axis=-1)  # [..., V, N]

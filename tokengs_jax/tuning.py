@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import logging
 from typing import Literal
 
 import jax
@@ -105,8 +106,6 @@ def _offset(gaussians: Gaussians, offsets: Gaussians) -> Gaussians:
   return _constrained(jax.tree.map(jnp.add, _unconstrained(gaussians), offsets))
 
 
-@functools.partial(jax.jit, static_argnames=("model_config", "tuning", "loss_config",
-                                              "render_config", "objective"))
 def tune(params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array, *, model_config,
          tuning: TuningConfig = TuningConfig(), loss_config=None, render_config=None,
          objective: ObjectiveConfig | None = None, times: jax.Array | None = None,
@@ -119,6 +118,10 @@ def tune(params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array, *, mo
   when `loss_config.lambda_dyn_aux > 0`); tokens / latents are shared by all times, Gaussian
   offsets are time-independent (added to the Gaussians of every time). Without `times` a
   time-conditioned model decodes time-free (no target-time embedding).
+
+  Never computed from a truncated render: if any render inside the tuning loop overflowed its
+  tile budget (`stats.overflow`), the whole run is repeated with a larger budget
+  (`splatting.larger_budget`, 4x each time) until none did. Call it outside jit.
 
   Args:
     params: network parameters (read only).
@@ -138,8 +141,31 @@ def tune(params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array, *, mo
     `TuningResult` (with `tuning.steps == 0`: the feed-forward Gaussians and their loss); its
     Gaussians have batch shape [B], or [B, T] (one set per output time) with `times`.
   """
-  loss_config = losses.LossConfig() if loss_config is None else loss_config
   render_config = splatting.RenderConfig() if render_config is None else render_config
+  while True:
+    result, overflowed = _tune_once(
+        params, images, c2w, intrinsics, model_config=model_config, tuning=tuning,
+        loss_config=loss_config, render_config=render_config, objective=objective, times=times,
+        output_times=output_times)
+    if isinstance(overflowed, jax.core.Tracer):
+      raise TypeError("tune re-runs overflowing renders from the host: call it outside "
+                      "jit/vmap/grad")
+    if not bool(overflowed):
+      return result
+    render_config = splatting.larger_budget(render_config, result.gaussians.num_gaussians,
+                                            images.shape[-3], images.shape[-2])
+    logging.info("tune: a render overflowed its tile budget; tuning again with "
+                 "max_intersections=%d", render_config.max_intersections)
+
+
+@functools.partial(jax.jit, static_argnames=("model_config", "tuning", "loss_config",
+                                              "render_config", "objective"))
+def _tune_once(params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array, *, model_config,
+               tuning: TuningConfig = TuningConfig(), loss_config=None, render_config=None,
+               objective: ObjectiveConfig | None = None, times: jax.Array | None = None,
+               output_times: jax.Array | None = None) -> tuple[TuningResult, jax.Array]:
+  """`tune` at one render budget; also returns whether any of its renders overflowed ([] bool)."""
+  loss_config = losses.LossConfig() if loss_config is None else loss_config
   objective = ObjectiveConfig() if objective is None else objective
   timed = times is not None
   if timed and not model_config.time_embedding:
@@ -199,9 +225,13 @@ def tune(params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array, *, mo
       return time_conditioned_loss(
           lambda t: gaussians_of(v, t), times, images, world_to_camera, intrinsics, loss_config,
           render_config, per_view,
-          num_static_gaussians=model_config.num_static_gaussians if with_aux else None)[0]
+          num_static_gaussians=model_config.num_static_gaussians if with_aux else None)
     return supervision_loss(gaussians_of(v), images, world_to_camera, intrinsics, loss_config,
-                            render_config, objective)[0]
+                            render_config, objective)
+
+  def loss_and_overflow(v):
+    loss, terms = loss_of(v)
+    return loss, terms["render_overflow"] > 0
 
   optimizer = optax.multi_transform(
       {name: optax.adam(rate, b1=tuning.b1, b2=tuning.b2) for name, rate in learning_rates.items()},
@@ -209,15 +239,16 @@ def tune(params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array, *, mo
 
   def step(carry, _):
     v, opt_state = carry
-    loss, grads = jax.value_and_grad(loss_of)(v)
+    (loss, overflowed), grads = jax.value_and_grad(loss_and_overflow, has_aux=True)(v)
     updates, opt_state = optimizer.update(grads, opt_state, v)
-    return (optax.apply_updates(v, updates), opt_state), loss
+    return (optax.apply_updates(v, updates), opt_state), (loss, overflowed)
 
-  (variables, _), step_losses = jax.lax.scan(step, (variables, optimizer.init(variables)), None,
-                                             length=tuning.steps)
-  final_loss = loss_of(variables)
+  (variables, _), (step_losses, step_overflows) = jax.lax.scan(
+      step, (variables, optimizer.init(variables)), None, length=tuning.steps)
+  final_loss, final_overflow = loss_and_overflow(variables)
   if timed:
     gaussians = gaussians_of(variables, times if output_times is None else output_times)
   else:
     gaussians = gaussians_of(variables)
-  return TuningResult(gaussians=gaussians, losses=jnp.append(step_losses, final_loss))
+  return (TuningResult(gaussians=gaussians, losses=jnp.append(step_losses, final_loss)),
+          jnp.any(step_overflows) | final_overflow)

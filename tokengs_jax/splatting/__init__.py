@@ -1,6 +1,8 @@
 """Differentiable tile-based Gaussian splatting (gsplat 1.5.3 semantics) in jax.numpy."""
 
 from tokengs_jax.splatting.config import RenderConfig, RenderResult, RenderStats
-from tokengs_jax.splatting.pipeline import render, scene_budget_hint
+from tokengs_jax.splatting.exact import RenderBudgetError, larger_budget, render_exact
+from tokengs_jax.splatting.pipeline import render
 
-__all__ = ["RenderConfig", "RenderResult", "RenderStats", "render", "scene_budget_hint"]
+__all__ = ["RenderBudgetError", "RenderConfig", "RenderResult", "RenderStats", "larger_budget",
+           "render", "render_exact"]

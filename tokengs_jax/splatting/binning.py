@@ -47,6 +47,16 @@ def tile_rectangles(means2d, radii, *, tile_size, tiles_x, tiles_y):
   return lo[:, 0], hi[:, 0], lo[:, 1], hi[:, 1]
 
 
+def box_counts(means2d, radii, visible, *, tile_size, tiles_x, tiles_y):
+  """Tiles covered by each visible Gaussian's radius box (gsplat's pair count).
+
+  means2d: [N, 2], radii: [N, 2], visible: [N] -> (counts [N] int32, the four `tile_rectangles`).
+  """
+  x0, x1, y0, y1 = tile_rectangles(means2d, radii, tile_size=tile_size, tiles_x=tiles_x,
+                                   tiles_y=tiles_y)
+  return jnp.where(visible, (x1 - x0) * (y1 - y0), 0), (x0, x1, y0, y1)
+
+
 def min_sigma_over_tile(means2d, conics, tile_x, tile_y, *, tile_size, height, width):
   """Lower bound of sigma = a dx²/2 + b dx dy + c dy²/2 over the pixel centres of a tile.
 
@@ -98,8 +108,8 @@ def bin_gaussians(means2d, radii, depths, visible, conics, opacities, *, tile_si
   num_tiles = tiles_x * tiles_y
   means2d, radii, depths, conics, opacities = jax.lax.stop_gradient(
       (means2d, radii, depths, conics, opacities))
-  x0, x1, y0, y1 = tile_rectangles(means2d, radii, tile_size=tile_size, tiles_x=tiles_x, tiles_y=tiles_y)
-  counts = jnp.where(visible, (x1 - x0) * (y1 - y0), 0)
+  counts, (x0, x1, y0, y1) = box_counts(means2d, radii, visible, tile_size=tile_size,
+                                        tiles_x=tiles_x, tiles_y=tiles_y)
 
   order = jnp.argsort(jnp.where(visible, depths, jnp.inf), stable=True)  # rank -> Gaussian
   counts_by_rank = counts[order]

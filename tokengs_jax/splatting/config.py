@@ -4,8 +4,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 
 import jax
+
+# Every matmul / einsum of the renderer asks for full float32: on GPU / TPU the default precision
+# may run float32 dots as TF32 / bf16 passes, which is visible at gsplat-parity tolerances.
+PRECISION = jax.lax.Precision.HIGHEST
 
 
 @dataclasses.dataclass(frozen=True)
@@ -26,13 +31,13 @@ class RenderConfig:
       tiles_per_step x tile_size^2 x chunk_size.
     tiles_per_step: tiles composited per loop step, taken from a compacted list of the tiles that
       still have work (finished and empty tiles cost nothing); capped at the number of tiles.
-    intersections_per_gaussian: default (Gaussian, tile) budget is this times N (at least
-      `min_intersections`); exceeding it drops the farthest Gaussians' tiles and sets
+    intersections_per_gaussian: the (Gaussian, tile) budget is this times N (at least
+      `min_intersections`); a scene needing more has its farthest Gaussians' tiles cut, which sets
       `stats.truncated`, and `stats.overflow` where that can change a pixel (see RenderStats).
-      Binning cost grows with the budget (one sort of B keys). Dense scenes need little: a tile's
-      list only has to reach its pixels' saturation (BUILD_NOTES.md has the measurements).
+      Binning only pays for what a scene uses: the buffer is sorted at the smallest of B/4, B/2, B
+      that holds the scene's pairs (docs/notes/renderer.md has the measurements).
     min_intersections: floor of the default budget (small scenes, few Gaussians, large tiles).
-    max_intersections: explicit budget; overrides the two above when set.
+    max_intersections: explicit budget; overrides the two above when set (`render_exact` sets it).
   """
 
   tile_size: int = 16
@@ -43,17 +48,49 @@ class RenderConfig:
   transmittance_stop: float = 1e-4
   chunk_size: int = 32
   tiles_per_step: int = 32
-  intersections_per_gaussian: float = 8.0
+  intersections_per_gaussian: float = 16.0
   min_intersections: int = 4096
   max_intersections: int | None = None
 
-  def intersection_budget(self, num_gaussians: int) -> int:
-    """Static size of the (Gaussian, tile) intersection buffer for N Gaussians (a chunk multiple)."""
+  def __post_init__(self):
+    for name in ("tile_size", "chunk_size", "tiles_per_step"):
+      value = getattr(self, name)
+      if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value <= 0:
+        raise ValueError(f"RenderConfig.{name} must be a positive int, got {value!r}")
+    if not self.intersections_per_gaussian > 0:
+      raise ValueError("RenderConfig.intersections_per_gaussian must be > 0, got "
+                       f"{self.intersections_per_gaussian!r}")
+    if self.max_intersections is not None and self.max_intersections <= 0:
+      raise ValueError(f"RenderConfig.max_intersections must be None or > 0, got "
+                       f"{self.max_intersections!r}")
+    if not 0 < self.max_alpha <= 1 or not 0 <= self.alpha_threshold < 1:
+      raise ValueError("RenderConfig needs 0 < max_alpha <= 1 and 0 <= alpha_threshold < 1, got "
+                       f"{self.max_alpha!r}, {self.alpha_threshold!r}")
+
+  def intersection_budget(self, num_gaussians: int, num_tiles: int | None = None) -> int:
+    """Static size of the (Gaussian, tile) buffer for N Gaussians (a chunk multiple).
+
+    With `num_tiles` (tiles per image) it is capped at N x tiles, which no scene can exceed.
+    """
     if self.max_intersections is not None:
       budget = self.max_intersections
     else:
       budget = max(self.min_intersections, math.ceil(self.intersections_per_gaussian * num_gaussians))
-    return max(self.chunk_size, -(-budget // self.chunk_size) * self.chunk_size)
+    if num_tiles is not None:
+      budget = min(budget, max(1, num_gaussians) * num_tiles)
+    return self._chunks(budget)
+
+  def budget_ladder(self, num_gaussians: int, num_tiles: int | None = None) -> tuple[int, ...]:
+    """Ascending buffer sizes binning may sort at, the largest the budget: B/4, B/2, B.
+
+    Steps below `min_intersections` collapse into one, so small scenes compile a single size.
+    """
+    budget = self.intersection_budget(num_gaussians, num_tiles)
+    floor = min(budget, self._chunks(self.min_intersections))
+    return tuple(sorted({max(floor, self._chunks(budget // 2**k)) for k in range(3)}))
+
+  def _chunks(self, size: int) -> int:
+    return max(self.chunk_size, -(-size // self.chunk_size) * self.chunk_size)
 
 
 @jax.tree_util.register_dataclass
@@ -61,8 +98,9 @@ class RenderConfig:
 class RenderStats:
   """Per-camera counters (each [..., V] int32, `overflow` bool).
 
-  A Gaussian is counted under the first rule that culls it, in gsplat's order: depth (centre z
-  outside [near, far]), degenerate (2D covariance determinant <= 0 or zero radius), opacity
+  A Gaussian is counted under the first rule that culls it: non-finite (a NaN or inf in any of
+  its fields: it is rendered as absent and gets a zero gradient, see `render`), then gsplat's
+  order: depth (centre z outside [near, far]), degenerate (2D covariance determinant <= 0 or zero radius), opacity
   (< alpha_threshold), frustum (its radius box misses the image). `num_visible` are the rest.
   `num_intersections` is the number of (Gaussian, tile) pairs the scene's radius boxes need;
   `budget` the static buffer size; `truncated` is True when the first exceeded the second (the
@@ -72,6 +110,7 @@ class RenderStats:
   `tile_chunks` is the number of (tile, chunk) blocks composited (early stop diagnostic).
   """
 
+  num_culled_nonfinite: jax.Array
   num_culled_depth: jax.Array
   num_culled_degenerate: jax.Array
   num_culled_opacity: jax.Array

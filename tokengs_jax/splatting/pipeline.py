@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
+import numbers
 from typing import NamedTuple
 
 import jax
@@ -34,27 +36,79 @@ class _Camera(NamedTuple):
 
   proj: projection.Projected
   attrs: jax.Array  # [N, 6 + 4] compositor attributes (geometry, rgb, depth)
-  bins: binning.TileBins | None  # None for an empty scene
+  box_pairs: jax.Array  # [] int32 (Gaussian, tile) pairs of the radius boxes
+  bins: binning.TileBins | None  # None until binned, and for an empty scene
 
 
-def _project_and_bin(gaussians: Gaussians, world_to_camera, intrinsics, near, far, *, height: int,
-                     width: int, config: RenderConfig, budget: int) -> _Camera:
-  """One scene [N] seen by one camera (w2c [4, 4], intrinsics [4]): projection, culling, bins."""
+def _finite_or_absent(gaussians: Gaussians) -> tuple[Gaussians, jax.Array]:
+  """Replaces Gaussians with a NaN / inf in any field by a transparent stand-in.
+
+  The double-where keeps a bad Gaussian local: every later op sees finite numbers, so the
+  backward has no 0 * NaN to spread into its neighbours' gradients, and its own gradient is 0.
+  gaussians: one scene [N] -> (sanitised Gaussians [N], finite [N] bool).
+  """
+  finite = jnp.all(jnp.isfinite(gaussians.means), axis=-1) & jnp.isfinite(gaussians.opacities)
+  for field in (gaussians.scales, gaussians.quats, gaussians.colors):
+    finite &= jnp.all(jnp.isfinite(field), axis=-1)
+  stand_in = Gaussians(means=jnp.zeros_like(gaussians.means),
+                       opacities=jnp.zeros_like(gaussians.opacities),
+                       scales=jnp.ones_like(gaussians.scales),
+                       quats=jnp.zeros_like(gaussians.quats).at[:, 0].set(1.0),
+                       colors=jnp.zeros_like(gaussians.colors))
+  pick = lambda good, bad: jnp.where(finite.reshape(finite.shape + (1,) * (good.ndim - 1)), good, bad)
+  return jax.tree.map(pick, gaussians, stand_in), finite
+
+
+def _project(gaussians: Gaussians, world_to_camera, intrinsics, near, far, *, height: int,
+             width: int, config: RenderConfig) -> _Camera:
+  """One scene [N] seen by one camera (w2c [4, 4], intrinsics [4]): projection and culling."""
+  gaussians, finite = _finite_or_absent(gaussians)
   proj = projection.project_gaussians(
       gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, world_to_camera,
       intrinsics, height=height, width=width, near=near, far=far, eps2d=config.eps2d,
       radius_sigmas=config.radius_sigmas, alpha_threshold=config.alpha_threshold)
+  proj = dataclasses.replace(
+      proj, cull_code=jnp.where(finite, proj.cull_code, projection.CULLED_NONFINITE),
+      radii=jnp.where(finite[:, None], proj.radii, 0.0))
   attrs = jnp.concatenate([proj.means2d, proj.conics, gaussians.opacities[:, None],
                            gaussians.colors, proj.depths[:, None]], axis=-1)
-  bins = None
-  if gaussians.num_gaussians:
-    tiles_x, tiles_y = -(-width // config.tile_size), -(-height // config.tile_size)
-    bins = binning.bin_gaussians(proj.means2d, proj.radii, proj.depths,
-                                 proj.cull_code == projection.VISIBLE, proj.conics,
-                                 gaussians.opacities, tile_size=config.tile_size, tiles_x=tiles_x,
-                                 tiles_y=tiles_y, height=height, width=width,
-                                 alpha_threshold=config.alpha_threshold, budget=budget)
-  return _Camera(proj, attrs, bins)
+  counts, _ = binning.box_counts(proj.means2d, proj.radii, proj.cull_code == projection.VISIBLE,
+                                 tile_size=config.tile_size, tiles_x=-(-width // config.tile_size),
+                                 tiles_y=-(-height // config.tile_size))
+  return _Camera(proj, attrs, jnp.sum(counts), None)
+
+
+def _bin(cameras: _Camera, *, height: int, width: int, config: RenderConfig,
+         ladder: tuple[int, ...]) -> binning.TileBins:
+  """Tile lists of C cameras [C, ...], sorted at the smallest ladder size that holds them all.
+
+  Sorting dominates binning and grows with the buffer, so a scene needing few pairs sorts a small
+  buffer; the lists are then padded to the full budget (the compositor never reads the padding).
+  Under `jax.vmap(render)` the switch turns into running every size (correct, slower).
+  """
+  budget = ladder[-1]
+
+  def bin_at(size):
+    def bin_one(camera):
+      proj = camera.proj
+      return binning.bin_gaussians(
+          proj.means2d, proj.radii, proj.depths, proj.cull_code == projection.VISIBLE, proj.conics,
+          camera.attrs[:, rasterize.OPACITY], tile_size=config.tile_size,
+          tiles_x=-(-width // config.tile_size), tiles_y=-(-height // config.tile_size),
+          height=height, width=width, alpha_threshold=config.alpha_threshold, budget=size)
+
+    def run(cameras):
+      bins = jax.vmap(bin_one)(cameras)
+      ids = jnp.pad(bins.gaussian_ids, ((0, 0), (0, budget - size)))
+      return dataclasses.replace(bins, gaussian_ids=ids)
+    return run
+
+  branches = [bin_at(size) for size in ladder]
+  if len(branches) == 1:
+    return branches[0](cameras)
+  needed = jnp.max(cameras.box_pairs)
+  step = jnp.sum(needed > jnp.asarray(ladder[:-1], needed.dtype))
+  return jax.lax.switch(step, branches, cameras)
 
 
 def _composite(cameras: _Camera, *, height: int, width: int, config: RenderConfig, budget: int):
@@ -107,6 +161,7 @@ def _finish(cameras: _Camera, accum, transmittance, tile_chunks, lossy, backgrou
   else:
     num_intersections = cameras.bins.num_intersections
   stats = RenderStats(
+      num_culled_nonfinite=count(projection.CULLED_NONFINITE),
       num_culled_depth=count(projection.CULLED_DEPTH),
       num_culled_degenerate=count(projection.CULLED_DEGENERATE),
       num_culled_opacity=count(projection.CULLED_OPACITY),
@@ -122,6 +177,50 @@ def _finish(cameras: _Camera, accum, transmittance, tile_chunks, lossy, backgrou
                       radii=proj.radii.astype(jnp.int32), depths=proj.depths, stats=stats)
 
 
+def _positive_int(name: str, value) -> None:
+  if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value <= 0:
+    raise ValueError(f"render: {name} must be a positive int, got {value!r}")
+
+
+def _check_inputs(gaussians: Gaussians, world_to_camera, intrinsics, background, height,
+                  width) -> tuple[int, ...]:
+  """Trace-time checks of `render`'s arguments; returns the broadcast batch shape [...]."""
+  _positive_int("height", height)
+  _positive_int("width", width)
+  scene_batch = gaussians.validate()
+  w2c_shape, intr_shape = jnp.shape(world_to_camera), jnp.shape(intrinsics)
+  for name, value in (("world_to_camera", world_to_camera), ("intrinsics", intrinsics)):
+    dtype = jnp.result_type(value)
+    if not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)):
+      raise ValueError(f"render: {name} must be real numbers, got dtype {dtype}")
+  if len(w2c_shape) < 3 or w2c_shape[-2:] != (4, 4):
+    hint = " (one pose needs a view axis: world_to_camera[None])" if w2c_shape == (4, 4) else ""
+    raise ValueError(f"render: world_to_camera must be [..., V, 4, 4], got shape {w2c_shape}{hint}")
+  if len(intr_shape) < 2 or intr_shape[-1] != 4:
+    hint = (" (a 3x3 K matrix? pass (fx, fy, cx, cy) = K[0, 0], K[1, 1], K[0, 2], K[1, 2])"
+            if intr_shape[-2:] == (3, 3) else "")
+    raise ValueError(f"render: intrinsics must be [..., V, 4] (fx, fy, cx, cy), got shape "
+                     f"{intr_shape}{hint}")
+  if intr_shape[-2] != w2c_shape[-3]:
+    raise ValueError(f"render: intrinsics {intr_shape} and world_to_camera {w2c_shape} disagree "
+                     f"on the number of views V")
+  try:
+    batch = jnp.broadcast_shapes(scene_batch, w2c_shape[:-3], intr_shape[:-2])
+  except ValueError:
+    raise ValueError(f"render: batch shapes do not broadcast: gaussians {scene_batch}, "
+                     f"world_to_camera {w2c_shape[:-3]}, intrinsics {intr_shape[:-2]}") from None
+  if background is not None:
+    bg_shape = jnp.shape(background)
+    try:
+      if bg_shape[-1:] != (3,):
+        raise ValueError
+      jnp.broadcast_shapes(bg_shape, batch + (w2c_shape[-3], 3))
+    except ValueError:
+      raise ValueError(f"render: background must be None, [3] or [..., V, 3] for batch {batch} "
+                       f"and V = {w2c_shape[-3]}, got shape {bg_shape}") from None
+  return batch
+
+
 @functools.partial(jax.jit, static_argnames=("height", "width", "config"))
 def render(gaussians: Gaussians, world_to_camera: jax.Array, intrinsics: jax.Array, *, height: int,
            width: int, background: jax.Array | None = None, near: float = 0.025, far: float = 125.0,
@@ -133,13 +232,21 @@ def render(gaussians: Gaussians, world_to_camera: jax.Array, intrinsics: jax.Arr
   cameras then share one unbatched compositor loop, while a vmap turns its while loops into
   batched ones that copy their whole state every step (measured 2x slower forward+backward).
   Inputs in bf16/f16 are computed in float32, float64 stays float64 (x64), and
-  the outputs come in that compute dtype.
+  the outputs come in that compute dtype. Matmuls run at full float32 precision (`PRECISION`).
+
+  The (Gaussian, tile) buffer has a static size (`config`); a scene that needs more is reported in
+  `stats.overflow`. Inside jit read that flag (training logs it); for a result that must be exact
+  (evaluation, export) call `render_exact` outside jit, which re-renders with a larger buffer.
+
+  Bad values: a Gaussian with a NaN / inf in any field is rendered as absent (counted in
+  `stats.num_culled_nonfinite`) and its gradient is 0; the others render as without it.
+  Shapes, dtypes and sizes are checked at trace time (ValueError naming the argument).
 
   Args:
     gaussians: batch shape [...], N Gaussians.
-    world_to_camera: [..., V, 4, 4] OpenCV world-to-camera poses.
-    intrinsics: [..., V, 4] (fx, fy, cx, cy) in pixels.
-    height, width: image size in pixels.
+    world_to_camera: [..., V, 4, 4] OpenCV world-to-camera poses (the view axis is required).
+    intrinsics: [..., V, 4] (fx, fy, cx, cy) in pixels (not a 3x3 K).
+    height, width: image size in pixels (positive ints).
     background: None (black), [3] or [..., V, 3] colour composited behind the Gaussians.
     near, far: a Gaussian whose centre depth is outside [near, far] is culled.
     config: RenderConfig.
@@ -148,13 +255,12 @@ def render(gaussians: Gaussians, world_to_camera: jax.Array, intrinsics: jax.Arr
     RenderResult with rgb [..., V, H, W, 3], alpha and depth [..., V, H, W, 1], means2d
     [..., V, N, 2], radii [..., V, N, 2], depths [..., V, N] and per-camera stats [..., V].
   """
+  batch = _check_inputs(gaussians, world_to_camera, intrinsics, background, height, width)
   dtype = compute_dtype(gaussians.means.dtype)
   gaussians = jax.tree.map(lambda x: jnp.asarray(x, dtype), gaussians)
   world_to_camera = jnp.asarray(world_to_camera, dtype)
   intrinsics = jnp.asarray(intrinsics, dtype)
   num_views = world_to_camera.shape[-3]
-  batch = jnp.broadcast_shapes(gaussians.batch_shape, world_to_camera.shape[:-3],
-                               intrinsics.shape[:-2])
   if background is None:
     background = jnp.zeros((3,), dtype)
   background = jnp.broadcast_to(jnp.asarray(background, dtype), batch + (num_views, 3))
@@ -166,19 +272,19 @@ def render(gaussians: Gaussians, world_to_camera: jax.Array, intrinsics: jax.Arr
   scenes = Gaussians(means=flat(gaussians.means, 2), opacities=flat(gaussians.opacities, 1),
                      scales=flat(gaussians.scales, 2), quats=flat(gaussians.quats, 2),
                      colors=flat(gaussians.colors, 2))
-  budget = config.intersection_budget(scenes.num_gaussians)
-  one = functools.partial(_project_and_bin, height=height, width=width, config=config, budget=budget)
+  one = functools.partial(_project, height=height, width=width, config=config)
   per_view = jax.vmap(one, in_axes=(None, 0, 0, None, None))
   per_scene = jax.vmap(per_view, in_axes=(0, 0, 0, None, None))
   cameras = per_scene(scenes, flat(world_to_camera, 3), flat(intrinsics, 2), near, far)
-  # [scenes, views] -> one camera axis C for the compositor.
+  # [scenes, views] -> one camera axis C for binning and the compositor.
   cameras = jax.tree.map(lambda x: x.reshape((x.shape[0] * x.shape[1],) + x.shape[2:]), cameras)
-  composited = _composite(cameras, height=height, width=width, config=config, budget=budget)
-  out = _finish(cameras, *composited, background=flat(background, 2).reshape(-1, 3), budget=budget)
+  tiles = -(-height // config.tile_size) * -(-width // config.tile_size)
+  ladder = config.budget_ladder(scenes.num_gaussians, tiles)
+  if scenes.num_gaussians:
+    cameras = cameras._replace(bins=_bin(cameras, height=height, width=width, config=config,
+                                         ladder=ladder))
+  composited = _composite(cameras, height=height, width=width, config=config, budget=ladder[-1])
+  out = _finish(cameras, *composited, background=flat(background, 2).reshape(-1, 3),
+                budget=ladder[-1])
   out = jax.tree.map(lambda x: x.reshape((math.prod(batch), num_views) + x.shape[1:]), out)
   return jax.tree.map(lambda x: x.reshape(batch + x.shape[1:]), out)
-
-
-def scene_budget_hint(num_intersections: int, config: RenderConfig = RenderConfig()) -> int:
-  """An explicit `max_intersections` that fits a measured `stats.num_intersections` with 25% room."""
-  return config.chunk_size * math.ceil(1.25 * num_intersections / config.chunk_size)

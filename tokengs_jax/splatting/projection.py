@@ -8,9 +8,11 @@ import jax
 import jax.numpy as jnp
 
 from tokengs_jax import math as tmath
+from tokengs_jax.splatting.config import PRECISION
 
-# Culling codes, in the order gsplat tests them (the first rule that fires is recorded).
-VISIBLE, CULLED_DEPTH, CULLED_DEGENERATE, CULLED_OPACITY, CULLED_FRUSTUM = range(5)
+# Culling codes, in the order gsplat tests them (the first rule that fires is recorded); `render`
+# marks Gaussians with non-finite fields CULLED_NONFINITE before any of these.
+VISIBLE, CULLED_DEPTH, CULLED_DEGENERATE, CULLED_OPACITY, CULLED_FRUSTUM, CULLED_NONFINITE = range(6)
 
 
 @jax.tree_util.register_dataclass
@@ -36,7 +38,11 @@ class Projected:
 def covariances_3d(quats: jax.Array, scales: jax.Array) -> jax.Array:
   """World covariance R S S^T R^T.  quats: [..., 4] wxyz, scales: [..., 3] -> [..., 3, 3]."""
   basis = tmath.quat_to_rotmat(quats) * scales[..., None, :]  # R @ diag(s)
-  return basis @ jnp.swapaxes(basis, -1, -2)
+  return _matmul(basis, jnp.swapaxes(basis, -1, -2))
+
+
+def _matmul(a, b):
+  return jnp.matmul(a, b, precision=PRECISION)
 
 
 def project_gaussians(means, quats, scales, opacities, world_to_camera, intrinsics, *, height, width,
@@ -54,8 +60,8 @@ def project_gaussians(means, quats, scales, opacities, world_to_camera, intrinsi
     culled Gaussian runs on a safe stand-in and its outputs are masked.
   """
   rot, trans = world_to_camera[:3, :3], world_to_camera[:3, 3]
-  means_cam = means @ rot.T + trans
-  cov_cam = rot @ covariances_3d(quats, scales) @ rot.T
+  means_cam = _matmul(means, rot.T) + trans
+  cov_cam = _matmul(_matmul(rot, covariances_3d(quats, scales)), rot.T)
   x, y, z = means_cam[:, 0], means_cam[:, 1], means_cam[:, 2]
   fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
 
@@ -75,7 +81,7 @@ def project_gaussians(means, quats, scales, opacities, world_to_camera, intrinsi
       jnp.stack([fx * inv_z, zeros, -fx * tx * inv_z * inv_z], axis=-1),
       jnp.stack([zeros, fy * inv_z, -fy * ty * inv_z * inv_z], axis=-1),
   ], axis=-2)  # [N, 2, 3]
-  cov2d = jac @ cov_cam @ jnp.swapaxes(jac, -1, -2) + eps2d * jnp.eye(2, dtype=means.dtype)
+  cov2d = _matmul(_matmul(jac, cov_cam), jnp.swapaxes(jac, -1, -2)) + eps2d * jnp.eye(2, dtype=means.dtype)
   a, b, c = cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]
   det = a * c - b * b
   good_det = in_depth & (det > 0)

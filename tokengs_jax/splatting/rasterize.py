@@ -21,6 +21,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from tokengs_jax.splatting.config import PRECISION
+
 # Columns of the per-Gaussian attribute matrix fed to the compositor.
 MEAN_X, MEAN_Y, CONIC_A, CONIC_B, CONIC_C, OPACITY = range(6)
 NUM_GEOMETRY = 6  # the columns after these are the composited features (rgb, depth)
@@ -101,7 +103,8 @@ def _transmittance(chunk: _Chunk, transmittance, done, tiling) -> _Transmittance
   k = tiling.chunk_size
   strict_upper = jnp.triu(jnp.ones((k, k), chunk.alpha.dtype), 1)  # [i, j] = i < j: exclusive prefix
   log_keep = jnp.log1p(-chunk.alpha)
-  before = transmittance[..., None] * jnp.exp(log_keep @ strict_upper)
+  before = transmittance[..., None] * jnp.exp(
+      jnp.matmul(log_keep, strict_upper, precision=PRECISION))
   after = before * (1.0 - chunk.alpha)
   # T only decreases, so once a Gaussian would take T to <= stop every later one would too: this
   # mask is exactly gsplat's "stop before the Gaussian that saturates the pixel".
@@ -142,7 +145,8 @@ def _forward(attrs, gaussian_ids, tile_starts, tile_ends, tiling):
     chunk = _load_chunk(chunk_index[sel], attrs, gaussian_ids, starts[sel], ends[sel], centres[sel],
                         tiling)
     trans = _transmittance(chunk, transmittance[sel], done[sel], tiling)
-    summed = accum[sel] + jnp.einsum("spk,skf->spf", trans.weight, chunk.attrs[..., NUM_GEOMETRY:])
+    summed = accum[sel] + jnp.einsum("spk,skf->spf", trans.weight, chunk.attrs[..., NUM_GEOMETRY:],
+                                         precision=PRECISION)
     return (chunk_index.at[sel].set(chunk_index[sel] + 1), transmittance.at[sel].set(trans.transmittance),
             done.at[sel].set(trans.done), tile_done.at[sel].set(jnp.all(trans.done, axis=-1)),
             accum.at[sel].set(summed))
@@ -196,11 +200,13 @@ def _rasterize_bwd(tiling, residuals, cotangents):
                         tiling)
     trans = _transmittance(chunk, transmittance[sel], done[sel], tiling)
     g_out = g_accum[sel]
-    g_feat = jnp.einsum("skf,spf->spk", chunk.attrs[..., NUM_GEOMETRY:], g_out)
+    g_feat = jnp.einsum("skf,spf->spk", chunk.attrs[..., NUM_GEOMETRY:], g_out,
+                        precision=PRECISION)
     contrib = trans.weight * g_feat
     g_before = g_prefix[sel]
     # suffix_k = sum over later composited Gaussians (this chunk and the rest) of w <f, gF>
-    g_suffix = g_total[sel][..., None] - g_before[..., None] - contrib @ strict_upper - contrib
+    earlier_in_chunk = jnp.matmul(contrib, strict_upper, precision=PRECISION)
+    g_suffix = g_total[sel][..., None] - g_before[..., None] - earlier_in_chunk - contrib
     v_alpha = jnp.where(
         trans.include,
         trans.before * g_feat - (g_suffix + g_through_final[sel][..., None]) / (1.0 - chunk.alpha),
@@ -217,7 +223,7 @@ def _rasterize_bwd(tiling, residuals, cotangents):
         jnp.sum(v_sigma * 0.5 * dy * dy, axis=1),
         jnp.sum(v_raw * chunk.vis, axis=1),
     ], axis=-1)  # [S, K, 6]
-    v_features = jnp.einsum("spk,spf->skf", trans.weight, g_out)
+    v_features = jnp.einsum("spk,spf->skf", trans.weight, g_out, precision=PRECISION)
     rows = jnp.concatenate([v_geometry, v_features], axis=-1)
     rows = jnp.where(chunk.slot_valid[..., None], rows, 0.0)
     grads = grads.at[chunk.gaussian_ids.reshape(-1)].add(rows.reshape(-1, rows.shape[-1]))
