@@ -11,7 +11,7 @@ from tokengs_jax.train.checkpoint import (
     set_iterator_state,
     verify_checksums,
 )
-from tokengs_jax.train.distributed import initialize, make_mesh, replicate, shard_batch
+from tokengs_jax.train.distributed import barrier, initialize, make_mesh, replicate, shard_batch
 from tokengs_jax.train.loop import LoopConfig, NonFiniteError, train
 from tokengs_jax.train.objective import (
     ObjectiveConfig,
@@ -35,6 +35,7 @@ from tokengs_jax.train.tokens import dynamic_tokens_from_static, expand_tokens, 
 
 __all__ = [
     "Checkpointer", "ChecksumError", "LoopConfig", "UnusableCheckpointError", "array_checksums",
+    "barrier",
     "data_state_file", "data_state_handler", "decode_at_times",
     "time_conditioned_loss", "NonFiniteError", "ObjectiveConfig", "OptimConfig", "Precision",
     "TrainState", "beta1_schedule", "cast_floating", "create_train_state", "current_learning_rate",

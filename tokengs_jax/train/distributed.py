@@ -15,10 +15,12 @@ array with `shard_batch`. Each process's local batch is `global_batch / process_
 
 from __future__ import annotations
 
+import itertools
 import os
 
 import jax
 import numpy as np
+import orbax.checkpoint as ocp
 from jax.sharding import AxisType, Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
@@ -46,6 +48,23 @@ def initialize() -> None:
     jax.distributed.initialize(**timeouts)
   print(f"[distributed] process {jax.process_index()} of {jax.process_count()}: "
         f"{jax.local_device_count()} local of {jax.device_count()} devices", flush=True)
+
+
+_BARRIER_CALLS = itertools.count()
+
+
+def barrier(name: str, timeout_s: int = 1800) -> None:
+  """Waits until every process reaches `barrier(name)` (coordination service; no collective).
+
+  On CPU, gloo sets up a communicator the first time a compiled program runs a collective and
+  gives up when the processes arrive more than 30 s apart (`GetKeyValue() timed out`), which
+  uneven compile times on a loaded machine exceed; meeting here right before that first run keeps
+  them together. No-op on one process. Every process must make the same sequence of calls (a
+  call count makes the coordination service's barrier ids unique).
+  """
+  if jax.process_count() > 1:
+    ocp.multihost.get_barrier_sync_fn()(key=f"{name}_{next(_BARRIER_CALLS)}",
+                                        timeout_ms=timeout_s * 1000)
 
 
 def make_mesh(data: int | None = None, model: int = 1, devices=None) -> Mesh:

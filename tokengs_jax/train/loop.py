@@ -14,7 +14,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from tokengs_jax.train.checkpoint import Checkpointer, iterator_state, set_iterator_state
-from tokengs_jax.train.distributed import make_mesh, replicate, shard_batch
+from tokengs_jax.train.distributed import barrier, make_mesh, replicate, shard_batch
 from tokengs_jax.train.optim import OptimConfig, make_optimizer
 from tokengs_jax.train.state import TrainState, create_train_state
 from tokengs_jax.train.step import LossFn, Precision, make_train_step
@@ -134,9 +134,13 @@ def train(loss_fn: LossFn, params, batches: Iterator[dict], optim_config: OptimC
       history.append(logged)
       log_fn(step_now, logged)
 
+    compiled = None
     while step < loop_config.total_steps:
       batch = shard_batch(next(batches), mesh)
-      state, metrics = train_step(state, batch, key)
+      if compiled is None:  # compile first, then meet: the first collective runs in step
+        compiled = train_step.lower(state, batch, key).compile()
+        barrier("tokengs_train_step_compiled")
+      state, metrics = compiled(state, batch, key)
       pending.append(metrics)
       step += 1
       is_last = step == loop_config.total_steps
