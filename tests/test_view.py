@@ -251,5 +251,10 @@ def test_viewer_shows_a_ply(tmp_path):
     app = ViewerApp(source, server)
     assert app.scene_index is None and app.time is None
     assert "**9 / 9**" in app.census.content and app.scores.content == ""
+    app.threshold.value = 0.5
+    kept = g.opacities >= 0.5
+    saved = export.read_ply(app.save_shown())  # the pruned set, as a viewer-readable PLY
+    assert saved["means"].shape == (kept.sum(), 3) and str(tmp_path / "viewer") in app.saved.content
+    np.testing.assert_allclose(saved["opacities"], g.opacities[kept], atol=1e-5)
   finally:
     server.stop()

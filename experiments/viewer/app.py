@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import threading
 
+import jax
 import numpy as np
 
 from experiments.viewer import scenes as scenes_lib
@@ -95,6 +96,8 @@ class ViewerApp:
     self.show_dynamic = gui.add_checkbox("dynamic Gaussians", True,
                                          visible=first.num_static < first.num_gaussians)
     self.show_cameras = gui.add_checkbox("cameras", True)
+    self.save = gui.add_button("save the shown Gaussians as PLY")
+    self.saved = gui.add_markdown("")
     self.to_target = gui.add_button("view from the target camera",
                                     visible=first.targets is not None)
     self.image = gui.add_image(np.zeros((8, 16, 3), np.uint8), label="target | our render",
@@ -107,6 +110,7 @@ class ViewerApp:
     for handle in (self.threshold, self.show_static, self.show_dynamic):
       self._on(handle, self.refresh_selection)
     self._on(self.show_cameras, self._draw_cameras)
+    self.save.on_click(lambda _: self.save_shown())
     self.to_target.on_click(lambda event: self._look_from_target(event.client, pull_back=0.0))
     server.on_client_connect(lambda client: self._look_from_target(client, self.pull_back))
     self.show()
@@ -176,6 +180,20 @@ class ViewerApp:
       self._write_census(visible)
       if self.scene.targets is not None:
         self._draw_render(visible)
+
+  def save_shown(self):
+    """Writes the shown Gaussians (threshold and parts applied) as a 3DGS PLY under
+    `<source folder>/viewer/`; returns the path."""
+    with self._lock:
+      scene, visible = self.scene, self.selection()
+      name = f"{scene.key}_opacity{float(self.threshold.value):.2f}"
+      if scene.time is not None:
+        name += f"_time{scene.time:.2f}"
+      g = jax.tree.map(lambda x: x[visible], scene.gaussians)
+      path = export.write_ply(self.source.folder / "viewer" / f"{name}.ply", g.means, g.opacities,
+                              g.scales, g.quats, g.colors)
+      self.saved.content = f"wrote {int(visible.sum()):,} Gaussians to `{path}`"
+      return path
 
   def _target(self) -> int:
     return int(self.target_view.value)

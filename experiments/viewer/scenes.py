@@ -12,9 +12,14 @@ import dataclasses
 import json
 import pathlib
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
-from tokengs_jax import export
+from experiments import kubric, weights
+from experiments.config import Experiment
+from experiments.tasks import Task
+from tokengs_jax import evaluation, export, metrics
 from tokengs_jax.gaussians import Gaussians
 
 
@@ -97,29 +102,16 @@ def scaled_intrinsics(intrinsics: np.ndarray, factor: float) -> np.ndarray:
 
 def render(gaussians: Gaussians, c2w: np.ndarray, intrinsics: np.ndarray, height: int,
            width: int) -> np.ndarray:
-  """One view by our renderer on the training background.  c2w: [4, 4], intrinsics: [4]
-  -> rgb [H, W, 3] numpy.
-
-  Uses `splatting.render_exact` (no tile budgets) where the library has it, else `render`.
-  """
-  import jax.numpy as jnp
-
-  from tokengs_jax import splatting
-  from tokengs_jax.camera import invert_rigid
-  from tokengs_jax.train.objective import ObjectiveConfig
-
-  objective = ObjectiveConfig()
-  renderer = getattr(splatting, "render_exact", splatting.render)
-  result = renderer(gaussians, invert_rigid(jnp.asarray(c2w, jnp.float32))[None],
-                    jnp.asarray(intrinsics, jnp.float32)[None], height=height, width=width,
-                    background=jnp.asarray(objective.background, jnp.float32),
-                    near=objective.near, far=objective.far)
-  return np.asarray(result.rgb[0])
+  """One view as the evaluation renders it (`evaluation.render_targets`: exact, the training
+  background).  c2w: [4, 4], intrinsics: [4] -> rgb [H, W, 3] numpy."""
+  batched = jax.tree.map(lambda x: np.asarray(x)[None], gaussians)
+  return evaluation.render_targets(batched, np.asarray(c2w)[None, None],
+                                   np.asarray(intrinsics)[None, None], height=height,
+                                   width=width).rgb[0, 0]
 
 
 def psnr(image: np.ndarray, target: np.ndarray) -> float:
-  mse = float(np.mean((np.clip(image, 0.0, 1.0) - target) ** 2))
-  return float("inf") if mse == 0 else -10.0 * np.log10(mse)
+  return float(metrics.psnr(image, target))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -147,10 +139,6 @@ def _from_fields(cls, fields: dict):
 def experiment_from_fields(fields: dict):
   """(experiment, task) from `metrics.json["experiment"]`: a Kubric run when the fields hold the
   Kubric-only ones (`KubricExperiment` extends `Experiment`)."""
-  from experiments import kubric
-  from experiments.config import Experiment
-  from experiments.tasks import Task
-
   if set(fields) <= {f.name for f in dataclasses.fields(Experiment)}:
     return _from_fields(Experiment, fields), Task()
   return _from_fields(kubric.KubricExperiment, fields), kubric.KubricTask()
@@ -169,8 +157,6 @@ class ResultsSource:
 
   def __init__(self, folder, checkpoint=None, data_dir: str | None = None,
                synthetic_dir: str | None = None, num_scenes: int = 0):
-    from experiments.weights import initial_params
-
     folder = pathlib.Path(folder)
     saved = json.loads((folder / "metrics.json").read_text())
     experiment, task = experiment_from_fields(saved["experiment"])
@@ -189,7 +175,7 @@ class ResultsSource:
           experiment, eval=dataclasses.replace(experiment.eval, num_scenes=num_scenes))
     task.prepare(experiment)  # regenerates a missing synthetic set (before JAX starts threads)
     self.folder, self.experiment, self.config = folder, experiment, experiment.model
-    self.params = initial_params(experiment, finetune=False)
+    self.params = weights.initial_params(experiment, finetune=False)
     self.examples = task.evaluation_examples(experiment)
     self.title = saved.get("title", str(folder))
     self._scenes: dict[tuple[int, float | None], ViewScene] = {}
@@ -213,11 +199,6 @@ class ResultsSource:
     return self._scenes[index, time]
 
   def _reconstruct(self, index: int, time: float | None) -> ViewScene:
-    import jax
-    import jax.numpy as jnp
-
-    from tokengs_jax import evaluation
-
     key, batch = self.examples[index]
     if self.time_conditioned and time is None:
       time = self.default_time(index)
@@ -244,6 +225,7 @@ class PlySource:
                                                     for k, v in fields.items()}),
                             num_static=len(fields["opacities"]))
     self.title = str(path)
+    self.folder = path.parent
 
   @property
   def keys(self) -> list[str]:
