@@ -59,10 +59,17 @@ def test_novel_target_is_the_first_target_that_is_no_input():
 
 
 def test_masked_render_equals_the_render_of_the_subset():
-  """The viewer hides Gaussians by zero opacity (fixed shapes): same image as dropping them."""
+  """The viewer hides Gaussians by zero opacity (fixed shapes): same image as dropping them, also
+  when a hidden one has non-finite parameters (never shown)."""
   g = _gaussians(24, seed=1)
   g = dataclasses.replace(g, means=g.means * 0.5 + np.float32([0, 0, 3]), scales=g.scales * 0.5)
-  visible = np.asarray(g.opacities) > 0.4
+  g.means[3, 1], g.scales[5, 0], g.opacities[7] = np.nan, np.inf, np.nan
+  scene = scenes.ViewScene("s", g, num_static=24)
+  visible = scenes.selection(scene, 0.4)
+  expected = np.nan_to_num(g.opacities) >= 0.4
+  expected[[3, 5, 7]] = False
+  np.testing.assert_array_equal(visible, expected)
+  assert all(np.isfinite(x).all() for x in jax.tree.leaves(scenes.masked(g, visible)))
   c2w, intrinsics = np.eye(4, dtype=np.float32), np.float32([20, 20, 8, 8])
   subset = jax.tree.map(lambda x: x[visible], g)
   np.testing.assert_allclose(scenes.render(scenes.masked(g, visible), c2w, intrinsics, 16, 16),
@@ -198,7 +205,8 @@ def test_viewer_draws_the_splats_in_headless_chromium(viewer, tmp_path):
 
 
 class _DynamicSource:
-  """Two hand-made dynamic scenes (3 static + 3 dynamic Gaussians in front of one camera)."""
+  """Two hand-made dynamic scenes (3 static + 3 dynamic Gaussians in front of one camera; the
+  second has a Gaussian with a NaN centre)."""
   title, keys, time_conditioned = "dynamic", ["a", "b"], True
 
   def default_time(self, index):
@@ -208,6 +216,7 @@ class _DynamicSource:
     g = _gaussians(6, seed=index)
     g = dataclasses.replace(g, means=g.means * 0.3 + np.float32([0, 0, 2]),
                             opacities=np.float32([0.9, 0.2, 0.8, 0.7, 0.05, 0.6]))
+    g.means[4, 0] = np.nan if index == 1 else g.means[4, 0]
     camera = scenes.Cameras(np.zeros((1, 8, 8, 3), np.float32), np.eye(4, dtype=np.float32)[None],
                             np.float32([[10, 10, 4, 4]]))
     return scenes.ViewScene(self.keys[index], g, 3, camera, camera, time)
@@ -231,6 +240,8 @@ def test_viewer_dynamic_controls():
     assert app.scene.time == 0.9 and app.time.value == 0.9
     app.scene_index.value = 1  # a new scene starts at its own first target time
     assert app.scene.key == "b" and app.scene.time == 0.5
+    assert "**non-finite parameters in 1 of 6 Gaussians**" in app.census.content
+    assert "with all finite ones" in app.scores.content
   finally:
     server.stop()
 

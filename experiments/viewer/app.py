@@ -251,6 +251,10 @@ class ViewerApp:
              "", "| opacity ≥ | Gaussians | share |", "|---|---|---|"]
     lines += [f"| {t:g} | {n:,} | {100.0 * n / total:.0f} % |"
               for t, n in scenes_lib.opacity_census(scene.gaussians.opacities)]
+    broken = total - int(scenes_lib.finite(scene.gaussians).sum())
+    if broken:
+      lines += ["", f"**non-finite parameters in {broken:,} of {total:,} Gaussians**: never shown "
+                    "or rendered"]
     if dynamic:
       static = np.arange(total) < scene.num_static
       lines += ["", f"static {int((visible & static).sum()):,} / {scene.num_static:,}, "
@@ -266,7 +270,8 @@ class ViewerApp:
     height, width = target.shape[:2]
     shown = scenes_lib.masked(scene.gaussians, visible)
     native = scenes_lib.render(shown, c2w, intrinsics, height, width)
-    everything = scenes_lib.render(scene.gaussians, c2w, intrinsics, height, width)
+    everything = scenes_lib.render(scenes_lib.masked(scene.gaussians, scenes_lib.finite(
+        scene.gaussians)), c2w, intrinsics, height, width)
     factor = max(1, self.render_size // max(height, width))
     large = scenes_lib.render(shown, c2w, scenes_lib.scaled_intrinsics(intrinsics, factor),
                               height * factor, width * factor)
@@ -276,6 +281,7 @@ class ViewerApp:
     self.scores.content = (
         f"target view {view} at {width}x{height}: PSNR **{scenes_lib.psnr(native, target):.2f} "
         f"dB** with the shown Gaussians, {scenes_lib.psnr(everything, target):.2f} dB with all"
+        + (" finite ones" if not scenes_lib.finite(scene.gaussians).all() else "")
         + (f" (time {scene.time:.2f})" if scene.time is not None else ""))
 
   # -- the browser's camera --------------------------------------------------------------------

@@ -71,12 +71,20 @@ def covariances(scales: np.ndarray, quats: np.ndarray) -> np.ndarray:
   return scaled @ np.swapaxes(scaled, -1, -2)
 
 
+def finite(gaussians: Gaussians) -> np.ndarray:
+  """Gaussians whose every parameter is finite.  -> bool [N]."""
+  fields = [np.asarray(x).reshape(len(gaussians.opacities), -1)
+            for x in jax.tree.leaves(gaussians)]
+  return np.all(np.isfinite(np.concatenate(fields, axis=-1)), axis=-1)
+
+
 def selection(scene: ViewScene, threshold: float, show_static: bool = True,
               show_dynamic: bool = True) -> np.ndarray:
-  """Which Gaussians are shown: opacity >= threshold, in the parts switched on.  -> bool [N]."""
+  """Which Gaussians are shown: finite ones with opacity >= threshold, in the parts switched on.
+  -> bool [N]."""
   part = np.arange(scene.num_gaussians) < scene.num_static
   wanted = np.where(part, show_static, show_dynamic)
-  return wanted & (np.asarray(scene.gaussians.opacities) >= threshold)
+  return wanted & finite(scene.gaussians) & (np.asarray(scene.gaussians.opacities) >= threshold)
 
 
 def opacity_census(opacities: np.ndarray, thresholds=(0.01, 0.05, 0.1, 0.5)
@@ -86,12 +94,21 @@ def opacity_census(opacities: np.ndarray, thresholds=(0.01, 0.05, 0.1, 0.5)
   return [(t, int(np.sum(opacities >= t))) for t in thresholds]
 
 
+_HARMLESS = Gaussians(means=np.zeros(3, np.float32), opacities=np.float32(0.0),
+                      scales=np.full(3, 1e-3, np.float32),
+                      quats=np.float32([1.0, 0.0, 0.0, 0.0]), colors=np.zeros(3, np.float32))
+
+
 def masked(gaussians: Gaussians, visible: np.ndarray) -> Gaussians:
   """The same Gaussians with the hidden ones made fully transparent: a render of these equals a
   render of the subset (a zero-opacity splat adds nothing), and the shapes stay fixed, so one
-  compiled renderer serves every threshold."""
-  return dataclasses.replace(gaussians, opacities=np.where(visible, gaussians.opacities, 0.0)
-                             .astype(np.float32))
+  compiled renderer serves every threshold. A hidden Gaussian with a non-finite parameter is
+  replaced whole by a transparent finite one (NaN would reach the pixels through the sort)."""
+  transparent = dataclasses.replace(gaussians, opacities=np.where(
+      visible, gaussians.opacities, 0.0).astype(np.float32))
+  bad = ~finite(gaussians)
+  return jax.tree.map(lambda x, fill: np.where(bad.reshape((-1,) + (1,) * (x.ndim - 1)), fill, x)
+                      .astype(np.float32), transparent, _HARMLESS)
 
 
 def scaled_intrinsics(intrinsics: np.ndarray, factor: float) -> np.ndarray:
@@ -205,8 +222,6 @@ class ResultsSource:
     target_times = jnp.asarray([time], jnp.float32) if self.time_conditioned else None
     gaussians = evaluation.reconstruct(self.params, batch, self.config, target_times)
     gaussians = jax.tree.map(lambda x: np.asarray(x[0], np.float32), jax.device_get(gaussians))
-    if not all(np.all(np.isfinite(x)) for x in jax.tree.leaves(gaussians)):
-      raise FloatingPointError(f"scene {key}: the model predicted non-finite Gaussians")
     views = lambda prefix: Cameras(np.asarray(batch[f"{prefix}_images"][0], np.float32),
                                    np.asarray(batch[f"{prefix}_c2w"][0], np.float32),
                                    np.asarray(batch[f"{prefix}_intrinsics"][0], np.float32))
