@@ -31,7 +31,9 @@ from experiments.viewer import app, browser, scenes
 
 @dataclasses.dataclass(frozen=True)
 class ViewSettings:
-  """Attributes:
+  """What to show and how to serve it.
+
+  Attributes:
     source: a results folder (metrics.json + params.msgpack) or a `.ply` file.
     checkpoint: other weights (`params.msgpack`) with the folder's settings.
     data_dir: real-data root of the held-out scenes, if not the run's.
