@@ -625,3 +625,11 @@ def test_normalize_images_scales_uint8_and_refuses_what_it_cannot_convert():
     normalize_images(pixels.astype(np.int32))
   with pytest.raises(ValueError, match=r"images: expected float values in \[0, 1\].*divide by 255"):
     normalize_images(pixels.astype(np.float32))
+
+
+def test_normalize_images_checks_a_constant_captured_by_an_outer_jit():
+  """A concrete array closed over by a jitted function is range-checked on the host (numpy),
+  not with jnp ops that the outer trace would stage."""
+  images = jnp.full((1, 2, 2, 3), 0.5)
+  np.testing.assert_allclose(jax.jit(lambda: normalize_images(images))(),
+                             normalize_images(images), atol=1e-6)

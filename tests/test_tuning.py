@@ -90,6 +90,26 @@ def test_latent_tuning_needs_latent_model(tiny):
                                   tuning=TuningConfig(target="latents", steps=1)), params)
 
 
+@pytest.mark.parametrize("change, error, message", [
+    ("images", ValueError, r"images must be \[B, V, H, W, 3\]"),
+    ("intrinsics", TypeError, "intrinsics must be floating point"),
+    ("output_times", ValueError, "output_times needs the input-view times"),
+])
+def test_tune_checks_its_inputs_at_trace_time(tiny, change, error, message):
+  config, params = tiny
+  images, c2w, intrinsics = scene()
+  extra = {}
+  if change == "images":
+    images = images[0]
+  elif change == "intrinsics":
+    intrinsics = intrinsics.astype(np.int32)
+  else:
+    extra["output_times"] = jnp.zeros((1, 2))
+  with pytest.raises(error, match=message):
+    jax.eval_shape(lambda p: tune(p, images, c2w, intrinsics, model_config=config, **extra),
+                   params)
+
+
 def test_times_need_a_time_conditioned_model(tiny):
   config, params = tiny
   with pytest.raises(ValueError, match="without time embedding"):

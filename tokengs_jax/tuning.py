@@ -39,8 +39,9 @@ import jax.numpy as jnp
 import optax
 
 from tokengs_jax import losses, model, splatting
-from tokengs_jax.camera import invert_rigid, plucker_rays
+from tokengs_jax.camera import invert_rigid
 from tokengs_jax.gaussians import Gaussians
+from tokengs_jax.model.inputs import check_times
 from tokengs_jax.train.objective import (
     ObjectiveConfig,
     decode_at_times,
@@ -170,11 +171,13 @@ def _tune_once(params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array,
   timed = times is not None
   if timed and not model_config.time_embedding:
     raise ValueError("times given for a model without time embedding")
-  height, width = images.shape[-3], images.shape[-2]
+  if output_times is not None:
+    if not timed:
+      raise ValueError("output_times needs the input-view times")
+    check_times("output_times", output_times, (images.shape[0], None), "[B, T]")
   # The encoder runs once; stop_gradient keeps the loop from differentiating into it.
-  encoded = jax.lax.stop_gradient(model.encode(
-      params, model.normalize_images(images), plucker_rays(c2w, intrinsics, height, width),
-      model_config, times=times))
+  encoded = jax.lax.stop_gradient(model.encode_views(params, images, c2w, intrinsics,
+                                                     model_config, times=times))
   world_to_camera = invert_rigid(c2w)
 
   def decode(tokens=None, latents=None, at_times=None) -> Gaussians:

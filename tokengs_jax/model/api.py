@@ -89,7 +89,8 @@ def normalize_images(images: jax.Array) -> jax.Array:
   elif not jnp.issubdtype(dtype, jnp.floating):
     raise TypeError(f"images: expected float in [0, 1] or uint8 in [0, 255], got {dtype}")
   elif not isinstance(images, jax.core.Tracer) and np.size(images):
-    low, high = float(jnp.min(images)), float(jnp.max(images))
+    values = np.asarray(images)  # numpy: jnp.min here would be staged inside an outer jit
+    low, high = float(values.min()), float(values.max())
     if low < -_RANGE_SLACK or high > 1.0 + _RANGE_SLACK:
       raise ValueError(f"images: expected float values in [0, 1], got [{low:.4g}, {high:.4g}]"
                        + (" (0..255 values: divide by 255 or pass uint8)" if high > 2.0 else ""))
