@@ -4,6 +4,9 @@
     python benchmarks/render.py --sizes 65536 --images 256x256 --sweep  # one point + knob sweep
     python benchmarks/render.py --scene tokengs --sizes 65536 262144 --budget-check
     python benchmarks/render.py --sizes 65536 --images 256x256 --stages --repeats 5
+    python benchmarks/render.py --sizes 65536 --images 256x256 --repeats 5   # headline figure
+    python benchmarks/render.py --sizes 20000 --images 256x256 --scale-range 0.03 0.25 --repeats 0
+        # default-budget error on the gsplat-like non-saturating scene (issue 11)
 
 Scenes. "fine": N Gaussians uniform in [-1.6,1.6]x[-1.2,1.2]x[-1,1], scales uniform in
 [smin, smax] (default 0.005-0.04), opacities 0.2-0.95. "tokengs": TokenGS-like, centres spread
@@ -172,7 +175,10 @@ def main():
           variants += [(f"chunk={c}", RenderConfig(chunk_size=c)) for c in (16, 64)]
           variants += [(f"tiles/step={t}", RenderConfig(tiles_per_step=t)) for t in (32, 128)]
           variants += [(f"isect/gauss={b}", RenderConfig(intersections_per_gaussian=b))
-                       for b in (16, 4, 2, 1)]
+                       for b in (32, 8, 4, 2)]
+          # 8-pixel tiles: fewer wasted pixel evaluations, ~3x the pairs (budget scaled to match)
+          variants += [("tile8 s64", RenderConfig(tile_size=8, tiles_per_step=64,
+                                                  intersections_per_gaussian=64))]
           variants += [("bf16 inputs", default)]
         repeats = 0 if args.budget_check else args.repeats
         probe, _ = measure(gaussians, height, width, default, 0)
