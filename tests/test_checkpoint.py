@@ -139,3 +139,15 @@ def test_checksums_of_sharded_arrays_are_per_shard():
   sharded = jax.device_put(jnp.arange(8.0), jax.sharding.NamedSharding(
       mesh, jax.sharding.PartitionSpec("data")))
   assert sorted(array_checksums({"x": sharded})["['x']"]) == ["0:2", "2:4", "4:6", "6:8"]
+
+
+def test_a_half_written_save_is_not_a_checkpoint(saved, caplog):
+  """A process killed mid-save leaves orbax's temporary directory: never listed, never restored."""
+  partial = saved / "6.orbax-checkpoint-tmp-1234567890"
+  shutil.copytree(saved / "4", partial)
+  truncate_array_file(partial)
+  checkpointer = Checkpointer(saved)
+  assert checkpointer.all_steps() == [2, 4]
+  with caplog.at_level(logging.WARNING, logger="tokengs_jax.train.checkpoint"):
+    state, _ = checkpointer.restore(state_at(0))
+  assert int(state.step) == 4 and not caplog.records
