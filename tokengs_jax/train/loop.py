@@ -65,7 +65,8 @@ def train(loss_fn: LossFn, params, batches: Iterator[dict], optim_config: OptimC
     loss_fn: `(params, batch, key, step) -> (loss, aux)` (e.g. `tokengs_loss_fn(...)`).
     params: initial parameters (host or device pytree, identical on every process); ignored when
       a checkpoint is resumed.
-    batches: iterator of this process's batches (dicts of `[B_local, ...]` numpy arrays). If it has
+    batches: iterator of this process's batches (dicts of `[B_local, ...]` numpy arrays), all of
+      the first batch's shapes (the step is compiled once, ahead of its first run). If it has
       `get_state`/`set_state` (grain), its position is checkpointed and restored (per process).
     optim_config: optimiser and schedule.
     loop_config: loop settings.
