@@ -43,6 +43,7 @@ class ViewSettings:
     port: port (the next free one is taken when it is busy).
     render_size: pixels of the longer side of the target-view render in the panel.
     pull_back: the browser starts this many scene depths behind the target camera (0: at it).
+    background: RGB in [0, 1] behind the splats (default: the training background).
     screenshot: write a headless-Chromium screenshot of the viewer here and exit.
     window: browser window (width, height) of the screenshot.
   """
@@ -55,6 +56,7 @@ class ViewSettings:
   port: int = 8080
   render_size: int = 256
   pull_back: float = 0.6
+  background: tuple[float, float, float] = app.TRAINING_BACKGROUND
   screenshot: str | None = None
   window: tuple[int, int] = (1280, 800)
 
@@ -68,7 +70,7 @@ def start(settings: ViewSettings):
   source = scenes.open_source(settings.source, **options)
   server = viser.ViserServer(host=settings.host, port=settings.port, verbose=False)
   return server, app.ViewerApp(source, server, render_size=settings.render_size,
-                                pull_back=settings.pull_back)
+                                pull_back=settings.pull_back, background=settings.background)
 
 
 def main(argv=None) -> None:

@@ -138,8 +138,9 @@ def _free_port() -> int:
 def viewer(results):
   from experiments import view
 
-  server, app = view.start(view.ViewSettings(str(results[0]), port=_free_port(), render_size=64,
-                                                   pull_back=0.0))
+  server, app = view.start(view.ViewSettings(
+      str(results[0]), port=_free_port(), render_size=64, pull_back=0.0,
+      background=(1.0, 1.0, 1.0)))  # the untrained model's grey splats show on white
   yield server, app
   server.stop()
 

@@ -12,11 +12,14 @@ import numpy as np
 
 from experiments.viewer import scenes as scenes_lib
 from tokengs_jax import export
+from tokengs_jax.train.objective import ObjectiveConfig
 
 _INPUT_COLOUR = (40, 90, 200)
 _TARGET_COLOUR = (220, 60, 40)  # the target view rendered in the panel
 _OTHER_TARGET_COLOUR = (150, 150, 150)
 READY_TEXT = "Gaussians shown"  # in the panel once a scene is drawn
+# The 3D view's background: what the model was trained against (as the render beside it).
+TRAINING_BACKGROUND = tuple(ObjectiveConfig().background)
 
 
 def _rotation_wxyz(rotation: np.ndarray) -> np.ndarray:
@@ -69,11 +72,15 @@ class ViewerApp:
     render_size: longer side (pixels) of the target-view render shown in the panel.
     pull_back: a new browser starts this many scene depths behind the rendered target camera, so
       that the input cameras are in view (0: at the target camera).
+    background: RGB in [0, 1] behind the splats; default the training background, which the
+      target render beside uses too.
   """
 
-  def __init__(self, source, server, render_size: int = 256, pull_back: float = 0.6):
+  def __init__(self, source, server, render_size: int = 256, pull_back: float = 0.6,
+               background: tuple[float, float, float] = TRAINING_BACKGROUND):
     self.source, self.server = source, server
     self.render_size, self.pull_back = render_size, pull_back
+    server.scene.set_background_image(np.full((8, 8, 3), background, np.float32), format="png")
     self._lock = threading.RLock()
     self._muted = False
     gui = server.gui

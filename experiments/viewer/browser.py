@@ -36,6 +36,12 @@ _CLOSE_NOTICES = ("document.querySelectorAll('.mantine-Notifications-root, "
                   "[class*=\"mantine-Notification-root\"]').forEach(e => e.remove())")
 
 
+# Waits for a few animation frames: viser renders on demand, and an animation in progress (the
+# splats fade in) asks for the next frame, so a page still changing differs after these.
+_FRAMES = ("new Promise(done => { let left = 5; const step = () => --left ? "
+           "requestAnimationFrame(step) : done(true); requestAnimationFrame(step); })")
+
+
 def find_chromium() -> str | None:
   """The Chromium executable ($CHROMIUM, else the first of CHROMIUM_NAMES on PATH), or None."""
   named = os.environ.get("CHROMIUM")
@@ -64,7 +70,7 @@ class _DevTools:
         return reply.get("result", {})
 
   def evaluate(self, expression: str):
-    reply = self("Runtime.evaluate", expression=expression, returnByValue=True)
+    reply = self("Runtime.evaluate", expression=expression, returnByValue=True, awaitPromise=True)
     return reply["result"].get("value")
 
   def capture(self) -> bytes:
@@ -91,8 +97,8 @@ def screenshot(url: str, path, *, ready_text: str = "", width: int = 1280, heigh
                chromium: str | None = None) -> pathlib.Path:
   """Loads `url` in a fresh headless Chromium profile and writes a PNG of the window to `path`.
 
-  Captures once the page's text contains `ready_text` and two captures `settle_s` apart are
-  identical (the viewer has drawn its splats).
+  Captures once the page's text contains `ready_text` and two captures `settle_s` and five
+  animation frames apart are identical (the viewer has drawn its splats).
 
   Raises:
     FileNotFoundError: no Chromium.
@@ -133,6 +139,7 @@ def screenshot(url: str, path, *, ready_text: str = "", width: int = 1280, heigh
             raise TimeoutError(f"{url} kept changing for {timeout_s} s")
           previous = image
           time.sleep(settle_s)
+          devtools.evaluate(_FRAMES)
       finally:
         devtools.close()
     finally:
