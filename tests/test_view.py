@@ -16,7 +16,6 @@ from experiments.viewer import browser, scenes
 from experiments.viewer.app import READY_TEXT, novel_target, vertical_fov
 from tokengs_jax import evaluation, model
 from tokengs_jax.gaussians import Gaussians
-from tokengs_jax.math import quat_to_rotmat
 from tokengs_jax.train.objective import ObjectiveConfig
 
 
@@ -31,9 +30,15 @@ def _gaussians(n, seed=0):
 
 def test_covariances_are_rotated_squared_scales():
   g = _gaussians(16)
-  rot = np.asarray(quat_to_rotmat(g.quats))  # the library's own rotation (independent code)
-  expected = rot @ (np.asarray(g.scales)[:, :, None] ** 2 * np.swapaxes(rot, -1, -2))
-  np.testing.assert_allclose(scenes.covariances(g.scales, g.quats), expected, atol=1e-6)
+  cov = scenes.covariances(g.scales, g.quats)
+  np.testing.assert_allclose(cov, np.swapaxes(cov, -1, -2), atol=1e-7)
+  np.testing.assert_allclose(np.linalg.eigvalsh(cov), np.sort(g.scales ** 2, axis=-1), atol=1e-6)
+  # 30 degrees about z (wxyz, any norm): R diag(1, 4, 9) R^T, R = [[c, -s], [s, c]] in xy
+  c, s = np.cos(np.pi / 6), np.sin(np.pi / 6)
+  quat = 2 * np.float32([[np.cos(np.pi / 12), 0, 0, np.sin(np.pi / 12)]])
+  expected = [[c * c + 4 * s * s, -3 * c * s, 0], [-3 * c * s, s * s + 4 * c * c, 0], [0, 0, 9]]
+  np.testing.assert_allclose(scenes.covariances(np.float32([[1, 2, 3]]), quat)[0], expected,
+                             atol=1e-5)
 
 
 def test_selection_by_opacity_and_part():

@@ -21,6 +21,7 @@ from experiments.config import Experiment
 from experiments.tasks import Task
 from tokengs_jax import evaluation, export, metrics
 from tokengs_jax.gaussians import Gaussians
+from tokengs_jax.math import quat_to_rotmat
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,13 +62,8 @@ def covariances(scales: np.ndarray, quats: np.ndarray) -> np.ndarray:
 
   scales: [N, 3] linear std devs, quats: [N, 4] wxyz (any norm) -> [N, 3, 3].
   """
-  q = quats / np.maximum(np.linalg.norm(quats, axis=-1, keepdims=True), 1e-12)
-  w, x, y, z = np.moveaxis(q, -1, 0)
-  rot = np.stack([
-      1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-      2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-      2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=-1).reshape(-1, 3, 3)
-  scaled = rot * scales[:, None, :]
+  rot = np.asarray(quat_to_rotmat(jnp.asarray(quats, jnp.float32)))  # normalises
+  scaled = rot * np.asarray(scales)[:, None, :]
   return scaled @ np.swapaxes(scaled, -1, -2)
 
 
