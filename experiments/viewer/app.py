@@ -119,8 +119,8 @@ class ViewerApp:
     self._on(self.show_cameras, self._draw_cameras)
     self.save.on_click(lambda _: self.save_shown())
     self.to_target.on_click(lambda event: self._look_from_target(event.client, pull_back=0.0))
-    server.on_client_connect(lambda client: self._look_from_target(client, self.pull_back))
     self.show()
+    server.on_client_connect(lambda client: self._look_from_target(client, self.pull_back))
 
   def _on(self, handle, redraw) -> None:
     if handle is not None:
