@@ -148,7 +148,7 @@ class KubricTask(Task):
         num_workers=experiment.train.num_workers,
         select_views=kubric_views(experiment, experiment.train.num_target_views),
         skip_bad=bool(experiment.data_dir))
-    return iter(pipeline)
+    return pipeline
 
   def evaluation_examples(self, experiment: KubricExperiment) -> list[tuple[str, dict]]:
     _, test = self.sources(experiment)

@@ -13,6 +13,7 @@ import jax
 from experiments import data, results, training, weights
 from experiments.config import Experiment
 from tokengs_jax import evaluation, model
+from tokengs_jax.data import InputPipeline
 from tokengs_jax.train.objective import ObjectiveConfig
 from tokengs_jax.tuning import TuningConfig
 
@@ -38,8 +39,10 @@ class Task:
     facts for metrics.json (how the index matched), None when there is nothing to report."""
     return data.check_evaluation_data(experiment)
 
-  def training_batches(self, experiment: Experiment):
-    return iter(data.training_batches(experiment))
+  def training_batches(self, experiment: Experiment) -> InputPipeline:
+    """This process's training pipeline (iterated by the loop; its `rejection_summary()` is
+    printed and kept in metrics.json after training)."""
+    return data.training_batches(experiment)
 
   def evaluation_examples(self, experiment: Experiment) -> list[evaluation.Scene]:
     return data.evaluation_scenes(experiment)
@@ -139,17 +142,18 @@ def _train(experiment: Experiment, task: Task, command: Command, writer, info: d
   params = weights.initial_params(experiment, finetune=command == "finetune")
   print(f"[model] {model.count_params(config):,} parameters, {config.num_gaussians} Gaussians; "
         f"devices: {jax.devices()}", flush=True)
+  pipeline = task.training_batches(experiment)
+  # The loop's history covers the whole run, resumed or not: the checkpoints carry its log.
   params, history, seconds = training.train_model(
-      experiment, params, task.loss_fn(experiment, config), task.training_batches(experiment),
-      writer)
-  history_path = out / "train_history.json"
-  if history_path.exists():  # a resumed run logs only its own steps
-    history = training.merge_history(json.loads(history_path.read_text()), history)
+      experiment, params, task.loss_fn(experiment, config), iter(pipeline), writer)
+  rejected = pipeline.rejection_summary()
+  print(f"[data] training data rejected:\n{rejected}", flush=True)
   info.update(train_seconds=seconds, train_steps=experiment.train.steps,
-              final_train_loss=history[-1].get("loss") if history else None)
+              final_train_loss=history[-1].get("loss") if history else None,
+              training_data_rejections=rejected)
   if evaluation.writes_results():
     weights.save_params(out / "params.msgpack", params)
-    history_path.write_text(json.dumps(history, indent=1))
+    (out / "train_history.json").write_text(json.dumps(history, indent=1))
   return params
 
 

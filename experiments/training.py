@@ -36,7 +36,7 @@ def train_model(experiment: Experiment, params, loss_fn, batches, writer=None
                 ) -> tuple[dict, list[dict], float]:
   """Trains with the library loop (sharded over every device); returns (params, history, seconds).
 
-  loss_fn: `(params, batch, key) -> (loss, aux)`.
+  loss_fn: `(params, batch, key, step) -> (loss, aux)`.
   batches: iterator of this process's batches.
   """
   from tokengs_jax.train import LoopConfig, train
@@ -56,11 +56,3 @@ def train_model(experiment: Experiment, params, loss_fn, batches, writer=None
   seconds = time.perf_counter() - start
   return jax.device_get(state.params), history, seconds
 
-
-def merge_history(earlier: list[dict], resumed: list[dict]) -> list[dict]:
-  """The saved training log followed by a resumed run's: earlier entries from the resumed run's
-  first logged step on are replaced (the run redid them), all of them kept when it logged none."""
-  if not resumed:
-    return earlier
-  first = resumed[0]["step"]
-  return [entry for entry in earlier if entry["step"] < first] + resumed

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from experiments import cli, data, pictures, plot, re10k, results, training
+from experiments import cli, data, pictures, plot, re10k, results
 from tokengs_jax import evaluation, export
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
@@ -163,6 +163,7 @@ def test_entry_point_end_to_end(tmp_path):
     assert (out / name).stat().st_size > 0, name
   assert list((out / "grids").glob("*.png"))
   assert "trained beats nearest_view" in payload["checks"]
+  assert payload["training_data_rejections"] == "source: nothing rejected\npipeline: nothing rejected"
   assert list((out / "tensorboard").glob("events.out.tfevents.*"))
   ply = export.read_ply(out / "gaussians.ply")
   assert ply["means"].shape == (64, 3) and np.isfinite(ply["means"]).all()
@@ -267,15 +268,6 @@ def test_an_index_matching_no_scene_fails_before_any_work_and_lists_unknown_keys
   index.write_text(json.dumps({key: {"context": [0, 4], "target": [99]}}))
   with pytest.raises(ValueError, match="frame 99"):
     data.check_evaluation_data(dataclasses.replace(experiment, eval_index=str(index)))
-
-
-def test_merge_history_keeps_the_log_of_a_resumed_run():
-  earlier = [{"step": 5, "loss": 1.0}, {"step": 10, "loss": 0.9}, {"step": 15, "loss": 0.8}]
-  assert training.merge_history(earlier, []) == earlier  # re-evaluation only: log kept
-  resumed = [{"step": 15, "loss": 0.7}, {"step": 20, "loss": 0.6}]
-  assert [e["loss"] for e in training.merge_history(earlier, resumed)] == [1.0, 0.9, 0.7, 0.6]
-  fresh = [{"step": 5, "loss": 2.0}]
-  assert training.merge_history(earlier, fresh) == fresh
 
 
 def test_novel_targets_are_inside_the_span_and_never_inputs():

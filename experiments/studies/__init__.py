@@ -47,7 +47,7 @@ def train(experiment: Experiment, params, loss_fn=None) -> dict:
   task = tasks.Task()
   loss_fn = task.loss_fn(experiment, experiment.model) if loss_fn is None else loss_fn
   params, history, seconds = training.train_model(experiment, params, loss_fn,
-                                                  task.training_batches(experiment))
+                                                  iter(task.training_batches(experiment)))
   print(f"[study] trained in {seconds:.0f} s, final loss {history[-1]['loss']:.4f}", flush=True)
   return params
 
