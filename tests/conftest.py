@@ -18,6 +18,16 @@ jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 FIXTURES = pathlib.Path(__file__).resolve().parent.parent.parent / "shared" / "fixtures"
 
 
+def reference_fixture(*parts: str) -> pathlib.Path:
+  """A file of the reference fixtures (numbers produced by the official code and gsplat, kept in
+  `../shared/fixtures` beside the repository); skips the calling test, saying which file and
+  why, where that folder is not there (e.g. a bare clone)."""
+  path = FIXTURES.joinpath(*parts)
+  if not path.exists():
+    pytest.skip(f"reference fixture {path} is absent (../shared/fixtures is not beside the repo)")
+  return path
+
+
 @pytest.fixture(scope="session")
 def tiny():
   """(config, params) of the `tiny` model preset, initialised once per test session."""

@@ -2,7 +2,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from conftest import FIXTURES
+from conftest import reference_fixture
 from tokengs_jax import camera
 
 
@@ -19,7 +19,7 @@ def test_invert_rigid_matches_inverse():
 
 
 def test_plucker_matches_official_ray_condition_fixture():
-  io = np.load(FIXTURES / "official_tokengs_tiny" / "io.npz")
+  io = np.load(reference_fixture("official_tokengs_tiny", "io.npz"))
   expected = np.moveaxis(io["plucker"], 2, -1)  # [B, V, H, W, 6]
   h, w = expected.shape[2:4]
   ours = camera.plucker_rays(jnp.asarray(io["c2w"]), jnp.asarray(io["intrinsics"]), h, w)

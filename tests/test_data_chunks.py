@@ -7,12 +7,11 @@ import zipfile
 
 import numpy as np
 import pytest
-from conftest import FIXTURES
+from conftest import reference_fixture
 
 from tokengs_jax.data import chunks
 from tokengs_jax.data.chunks import ChunkError, UnsafeChunkError, read_chunk, write_chunk
 
-RE10K_TINY = FIXTURES / "re10k_tiny" / "test"
 
 
 def _scene(key="s0", frames=3, height=12, width=20, seed=0):
@@ -35,8 +34,8 @@ def _scene(key="s0", frames=3, height=12, width=20, seed=0):
 
 
 def test_reads_torch_written_fixture_with_true_cameras():
-  truth = np.load(RE10K_TINY / "truth.npz")
-  scenes = read_chunk(RE10K_TINY / "000000.torch")
+  truth = np.load(reference_fixture("re10k_tiny", "test", "truth.npz"))
+  scenes = read_chunk(reference_fixture("re10k_tiny", "test", "000000.torch"))
   assert [s["key"] for s in scenes] == list(truth["keys"])
   for scene, c2w, intrinsics in zip(scenes, truth["c2w"], truth["intrinsics"]):
     np.testing.assert_allclose(scene["c2w"], c2w, atol=2e-6)
@@ -45,7 +44,7 @@ def test_reads_torch_written_fixture_with_true_cameras():
     # gradient images: red ramps along x, green along y (JPEG-lossy)
     assert scene["images"][0, :, -1, 0].mean() > scene["images"][0, :, 0, 0].mean() + 150
     assert scene["images"][0, -1, :, 1].mean() > scene["images"][0, 0, :, 1].mean() + 150
-  index = json.loads((RE10K_TINY / "index.json").read_text())
+  index = json.loads((reference_fixture("re10k_tiny", "test", "index.json")).read_text())
   assert set(index) == {s["key"] for s in scenes}
 
 

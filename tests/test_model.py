@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import FIXTURES
+from conftest import reference_fixture
 from safetensors.numpy import load_file, save_file
 
 from tokengs_jax.camera import plucker_rays
@@ -39,7 +39,6 @@ from tokengs_jax.model.head import activate
 from tokengs_jax.model.layers import attend, attention_tiling
 from tokengs_jax.model.official import official_name, read_safetensors
 
-OFFICIAL = FIXTURES / "official_tokengs_tiny"
 # A config small enough that each test compiles in about a second.
 MICRO = ModelConfig(patch_size=4, dec_patch_size=2, enc_depth=1, dec_depth=2, enc_embed_dim=32,
                     enc_num_heads=2, num_gs_tokens=4, image_size=(16, 16))
@@ -73,9 +72,9 @@ def full_params():
 
 @functools.cache
 def official_fixture():
-  config = config_from_official(json.loads((OFFICIAL / "options.json").read_text()))
-  params = load_official_checkpoint(OFFICIAL / "weights.safetensors", config)
-  io = dict(np.load(OFFICIAL / "io.npz"))
+  config = config_from_official(json.loads((reference_fixture("official_tokengs_tiny", "options.json")).read_text()))
+  params = load_official_checkpoint(reference_fixture("official_tokengs_tiny", "weights.safetensors"), config)
+  io = dict(np.load(reference_fixture("official_tokengs_tiny", "io.npz")))
   # torch NCHW -> our NHWC
   io["images_rgb"] = io["images_rgb"].transpose(0, 1, 3, 4, 2)
   io["plucker"] = io["plucker"].transpose(0, 1, 3, 4, 2)
@@ -194,7 +193,7 @@ def test_config_from_official_options():
 
 def test_loader_names_missing_unexpected_and_misshapen_tensors():
   config, _, _ = official_fixture()
-  state = load_file(OFFICIAL / "weights.safetensors")
+  state = load_file(reference_fixture("official_tokengs_tiny", "weights.safetensors"))
   broken = dict(state)
   del broken["enc_dec_backbone.kv_proj.bias"]
   broken["enc_dec_backbone.extra_thing.weight"] = np.zeros(3, np.float32)
@@ -235,7 +234,7 @@ def _write_bf16_safetensors(path, state: dict[str, np.ndarray]) -> dict[str, np.
 
 def test_loader_reads_bf16_f16_and_f32_checkpoints(tmp_path):
   config, params, _ = official_fixture()
-  state = load_file(OFFICIAL / "weights.safetensors")
+  state = load_file(reference_fixture("official_tokengs_tiny", "weights.safetensors"))
   stored_bf16 = _write_bf16_safetensors(tmp_path / "bf16.safetensors", state)
   save_file({k: v.astype(np.float16) for k, v in state.items()}, tmp_path / "f16.safetensors")
   save_file(state, tmp_path / "f32.safetensors")
@@ -271,7 +270,7 @@ def test_safetensors_reader_rejects_bad_byte_ranges(tmp_path):
 
 def test_state_dict_round_trip_is_exact():
   config, params, _ = official_fixture()
-  state = load_file(OFFICIAL / "weights.safetensors")
+  state = load_file(reference_fixture("official_tokengs_tiny", "weights.safetensors"))
   exported = to_official_state_dict(params, config)
   assert exported.keys() == state.keys()
   for name, value in state.items():

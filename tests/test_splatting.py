@@ -9,7 +9,7 @@ import jax.extend.core as jax_core
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import FIXTURES
+from conftest import reference_fixture
 
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.splatting import RenderConfig, binning, exact, render
@@ -37,12 +37,12 @@ def _assert_grads_close(grads, data, rtol=1e-3):
 
 @pytest.fixture(scope="module")
 def rgbed():
-  return dict(np.load(FIXTURES / "gsplat_rgbed_2cam.npz"))
+  return dict(np.load(reference_fixture("gsplat_rgbed_2cam.npz")))
 
 
 @pytest.fixture(scope="module")
 def render200():
-  return dict(np.load(FIXTURES / "gsplat_render_200.npz"))
+  return dict(np.load(reference_fixture("gsplat_render_200.npz")))
 
 
 def _render_rgbed(gaussians, data):
