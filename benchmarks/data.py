@@ -17,8 +17,13 @@ from pathlib import Path
 
 import numpy as np
 
-from tokengs_jax.data import (BoundedSamplerConfig, ChunkedSceneSource, DATASET_PRESETS, InputPipeline,
-                              write_chunk)
+from tokengs_jax.data import (
+  BoundedSamplerConfig,
+  ChunkedSceneSource,
+  DATASET_PRESETS,
+  InputPipeline,
+  write_chunk,
+)
 
 
 def _write_scenes(root: Path, scenes: int, frames: int, per_chunk: int = 4) -> None:
@@ -30,12 +35,20 @@ def _write_scenes(root: Path, scenes: int, frames: int, per_chunk: int = 4) -> N
       c2w = np.tile(np.eye(4), (frames, 1, 1))
       c2w[:, 2, 3] = np.linspace(0, 2, frames)
       images = np.empty((frames, 360, 640, 3), np.uint8)
-      for f in range(frames):  # smooth texture + noise: JPEG sizes like real photos' order of magnitude
+      for f in range(
+        frames
+      ):  # smooth texture + noise: JPEG sizes like real photos' order of magnitude
         phase = rng.uniform(0, 6, 3)
         base = 127 + 100 * np.sin(u[..., None] / 37.0 + v[..., None] / 53.0 + phase)
         images[f] = np.clip(base + rng.normal(0, 12, base.shape), 0, 255)
-      chunk.append({"key": f"scene{s:04d}", "c2w": c2w,
-                    "intrinsics": np.tile([500.0, 500.0, 320.0, 180.0], (frames, 1)), "images": images})
+      chunk.append(
+        {
+          "key": f"scene{s:04d}",
+          "c2w": c2w,
+          "intrinsics": np.tile([500.0, 500.0, 320.0, 180.0], (frames, 1)),
+          "images": images,
+        }
+      )
     write_chunk(root / f"{start // per_chunk:06d}.torch", chunk)
 
 
@@ -51,20 +64,33 @@ def main():
     root = Path(tmp)
     start = time.perf_counter()
     _write_scenes(root, args.scenes, args.frames)
-    print(f"wrote {args.scenes} scenes x {args.frames} frames in {time.perf_counter() - start:.1f} s")
+    print(
+      f"wrote {args.scenes} scenes x {args.frames} frames in {time.perf_counter() - start:.1f} s"
+    )
     source = ChunkedSceneSource(root)
     sampler = BoundedSamplerConfig(2, 4, 10, args.frames - 1, 0, 0, 10, args.frames - 1)
     config = dataclasses.replace(DATASET_PRESETS["re10k"], sampler=sampler)  # scenes are short
     for workers in args.workers:
-      iterator = iter(InputPipeline(source, config, batch_size=args.batch_size, seed=0, shard_index=0,
-                                    shard_count=1, num_workers=workers))
+      iterator = iter(
+        InputPipeline(
+          source,
+          config,
+          batch_size=args.batch_size,
+          seed=0,
+          shard_index=0,
+          shard_count=1,
+          num_workers=workers,
+        )
+      )
       next(iterator)
       start = time.perf_counter()
       for _ in range(args.batches):
         batch = next(iterator)
       elapsed = time.perf_counter() - start
-      print(f"workers={workers} batch={args.batch_size} images={batch['context_images'].shape[2:4]}: "
-            f"{args.batches / elapsed:.2f} batches/s ({args.batches * args.batch_size / elapsed:.1f} examples/s)")
+      print(
+        f"workers={workers} batch={args.batch_size} images={batch['context_images'].shape[2:4]}: "
+        f"{args.batches / elapsed:.2f} batches/s ({args.batches * args.batch_size / elapsed:.1f} examples/s)"
+      )
 
 
 if __name__ == "__main__":

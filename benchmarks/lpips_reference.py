@@ -27,8 +27,26 @@ import torch
 from tokengs_jax import lpips as jax_lpips
 
 # torchvision vgg16 `features`: conv widths, "M" = MaxPool2d(2, 2); each conv is followed by a ReLU.
-_VGG16_CFG = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M",
-              512, 512, 512, "M")
+_VGG16_CFG = (
+  64,
+  64,
+  "M",
+  128,
+  128,
+  "M",
+  256,
+  256,
+  256,
+  "M",
+  512,
+  512,
+  512,
+  "M",
+  512,
+  512,
+  512,
+  "M",
+)
 
 
 def _install_torchvision_stand_in(vgg_params: dict) -> None:

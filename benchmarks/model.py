@@ -60,10 +60,24 @@ from tokengs_jax.model import (
 # The two sizes of issue 11's PyTorch comparison (2 views; head_dim 64 for "small", whose head
 # count the issue does not give).
 BENCHMARK_CONFIGS = {
-    "small": dict(enc_embed_dim=256, enc_num_heads=4, enc_depth=2, dec_depth=4,
-                  num_gs_tokens=256, image_size=(128, 128), num_input_views=2),
-    "mid": dict(enc_embed_dim=512, enc_num_heads=8, enc_depth=6, dec_depth=6,
-                num_gs_tokens=1024, image_size=(256, 256), num_input_views=2),
+  "small": dict(
+    enc_embed_dim=256,
+    enc_num_heads=4,
+    enc_depth=2,
+    dec_depth=4,
+    num_gs_tokens=256,
+    image_size=(128, 128),
+    num_input_views=2,
+  ),
+  "mid": dict(
+    enc_embed_dim=512,
+    enc_num_heads=8,
+    enc_depth=6,
+    dec_depth=6,
+    num_gs_tokens=1024,
+    image_size=(256, 256),
+    num_input_views=2,
+  ),
 }
 
 
@@ -100,8 +114,12 @@ def flop_count(program) -> float:
 
 def throughput(seconds: float, flops: float, peak_gflops: float) -> dict:
   gflops = flops / seconds / 1e9
-  return {"ms": seconds * 1e3, "gflop": flops / 1e9, "gflops_per_s": gflops,
-          "fraction_of_peak": gflops / peak_gflops}
+  return {
+    "ms": seconds * 1e3,
+    "gflop": flops / 1e9,
+    "gflops_per_s": gflops,
+    "fraction_of_peak": gflops / peak_gflops,
+  }
 
 
 def matmul_program(size: int):
@@ -113,8 +131,12 @@ def matmul_program(size: int):
 
 def plain_attention(queries, keys, values, mask=None):
   """The attention before tiling: all [B, H, Nq, Nk] logits at once, autodiff backward."""
-  logits = jnp.einsum("bhqd,bhkd->bhqk", queries, keys.astype(queries.dtype),
-                      preferred_element_type=jnp.float32) * queries.shape[-1] ** -0.5
+  logits = (
+    jnp.einsum(
+      "bhqd,bhkd->bhqk", queries, keys.astype(queries.dtype), preferred_element_type=jnp.float32
+    )
+    * queries.shape[-1] ** -0.5
+  )
   if mask is not None:
     logits = jnp.where(mask, logits, -jnp.inf)
   weights = jax.nn.softmax(logits, axis=-1).astype(values.dtype)
@@ -127,8 +149,10 @@ def attention_variant(name: str):
   if name == "tiled":
     yield
     return
-  with mock.patch.object(model_layers, "attend", plain_attention), \
-       mock.patch.object(model_decoder, "attend", plain_attention):
+  with (
+    mock.patch.object(model_layers, "attend", plain_attention),
+    mock.patch.object(model_decoder, "attend", plain_attention),
+  ):
     yield
 
 
@@ -137,8 +161,9 @@ def scene_inputs(batch: int, views: int, height: int, width: int):
   images = jax.random.uniform(key_img, (batch, views, height, width, 3))
   c2w = jnp.broadcast_to(jnp.eye(4), (batch, views, 4, 4))
   c2w = c2w.at[..., :3, 3].set(jax.random.normal(key_pos, (batch, views, 3)) * 0.3)
-  intrinsics = jnp.broadcast_to(jnp.array([width * 0.9, width * 0.9, width / 2, height / 2]),
-                                (batch, views, 4))
+  intrinsics = jnp.broadcast_to(
+    jnp.array([width * 0.9, width * 0.9, width / 2, height / 2]), (batch, views, 4)
+  )
   return images, c2w, intrinsics
 
 
@@ -155,8 +180,16 @@ def torch_program(params, config, normalised, plucker, network):
   return lambda *a: jnp.asarray(reference.forward(*a).numpy()), inputs, deviation
 
 
-def run_case(case: str, views: int | None, repeats: int, dtype: str, peak_size: int,
-             max_temp_gb: float, variants: tuple[str, ...], with_torch: bool = False) -> dict:
+def run_case(
+  case: str,
+  views: int | None,
+  repeats: int,
+  dtype: str,
+  peak_size: int,
+  max_temp_gb: float,
+  variants: tuple[str, ...],
+  with_torch: bool = False,
+) -> dict:
   name, batch, *rest = case.split(":")
   batch = int(batch)
   config = case_config(name, dtype)
@@ -174,22 +207,35 @@ def run_case(case: str, views: int | None, repeats: int, dtype: str, peak_size: 
     flat = reconstruct(p, images, c2w, intrinsics, config=config).to_flat()
     return jnp.mean(jnp.square(flat - 0.5))
 
-  row = {"preset": name, "batch": batch, "views": views, "height": height, "width": width,
-         "dtype": dtype, "params_m": count_params(config) / 1e6,
-         "gaussians": config.num_gaussians,
-         "image_tokens": views * height * width // config.patch_size ** 2}
+  row = {
+    "preset": name,
+    "batch": batch,
+    "views": views,
+    "height": height,
+    "width": width,
+    "dtype": dtype,
+    "params_m": count_params(config) / 1e6,
+    "gaussians": config.num_gaussians,
+    "image_tokens": views * height * width // config.patch_size**2,
+  }
   encoded = jax.eval_shape(functools.partial(encode, config=config), params, normalised, plucker)
   encoded = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), encoded)  # decode's input
-  stage_args = {"encode": (params, normalised, plucker), "decode": (params, encoded),
-                "reconstruct": (params, images, c2w, intrinsics), "train_step": (params,),
-                "network": (params, normalised, plucker)}
+  stage_args = {
+    "encode": (params, normalised, plucker),
+    "decode": (params, encoded),
+    "reconstruct": (params, images, c2w, intrinsics),
+    "train_step": (params,),
+    "network": (params, normalised, plucker),
+  }
 
   def stage_functions():
     """Fresh jitted functions (jit caches traces per function object, so one set per variant)."""
-    stages = {"encode": jax.jit(functools.partial(encode, config=config)),
-              "decode": jax.jit(functools.partial(decode, config=config)),
-              "reconstruct": jax.jit(functools.partial(reconstruct, config=config)),
-              "train_step": jax.jit(jax.value_and_grad(lambda p: loss(p)))}
+    stages = {
+      "encode": jax.jit(functools.partial(encode, config=config)),
+      "decode": jax.jit(functools.partial(decode, config=config)),
+      "reconstruct": jax.jit(functools.partial(reconstruct, config=config)),
+      "train_step": jax.jit(jax.value_and_grad(lambda p: loss(p))),
+    }
     if with_torch:  # the network alone, as the PyTorch reference computes it
       stages["network"] = jax.jit(functools.partial(predict_gaussians, config=config))
     return stages
@@ -197,8 +243,11 @@ def run_case(case: str, views: int | None, repeats: int, dtype: str, peak_size: 
   # Model FLOPs from the untiled program: XLA's cost analysis counts a loop body once, so the
   # tiled attention's scans would be under-counted.
   with attention_variant("plain"):
-    flops = {stage: flop_count(fn.lower(*stage_args[stage]))
-             for stage, fn in stage_functions().items() if stage != "train_step"}
+    flops = {
+      stage: flop_count(fn.lower(*stage_args[stage]))
+      for stage, fn in stage_functions().items()
+      if stage != "train_step"
+    }
   flops["train_step"] = 3 * flops["reconstruct"]  # credited with 3x the forward
   programs = []  # (variant, stage, compiled, args)
   for variant in variants:
@@ -219,8 +268,9 @@ def run_case(case: str, views: int | None, repeats: int, dtype: str, peak_size: 
     fn, args, deviation = torch_program(params, config, normalised, plucker, network)
     fn(*args)  # warm-up
     programs.append(("torch", "network", fn, args))
-    row["torch"] = {"network": {"gflop": flops["network"] / 1e9, "temp_gb": 0.0,
-                                "max_abs_deviation": deviation}}
+    row["torch"] = {
+      "network": {"gflop": flops["network"] / 1e9, "temp_gb": 0.0, "max_abs_deviation": deviation}
+    }
 
   matmul, matmul_args = matmul_program(peak_size)
   never = np.full(2, np.inf)
@@ -234,7 +284,7 @@ def run_case(case: str, views: int | None, repeats: int, dtype: str, peak_size: 
       if stage != "train_step" or round_index < max(1, repeats // 2):
         key = (variant, stage)
         best[key] = np.minimum(best.get(key, never), timed(compiled, *args))
-  row["matmul_peak_gflops"] = peak = 2 * peak_size ** 3 / best["peak"][0] / 1e9
+  row["matmul_peak_gflops"] = peak = 2 * peak_size**3 / best["peak"][0] / 1e9
   row["matmul_peak_cpu_ms"] = best["peak"][1] * 1e3
   for variant, stage, _, _ in programs:
     wall, cpu = best[(variant, stage)]
@@ -250,10 +300,16 @@ def main():
   parser.add_argument("--repeats", type=int, default=3)
   parser.add_argument("--dtype", default="float32", choices=["float32", "bfloat16"])
   parser.add_argument("--peak-size", type=int, default=2048)
-  parser.add_argument("--compare-plain-attention", action="store_true",
-                      help="also time every stage with the untiled attention (A/B)")
-  parser.add_argument("--torch", action="store_true",
-                      help="also time our PyTorch forward (benchmarks/torch_reference.py)")
+  parser.add_argument(
+    "--compare-plain-attention",
+    action="store_true",
+    help="also time every stage with the untiled attention (A/B)",
+  )
+  parser.add_argument(
+    "--torch",
+    action="store_true",
+    help="also time our PyTorch forward (benchmarks/torch_reference.py)",
+  )
   parser.add_argument("--out", default=None, help="write the results as JSON here")
   args = parser.parse_args()
   cases = args.case or ["tiny:8", "dl3dv_2view:1", "dl3dv_2view:1:128x224:1024"]
@@ -262,15 +318,27 @@ def main():
   results = {"device": jax.devices()[0].device_kind, "cases": []}
   print(f"device: {results['device']}")
   for case in cases:
-    row = run_case(case, args.views, args.repeats, args.dtype, args.peak_size, args.max_temp_gb,
-                   variants, args.torch)
+    row = run_case(
+      case,
+      args.views,
+      args.repeats,
+      args.dtype,
+      args.peak_size,
+      args.max_temp_gb,
+      variants,
+      args.torch,
+    )
     results["cases"].append(row)
-    print(f"\n{row['preset']}  B={row['batch']} V={row['views']} {row['height']}x{row['width']} "
-          f"{row['dtype']}  {row['params_m']:.1f} M params, {row['image_tokens']} image tokens "
-          f"-> {row['gaussians']} Gaussians;  matmul peak ({args.peak_size}^3 f32, same rounds): "
-          f"{row['matmul_peak_gflops']:.1f} GFLOP/s")
-    print(f"  {'attention':<10}{'stage':<12}{'ms':>10}{'GFLOP':>10}{'GFLOP/s':>10}{'of peak':>9}"
-          f"{'temp GB':>9}{'CPU ms':>9}  (matmul peak CPU ms {row['matmul_peak_cpu_ms']:.1f})")
+    print(
+      f"\n{row['preset']}  B={row['batch']} V={row['views']} {row['height']}x{row['width']} "
+      f"{row['dtype']}  {row['params_m']:.1f} M params, {row['image_tokens']} image tokens "
+      f"-> {row['gaussians']} Gaussians;  matmul peak ({args.peak_size}^3 f32, same rounds): "
+      f"{row['matmul_peak_gflops']:.1f} GFLOP/s"
+    )
+    print(
+      f"  {'attention':<10}{'stage':<12}{'ms':>10}{'GFLOP':>10}{'GFLOP/s':>10}{'of peak':>9}"
+      f"{'temp GB':>9}{'CPU ms':>9}  (matmul peak CPU ms {row['matmul_peak_cpu_ms']:.1f})"
+    )
     for variant in (*variants, "torch") if args.torch else variants:
       for stage in ("network", "encode", "decode", "reconstruct", "train_step"):
         if stage not in row[variant]:
@@ -279,14 +347,18 @@ def main():
         if "skipped" in s:
           print(f"  {variant:<10}{stage:<12}{'-':>10}{s['gflop']:>10.2f}  skipped: {s['skipped']}")
           continue
-        print(f"  {variant:<10}{stage:<12}{s['ms']:>10.1f}{s['gflop']:>10.2f}"
-              f"{s['gflops_per_s']:>10.1f}{s['fraction_of_peak']:>9.0%}{s['temp_gb']:>9.2f}"
-              f"{s['cpu_ms']:>9.1f}")
+        print(
+          f"  {variant:<10}{stage:<12}{s['ms']:>10.1f}{s['gflop']:>10.2f}"
+          f"{s['gflops_per_s']:>10.1f}{s['fraction_of_peak']:>9.0%}{s['temp_gb']:>9.2f}"
+          f"{s['cpu_ms']:>9.1f}"
+        )
     if args.torch:
       torch_row, ours = row["torch"]["network"], row[variants[0]]["network"]
-      print(f"  network: PyTorch reference / ours = {torch_row['ms'] / ours['ms']:.2f}x wall, "
-            f"{torch_row['cpu_ms'] / ours['cpu_ms']:.2f}x CPU time "
-            f"(max |difference| of the Gaussians {torch_row['max_abs_deviation']:.1e})")
+      print(
+        f"  network: PyTorch reference / ours = {torch_row['ms'] / ours['ms']:.2f}x wall, "
+        f"{torch_row['cpu_ms'] / ours['cpu_ms']:.2f}x CPU time "
+        f"(max |difference| of the Gaussians {torch_row['max_abs_deviation']:.1e})"
+      )
   if args.out:
     with open(args.out, "w") as f:
       json.dump(results, f, indent=1)

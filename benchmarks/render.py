@@ -35,11 +35,12 @@ from tokengs_jax.splatting import RenderConfig, pipeline, rasterize, render
 def make_scene(num, scale_range, seed=0):
   rng = np.random.default_rng(seed)
   return Gaussians(
-      means=jnp.asarray(rng.uniform([-1.6, -1.2, -1.0], [1.6, 1.2, 1.0], (num, 3)), jnp.float32),
-      opacities=jnp.asarray(rng.uniform(0.2, 0.95, num), jnp.float32),
-      scales=jnp.asarray(rng.uniform(*scale_range, (num, 3)), jnp.float32),
-      quats=jnp.asarray(rng.normal(size=(num, 4)), jnp.float32),
-      colors=jnp.asarray(rng.uniform(0, 1, (num, 3)), jnp.float32))
+    means=jnp.asarray(rng.uniform([-1.6, -1.2, -1.0], [1.6, 1.2, 1.0], (num, 3)), jnp.float32),
+    opacities=jnp.asarray(rng.uniform(0.2, 0.95, num), jnp.float32),
+    scales=jnp.asarray(rng.uniform(*scale_range, (num, 3)), jnp.float32),
+    quats=jnp.asarray(rng.normal(size=(num, 4)), jnp.float32),
+    colors=jnp.asarray(rng.uniform(0, 1, (num, 3)), jnp.float32),
+  )
 
 
 def make_tokengs_scene(num, scale_range, height, width, seed=0):
@@ -49,14 +50,17 @@ def make_tokengs_scene(num, scale_range, height, width, seed=0):
   u = rng.uniform(-0.1, 1.1, num) * width
   v = rng.uniform(-0.1, 1.1, num) * height
   # make_camera's camera sits 4 units before the world origin: camera z = world z + 4.
-  means = np.stack([(u - width / 2) / focal * depth, (v - height / 2) / focal * depth, depth - 4.0], -1)
+  means = np.stack(
+    [(u - width / 2) / focal * depth, (v - height / 2) / focal * depth, depth - 4.0], -1
+  )
   log_scales = rng.uniform(*np.log(scale_range), (num, 3))
   return Gaussians(
-      means=jnp.asarray(means, jnp.float32),
-      opacities=jnp.asarray(rng.uniform(0.05, 1.0, num), jnp.float32),
-      scales=jnp.asarray(np.exp(log_scales), jnp.float32),
-      quats=jnp.asarray(rng.normal(size=(num, 4)), jnp.float32),
-      colors=jnp.asarray(rng.uniform(0, 1, (num, 3)), jnp.float32))
+    means=jnp.asarray(means, jnp.float32),
+    opacities=jnp.asarray(rng.uniform(0.05, 1.0, num), jnp.float32),
+    scales=jnp.asarray(np.exp(log_scales), jnp.float32),
+    quats=jnp.asarray(rng.normal(size=(num, 4)), jnp.float32),
+    colors=jnp.asarray(rng.uniform(0, 1, (num, 3)), jnp.float32),
+  )
 
 
 def make_camera(height, width):
@@ -86,16 +90,22 @@ def exact_config(num_intersections):
 def measure(gaussians, height, width, config, repeats):
   w2c, intr = make_camera(height, width)
   forward = jax.jit(lambda g: render(g, w2c, intr, height=height, width=width, config=config))
-  grad = jax.jit(jax.grad(
-      lambda g: jnp.sum(render(g, w2c, intr, height=height, width=width, config=config).rgb)))
+  grad = jax.jit(
+    jax.grad(lambda g: jnp.sum(render(g, w2c, intr, height=height, width=width, config=config).rgb))
+  )
   out = forward(gaussians)
-  row = dict(intersections=int(out.stats.num_intersections[0]), budget=int(out.stats.budget[0]),
-             truncated=bool(out.stats.truncated[0]), overflow=bool(out.stats.overflow[0]),
-             tile_chunks=int(out.stats.tile_chunks[0]))
+  row = dict(
+    intersections=int(out.stats.num_intersections[0]),
+    budget=int(out.stats.budget[0]),
+    truncated=bool(out.stats.truncated[0]),
+    overflow=bool(out.stats.overflow[0]),
+    tile_chunks=int(out.stats.tile_chunks[0]),
+  )
   if repeats:
     row["forward_s"], row["forward_cpu_s"] = best_time(forward, gaussians, repeats=repeats)
-    row["forward_backward_s"], row["forward_backward_cpu_s"] = best_time(grad, gaussians,
-                                                                         repeats=repeats)
+    row["forward_backward_s"], row["forward_backward_cpu_s"] = best_time(
+      grad, gaussians, repeats=repeats
+    )
     row["peak_rss_gib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
   return row, out.rgb
 
@@ -107,43 +117,71 @@ def stage_times(gaussians, height, width, config, repeats):
   ladder = config.budget_ladder(gaussians.num_gaussians, tiles)
 
   def project_and_bin(g):
-    camera = jax.tree.map(lambda x: x[None], pipeline._project(
-        g, w2c[0], intr[0], 0.025, 125.0, height=height, width=width, config=config))
-    return camera._replace(bins=pipeline._bin(camera, height=height, width=width, config=config,
-                                              ladder=ladder))
+    camera = jax.tree.map(
+      lambda x: x[None],
+      pipeline._project(
+        g, w2c[0], intr[0], 0.025, 125.0, height=height, width=width, config=config
+      ),
+    )
+    return camera._replace(
+      bins=pipeline._bin(camera, height=height, width=width, config=config, ladder=ladder)
+    )
 
   bin_one = jax.jit(project_and_bin)
   camera = bin_one(gaussians)
-  tiling = rasterize.Tiling(height, width, config.tile_size, -(-width // config.tile_size),
-                            -(-height // config.tile_size), 1, config.chunk_size,
-                            config.tiles_per_step, config.max_alpha, config.alpha_threshold,
-                            config.transmittance_stop)
+  tiling = rasterize.Tiling(
+    height,
+    width,
+    config.tile_size,
+    -(-width // config.tile_size),
+    -(-height // config.tile_size),
+    1,
+    config.chunk_size,
+    config.tiles_per_step,
+    config.max_alpha,
+    config.alpha_threshold,
+    config.transmittance_stop,
+  )
   bins = jax.tree.map(lambda x: x[0], camera.bins)
 
   def composite(attrs):
-    return rasterize.rasterize_tiles(attrs, bins.gaussian_ids, bins.tile_starts, bins.tile_ends,
-                                     tiling)
+    return rasterize.rasterize_tiles(
+      attrs, bins.gaussian_ids, bins.tile_starts, bins.tile_ends, tiling
+    )
 
   attrs = camera.attrs[0]
   weights = jnp.asarray(np.random.default_rng(0).uniform(0, 1, (attrs.shape[-1] - 6,)), attrs.dtype)
   composite_grad = jax.jit(jax.grad(lambda a: jnp.sum(composite(a)[0] * weights)))
-  for name, fn, arg in (("project+bin", bin_one, gaussians), ("composite", jax.jit(composite), attrs),
-                        ("composite f+b", composite_grad, attrs)):
+  for name, fn, arg in (
+    ("project+bin", bin_one, gaussians),
+    ("composite", jax.jit(composite), attrs),
+    ("composite f+b", composite_grad, attrs),
+  ):
     wall, cpu = best_time(fn, arg, repeats=repeats)
     print(f"{name:>14}: {wall:.3f} s wall, {cpu:.3f} s cpu", flush=True)
 
 
 def main():
-  parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+  parser = argparse.ArgumentParser(
+    description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+  )
   parser.add_argument("--sizes", type=int, nargs="+", default=[4096, 16384, 65536, 262144])
   parser.add_argument("--images", nargs="+", default=["256x256", "256x448"], help="HxW")
   parser.add_argument("--scene", choices=["fine", "tokengs"], default="fine")
-  parser.add_argument("--scale-range", type=float, nargs=2, default=None,
-                      help="default 0.005 0.04 (fine), 0.003 0.075 (tokengs)")
+  parser.add_argument(
+    "--scale-range",
+    type=float,
+    nargs=2,
+    default=None,
+    help="default 0.005 0.04 (fine), 0.003 0.075 (tokengs)",
+  )
   parser.add_argument("--repeats", type=int, default=3)
   parser.add_argument("--sweep", action="store_true", help="runtime vs error over the speed knobs")
-  parser.add_argument("--budget-check", action="store_true",
-                      help="error of the default budget only (no timing), for several scale ranges")
+  parser.add_argument(
+    "--budget-check",
+    action="store_true",
+    help="error of the default budget only (no timing), for several scale ranges",
+  )
   parser.add_argument("--stages", action="store_true", help="time each stage of the first point")
   parser.add_argument("--out", default="benchmarks/render.json")
   args = parser.parse_args()
@@ -158,9 +196,11 @@ def main():
     scale_ranges = [default_scales, (0.01, 0.075), (0.0276, 0.0276), (0.075, 0.075)]
 
   rows = []
-  print(f"{'N':>7} {'image':>8} {'scales':>12} {'knobs':>14} {'fwd s':>6} {'cpu':>6} {'f+b s':>6} "
-        f"{'cpu':>6} {'rss GiB':>7} {'isects':>8} {'budget':>8} {'trunc':>5} {'ovfl':>5} "
-        f"{'chunks':>6} {'max err':>8}")
+  print(
+    f"{'N':>7} {'image':>8} {'scales':>12} {'knobs':>14} {'fwd s':>6} {'cpu':>6} {'f+b s':>6} "
+    f"{'cpu':>6} {'rss GiB':>7} {'isects':>8} {'budget':>8} {'trunc':>5} {'ovfl':>5} "
+    f"{'chunks':>6} {'max err':>8}"
+  )
   for image in args.images:
     height, width = map(int, image.split("x"))
     for num in args.sizes:
@@ -174,11 +214,16 @@ def main():
         if args.sweep:
           variants += [(f"chunk={c}", RenderConfig(chunk_size=c)) for c in (16, 64)]
           variants += [(f"tiles/step={t}", RenderConfig(tiles_per_step=t)) for t in (32, 128)]
-          variants += [(f"isect/gauss={b}", RenderConfig(intersections_per_gaussian=b))
-                       for b in (32, 8, 4, 2)]
+          variants += [
+            (f"isect/gauss={b}", RenderConfig(intersections_per_gaussian=b)) for b in (32, 8, 4, 2)
+          ]
           # 8-pixel tiles: fewer wasted pixel evaluations, ~3x the pairs (budget scaled to match)
-          variants += [("tile8 s64", RenderConfig(tile_size=8, tiles_per_step=64,
-                                                  intersections_per_gaussian=64))]
+          variants += [
+            (
+              "tile8 s64",
+              RenderConfig(tile_size=8, tiles_per_step=64, intersections_per_gaussian=64),
+            )
+          ]
           variants += [("bf16 inputs", default)]
         repeats = 0 if args.budget_check else args.repeats
         probe, _ = measure(gaussians, height, width, default, 0)
@@ -188,16 +233,27 @@ def main():
           if name == "bf16 inputs":
             scene = jax.tree.map(lambda x: x.astype(jnp.bfloat16), gaussians)
           row, rgb = measure(scene, height, width, config, repeats)
-          row.update(num=num, image=image, scales=list(scale_range), knobs=name, scene=args.scene,
-                     max_error=float(jnp.max(jnp.abs(rgb - exact_rgb))))
+          row.update(
+            num=num,
+            image=image,
+            scales=list(scale_range),
+            knobs=name,
+            scene=args.scene,
+            max_error=float(jnp.max(jnp.abs(rgb - exact_rgb))),
+          )
           rows.append(row)
-          timing = "".join(f"{row.get(k, float('nan')):>7.3f}" for k in (
-              "forward_s", "forward_cpu_s", "forward_backward_s", "forward_backward_cpu_s"))
+          timing = "".join(
+            f"{row.get(k, float('nan')):>7.3f}"
+            for k in ("forward_s", "forward_cpu_s", "forward_backward_s", "forward_backward_cpu_s")
+          )
           scales = f"{scale_range[0]:g}-{scale_range[1]:g}"
           rss = row.get("peak_rss_gib", float("nan"))
-          print(f"{num:>7} {image:>8} {scales:>12} {name:>14}{timing} {rss:>7.2f} "
-                f"{row['intersections']:>8} {row['budget']:>8} {row['truncated']!s:>5} "
-                f"{row['overflow']!s:>5} {row['tile_chunks']:>6} {row['max_error']:>8.1e}", flush=True)
+          print(
+            f"{num:>7} {image:>8} {scales:>12} {name:>14}{timing} {rss:>7.2f} "
+            f"{row['intersections']:>8} {row['budget']:>8} {row['truncated']!s:>5} "
+            f"{row['overflow']!s:>5} {row['tile_chunks']:>6} {row['max_error']:>8.1e}",
+            flush=True,
+          )
   with open(args.out, "w") as f:
     json.dump(dict(device=str(jax.devices()[0]), scene=args.scene, rows=rows), f, indent=1)
 

@@ -20,8 +20,10 @@ def _tensors(tree):
   """Params pytree -> same nesting of float32 torch tensors; Dense kernels [in, out] become
   torch.nn.Linear-style contiguous weights [out, in]."""
   if isinstance(tree, dict):
-    return {("weight" if k == "kernel" else k): _tensors(v.T if k == "kernel" else v)
-            for k, v in tree.items()}
+    return {
+      ("weight" if k == "kernel" else k): _tensors(v.T if k == "kernel" else v)
+      for k, v in tree.items()
+    }
   return torch.from_numpy(np.array(tree, np.float32))  # a writable, C-contiguous copy
 
 
@@ -76,8 +78,9 @@ class TorchTokenGS:
     backbone = p["enc_dec_backbone"]
     for i in range(cfg.enc_depth):
       block = backbone[f"encoder_{i}"]
-      x = x + self._scale(self._self_attention(_norm(x, block["norm1"]), block["attn"]), block,
-                          "ls1")
+      x = x + self._scale(
+        self._self_attention(_norm(x, block["norm1"]), block["attn"]), block, "ls1"
+      )
       x = x + self._scale(self._mlp(_norm(x, block["norm2"]), block["mlp"]), block, "ls2")
     features = _norm(x, backbone["encoder_norm"])
     keys, values = _linear(features, backbone["kv_proj"]).chunk(2, dim=-1)
@@ -106,8 +109,7 @@ class TorchTokenGS:
     xyz = torch.sign(xyz) * torch.expm1(xyz.abs())
     xyz = xyz + torch.tensor([0.0, 0.0, cfg.gaussian_z_offset])
     opacity = torch.sigmoid(opacity - cfg.opacity_bias)
-    scale = torch.clamp(torch.exp(scale - cfg.scale_shift),
-                        max=cfg.gaussian_scale_cap)
+    scale = torch.clamp(torch.exp(scale - cfg.scale_shift), max=cfg.gaussian_scale_cap)
     quat = F.normalize(quat, dim=-1)
     rgb = 0.5 * torch.tanh(rgb) + 0.5
     return torch.cat([xyz, opacity, scale, quat, rgb], dim=-1)

@@ -26,37 +26,67 @@ from experiments.tasks import COMMANDS, Command, Task, execute
 
 def _invocation_type(presets: Mapping[str, Experiment], default_preset: str):
   """A tyro type: one subcommand per command, each holding one subcommand per preset."""
-  preset_union = Union[tuple(  # noqa: UP007 (tyro needs a typing.Union of Annotated types)
+  preset_union = Union[
+    tuple(  # noqa: UP007 (tyro needs a typing.Union of Annotated types)
       Annotated[type(p), tyro.conf.subcommand(name, default=p, description=f"preset {name!r}")]
-      for name, p in presets.items())]
+      for name, p in presets.items()
+    )
+  ]
 
   # built with make_dataclass: the field types are objects of this call, not importable names
-  invocation = dataclasses.make_dataclass("Invocation", [
+  invocation = dataclasses.make_dataclass(
+    "Invocation",
+    [
       ("command", tyro.conf.Suppress[str], dataclasses.field(default="run")),
-      ("experiment", Annotated[preset_union, tyro.conf.arg(name="")],
-       dataclasses.field(default=presets[default_preset]))], frozen=True)
+      (
+        "experiment",
+        Annotated[preset_union, tyro.conf.arg(name="")],
+        dataclasses.field(default=presets[default_preset]),
+      ),
+    ],
+    frozen=True,
+  )
 
-  descriptions = {"run": "train, then evaluate (default)", "train": "train only",
-                  "finetune": "train from --checkpoint / --official-checkpoint",
-                  "eval": "evaluate --checkpoint / --official-checkpoint"}
-  command_union = Union[tuple(  # noqa: UP007
-      Annotated[invocation, tyro.conf.subcommand(c, default=invocation(command=c),
-                                                 description=descriptions[c])]
-      for c in COMMANDS)]
+  descriptions = {
+    "run": "train, then evaluate (default)",
+    "train": "train only",
+    "finetune": "train from --checkpoint / --official-checkpoint",
+    "eval": "evaluate --checkpoint / --official-checkpoint",
+  }
+  command_union = Union[
+    tuple(  # noqa: UP007
+      Annotated[
+        invocation,
+        tyro.conf.subcommand(c, default=invocation(command=c), description=descriptions[c]),
+      ]
+      for c in COMMANDS
+    )
+  ]
   return command_union, invocation()
 
 
-def parse(argv: Sequence[str], presets: Mapping[str, Experiment], default_preset: str,
-          prog: str) -> tuple[Command, Experiment]:
+def parse(
+  argv: Sequence[str], presets: Mapping[str, Experiment], default_preset: str, prog: str
+) -> tuple[Command, Experiment]:
   """`[command] [preset] [flags]` -> (command, experiment)."""
   command_type, default = _invocation_type(presets, default_preset)
-  parsed = tyro.cli(command_type, args=list(argv), default=default, prog=prog,
-                    config=(tyro.conf.OmitSubcommandPrefixes, tyro.conf.CascadeSubcommandArgs))
+  parsed = tyro.cli(
+    command_type,
+    args=list(argv),
+    default=default,
+    prog=prog,
+    config=(tyro.conf.OmitSubcommandPrefixes, tyro.conf.CascadeSubcommandArgs),
+  )
   return parsed.command, parsed.experiment
 
 
-def main(presets: Mapping[str, Experiment], default_preset: str, prog: str,
-         argv: Sequence[str] | None = None, task: Task | None = None) -> dict | None:
+def main(
+  presets: Mapping[str, Experiment],
+  default_preset: str,
+  prog: str,
+  argv: Sequence[str] | None = None,
+  task: Task | None = None,
+) -> dict | None:
   argv = sys.argv[1:] if argv is None else list(argv)
   command, experiment = parse(argv, presets, default_preset, prog)
   enable_compile_cache()
@@ -67,5 +97,7 @@ def enable_compile_cache() -> None:
   """Persistent XLA cache (`$TOKENGS_JAX_CACHE`, default `.jax_cache`): on CPU, compiling the
   training step and the renderer takes longer than a short run itself, so reruns reuse it."""
   if not jax.config.jax_compilation_cache_dir:
-    jax.config.update("jax_compilation_cache_dir", os.environ.get("TOKENGS_JAX_CACHE", ".jax_cache"))
+    jax.config.update(
+      "jax_compilation_cache_dir", os.environ.get("TOKENGS_JAX_CACHE", ".jax_cache")
+    )
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)

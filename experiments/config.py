@@ -16,6 +16,7 @@ from tokengs_jax import model
 @dataclasses.dataclass(frozen=True)
 class SyntheticSettings:
   """The offline RE10K-format set written when no `--data-dir` is given."""
+
   num_train: int = 48
   num_test: int = 8
   frames: int = 24
@@ -38,6 +39,7 @@ class TrainSettings:
     num_workers: grain decoding processes.
     view_chunk_size: target views rendered per rematerialised chunk (None: all at once).
   """
+
   steps: int = 1500
   batch_size: int = 4
   num_target_views: int = 2
@@ -66,6 +68,7 @@ class EvalSettings:
     grid_scenes: scenes drawn in `grids/`.
     video_frames: frames of the fly-through (0: no video).
   """
+
   num_scenes: int = 8
   num_target_views: int = 3
   context_gap: int = 12
@@ -79,8 +82,14 @@ class EvalSettings:
 # The synthetic default's model: the `tiny` preset with 128 tokens x 4 Gaussians (512 Gaussians,
 # 4x cheaper renders than the preset's 2048 on a 2-core CPU) and a 150x larger head readout (the
 # official 0.002 starts every Gaussian in one clump, which a few CPU minutes cannot spread).
-SYNTHETIC_MODEL = model.preset("tiny", image_size=(32, 32), num_input_views=2, num_gs_tokens=128,
-                               dec_patch_size=2, clip_head_readout_std=0.3)
+SYNTHETIC_MODEL = model.preset(
+  "tiny",
+  image_size=(32, 32),
+  num_input_views=2,
+  num_gs_tokens=128,
+  dec_patch_size=2,
+  clip_head_readout_std=0.3,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,6 +108,7 @@ class Experiment:
     official_checkpoint: official `.safetensors` weights (eval / finetune start).
     seed: initialisation, data order and view sampling.
   """
+
   dataset: Literal["re10k", "dl3dv"] = "re10k"
   data_dir: str | None = None
   synthetic_dir: str = "outputs/synthetic_re10k"
@@ -132,5 +142,9 @@ def optim_config(experiment: Experiment):
   from tokengs_jax.train import OptimConfig
 
   t = experiment.train
-  return OptimConfig(learning_rate=t.learning_rate, schedule=t.schedule, total_steps=t.steps,
-                     warmup_steps=min(t.warmup_steps, max(t.steps - 1, 0)))
+  return OptimConfig(
+    learning_rate=t.learning_rate,
+    schedule=t.schedule,
+    total_steps=t.steps,
+    warmup_steps=min(t.warmup_steps, max(t.steps - 1, 0)),
+  )

@@ -37,11 +37,21 @@ def ensure_synthetic(experiment: Experiment) -> pathlib.Path:
   from tokengs_jax.data.synthetic import generate_re10k_like  # only needed to write the set
 
   s = experiment.synthetic
-  print(f"[data] writing the synthetic RE10K-format set to {root} ({s.num_train} train + "
-        f"{s.num_test} test scenes, {s.frames} frames of {experiment.image_size})", flush=True)
+  print(
+    f"[data] writing the synthetic RE10K-format set to {root} ({s.num_train} train + "
+    f"{s.num_test} test scenes, {s.frames} frames of {experiment.image_size})",
+    flush=True,
+  )
   start = time.perf_counter()
-  generate_re10k_like(root, s.num_train, s.num_test, *experiment.image_size, frames=s.frames,
-                      seed=experiment.seed, workers=s.workers)
+  generate_re10k_like(
+    root,
+    s.num_train,
+    s.num_test,
+    *experiment.image_size,
+    frames=s.frames,
+    seed=experiment.seed,
+    workers=s.workers,
+  )
   print(f"[data] written in {time.perf_counter() - start:.1f} s", flush=True)
   return root
 
@@ -56,15 +66,20 @@ def example_config(experiment: Experiment, *, training: bool) -> ExampleConfig:
   num_targets = t.num_target_views if training else e.num_target_views
   if experiment.data_dir:
     base = DATASET_PRESETS[experiment.dataset]
-    sampler = dataclasses.replace(base.sampler, num_context_views=experiment.num_context_views,
-                                  num_target_views=num_targets)
+    sampler = dataclasses.replace(
+      base.sampler, num_context_views=experiment.num_context_views, num_target_views=num_targets
+    )
     config = dataclasses.replace(base, image_shape=experiment.image_size, sampler=sampler)
   else:
-    low, high = (t.min_context_gap, t.max_context_gap) if training else (e.context_gap, e.context_gap)
-    sampler = BoundedSamplerConfig(experiment.num_context_views, num_targets, low, high, 0, 0,
-                                   low, high)
-    config = ExampleConfig(experiment.image_size, sampler,
-                           DATASET_PRESETS["re10k"].translation_scale)
+    low, high = (
+      (t.min_context_gap, t.max_context_gap) if training else (e.context_gap, e.context_gap)
+    )
+    sampler = BoundedSamplerConfig(
+      experiment.num_context_views, num_targets, low, high, 0, 0, low, high
+    )
+    config = ExampleConfig(
+      experiment.image_size, sampler, DATASET_PRESETS["re10k"].translation_scale
+    )
   if not training:
     config = dataclasses.replace(config, random_flip=False, deterministic=True)
   return config
@@ -75,15 +90,23 @@ def training_batches(experiment: Experiment) -> InputPipeline:
   source = ChunkedSceneSource(data_root(experiment) / "train", skip_bad=bool(experiment.data_dir))
   local = experiment.train.batch_size // jax.process_count()
   if local * jax.process_count() != experiment.train.batch_size:
-    raise ValueError(f"batch_size {experiment.train.batch_size} is not divisible by "
-                     f"{jax.process_count()} processes")
-  return InputPipeline(source, example_config(experiment, training=True), batch_size=local,
-                       seed=experiment.seed, num_workers=experiment.train.num_workers,
-                       skip_bad=bool(experiment.data_dir))
+    raise ValueError(
+      f"batch_size {experiment.train.batch_size} is not divisible by "
+      f"{jax.process_count()} processes"
+    )
+  return InputPipeline(
+    source,
+    example_config(experiment, training=True),
+    batch_size=local,
+    seed=experiment.seed,
+    num_workers=experiment.train.num_workers,
+    skip_bad=bool(experiment.data_dir),
+  )
 
 
-def _test_source(experiment: Experiment, index: dict | None
-                 ) -> tuple[ChunkedSceneSource, EvaluationIndexReport | None]:
+def _test_source(
+  experiment: Experiment, index: dict | None
+) -> tuple[ChunkedSceneSource, EvaluationIndexReport | None]:
   """The test split (only the index's scenes when there is one) and, with an index, how it matches
   the data (`validate_evaluation_index`: unknown keys listed, an error when none matches or a
   frame is out of range), before any scene is decoded."""
@@ -115,8 +138,10 @@ def novel_targets(context: np.ndarray, num_targets: int) -> np.ndarray:
   """
   free = np.setdiff1d(np.arange(int(np.min(context)) + 1, int(np.max(context))), context)
   if len(free) < num_targets:
-    raise ValueError(f"a context span {np.min(context)}-{np.max(context)} leaves {len(free)} "
-                     f"non-input frames for {num_targets} targets; widen eval.context_gap")
+    raise ValueError(
+      f"a context span {np.min(context)}-{np.max(context)} leaves {len(free)} "
+      f"non-input frames for {num_targets} targets; widen eval.context_gap"
+    )
   return free[np.linspace(0, len(free) - 1, num_targets).round().astype(np.int64)]
 
 
@@ -126,8 +151,9 @@ def _load_index(experiment: Experiment) -> dict | None:
   return load_evaluation_index(experiment.eval_index, num_context=experiment.num_context_views)
 
 
-def evaluation_scenes(experiment: Experiment, views: ViewChooser | None = None
-                      ) -> list[tuple[str, dict]]:
+def evaluation_scenes(
+  experiment: Experiment, views: ViewChooser | None = None
+) -> list[tuple[str, dict]]:
   """(scene key, batch of one) for the held-out scenes, with fixed views.
 
   Each batch also carries the frame numbers of its views, `context_frames` [1, Vc] and
@@ -138,8 +164,9 @@ def evaluation_scenes(experiment: Experiment, views: ViewChooser | None = None
   """
   index = _load_index(experiment)
   source, _ = _test_source(experiment, index)
-  count = len(source) if experiment.eval.num_scenes <= 0 else min(experiment.eval.num_scenes,
-                                                                   len(source))
+  count = (
+    len(source) if experiment.eval.num_scenes <= 0 else min(experiment.eval.num_scenes, len(source))
+  )
   config = example_config(experiment, training=False)
   scenes = []
   for position in range(count):
@@ -151,9 +178,9 @@ def evaluation_scenes(experiment: Experiment, views: ViewChooser | None = None
     else:
       context, _ = sample_bounded(config.sampler, len(record["images"]), None, deterministic=True)
       chosen = context, novel_targets(context, config.sampler.num_target_views)
-    example = make_example(record, config, np.random.default_rng([experiment.seed, position]),
-                           views=chosen)
-    example["context_frames"], example["target_frames"] = (np.asarray(f, np.int64)
-                                                           for f in chosen)
+    example = make_example(
+      record, config, np.random.default_rng([experiment.seed, position]), views=chosen
+    )
+    example["context_frames"], example["target_frames"] = (np.asarray(f, np.int64) for f in chosen)
     scenes.append((record["key"], {k: v[None] for k, v in example.items()}))
   return scenes

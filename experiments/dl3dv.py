@@ -24,16 +24,28 @@ from tokengs_jax import model
 PRESETS = {}
 for _views in (2, 4, 6):
   PRESETS[f"synthetic-{_views}view"] = Experiment(
-      dataset="re10k", output_dir=f"outputs/dl3dv/synthetic_{_views}view",
-      model=SYNTHETIC_MODEL.replace(num_input_views=_views),
-      train=TrainSettings(min_context_gap=10, max_context_gap=16),
-      eval=EvalSettings(context_gap=16))
+    dataset="re10k",
+    output_dir=f"outputs/dl3dv/synthetic_{_views}view",
+    model=SYNTHETIC_MODEL.replace(num_input_views=_views),
+    train=TrainSettings(min_context_gap=10, max_context_gap=16),
+    eval=EvalSettings(context_gap=16),
+  )
   PRESETS[f"paper-{_views}view"] = Experiment(
-      dataset="dl3dv", data_dir="datasets/dl3dv", output_dir=f"outputs/dl3dv/paper_{_views}view",
-      model=model.preset(f"dl3dv_{_views}view"),
-      train=TrainSettings(steps=10_000, batch_size=64, learning_rate=4e-5, warmup_steps=400,
-                          log_every=50, checkpoint_every=2_000, num_workers=8),
-      eval=EvalSettings(num_scenes=0, num_target_views=8, grid_scenes=8, video_frames=96))
+    dataset="dl3dv",
+    data_dir="datasets/dl3dv",
+    output_dir=f"outputs/dl3dv/paper_{_views}view",
+    model=model.preset(f"dl3dv_{_views}view"),
+    train=TrainSettings(
+      steps=10_000,
+      batch_size=64,
+      learning_rate=4e-5,
+      warmup_steps=400,
+      log_every=50,
+      checkpoint_every=2_000,
+      num_workers=8,
+    ),
+    eval=EvalSettings(num_scenes=0, num_target_views=8, grid_scenes=8, video_frames=96),
+  )
 
 if __name__ == "__main__":
   main(PRESETS, "synthetic-4view", "python -m experiments.dl3dv")

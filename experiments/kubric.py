@@ -74,6 +74,7 @@ class KubricExperiment(Experiment):
       fraction of `train.steps`, then decays linearly to 0 over the next fraction (official
       5k / 10k of 50k steps).
   """
+
   num_cameras: int = 4
   min_gap: int = 3
   max_gap: int = 23
@@ -88,14 +89,19 @@ class KubricExperiment(Experiment):
 def kubric_example_config(experiment: KubricExperiment, *, training: bool) -> ExampleConfig:
   """The official Kubric example preset (mean_cam, pointmap scale) at the experiment's image
   size; random flips only in training."""
-  return dataclasses.replace(DATASET_PRESETS["kubric"], image_shape=tuple(experiment.image_size),
-                             random_flip=training, deterministic=not training)
+  return dataclasses.replace(
+    DATASET_PRESETS["kubric"],
+    image_shape=tuple(experiment.image_size),
+    random_flip=training,
+    deterministic=not training,
+  )
 
 
 def kubric_views(experiment: KubricExperiment, num_targets: int):
   """The official dynamic view selection (targets <= context views, as official)."""
-  return kubric_view_selector(experiment.num_context_views, num_targets, experiment.min_gap,
-                              experiment.max_gap)
+  return kubric_view_selector(
+    experiment.num_context_views, num_targets, experiment.min_gap, experiment.max_gap
+  )
 
 
 def _subset_of(gaussians: Gaussians, part: slice) -> Gaussians:
@@ -104,6 +110,7 @@ def _subset_of(gaussians: Gaussians, part: slice) -> Gaussians:
 
 class KubricTask(Task):
   """Kubric data (generated when synthetic), the dynamic loss and the dynamic pictures."""
+
   name = "kubric"
 
   def prepare(self, experiment: KubricExperiment) -> None:
@@ -114,17 +121,26 @@ class KubricTask(Task):
       return pathlib.Path(experiment.data_dir)
     root = pathlib.Path(experiment.synthetic_dir)
     s = experiment.synthetic
-    wanted = {TRAIN_SUBSET: (s.num_train, experiment.seed),
-              TEST_SUBSET: (s.num_test, experiment.seed + 1000)}
+    wanted = {
+      TRAIN_SUBSET: (s.num_train, experiment.seed),
+      TEST_SUBSET: (s.num_test, experiment.seed + 1000),
+    }
     for subset, (count, seed) in wanted.items():
       if len(list((root / subset).glob("scene_*/output_*.tar"))) < count * experiment.num_cameras:
         from tokengs_jax.data.synthetic import generate_kubric_like
 
         print(f"[data] writing {count} synthetic Kubric scenes to {root / subset}", flush=True)
         start = time.perf_counter()
-        generate_kubric_like(root, count, *experiment.image_size, frames=s.frames,
-                             num_cameras=experiment.num_cameras, seed=seed, subset=subset,
-                             workers=s.workers)
+        generate_kubric_like(
+          root,
+          count,
+          *experiment.image_size,
+          frames=s.frames,
+          num_cameras=experiment.num_cameras,
+          seed=seed,
+          subset=subset,
+          workers=s.workers,
+        )
         print(f"[data] written in {time.perf_counter() - start:.1f} s", flush=True)
     return root
 
@@ -136,25 +152,31 @@ class KubricTask(Task):
       return KubricSceneSource(root, [TRAIN_SUBSET]), KubricSceneSource(root, [TEST_SUBSET])
     scenes = list_kubric_scenes(root)
     held_out = experiment.eval.num_scenes or 16
-    return KubricSceneSource(scenes=scenes[:-held_out]), KubricSceneSource(scenes=scenes[-held_out:])
+    return KubricSceneSource(scenes=scenes[:-held_out]), KubricSceneSource(
+      scenes=scenes[-held_out:]
+    )
 
   def training_batches(self, experiment: KubricExperiment):
     """This process's batches from the shared input pipeline: grain workers, and an iterator
     state the checkpoints save, so a resumed run continues the data stream where it stopped."""
     train, _ = self.sources(experiment)
     pipeline = InputPipeline(
-        train, kubric_example_config(experiment, training=True),
-        batch_size=experiment.train.batch_size // jax.process_count(), seed=experiment.seed,
-        num_workers=experiment.train.num_workers,
-        select_views=kubric_views(experiment, experiment.train.num_target_views),
-        skip_bad=bool(experiment.data_dir))
+      train,
+      kubric_example_config(experiment, training=True),
+      batch_size=experiment.train.batch_size // jax.process_count(),
+      seed=experiment.seed,
+      num_workers=experiment.train.num_workers,
+      select_views=kubric_views(experiment, experiment.train.num_target_views),
+      skip_bad=bool(experiment.data_dir),
+    )
     return pipeline
 
   def evaluation_examples(self, experiment: KubricExperiment) -> list[tuple[str, dict]]:
     _, test = self.sources(experiment)
     config = kubric_example_config(experiment, training=False)
-    select = kubric_views(experiment, min(experiment.eval.num_target_views,
-                                          experiment.num_context_views))
+    select = kubric_views(
+      experiment, min(experiment.eval.num_target_views, experiment.num_context_views)
+    )
     examples = []
     for position in range(min(len(test), experiment.eval.num_scenes or len(test))):
       record = test[position]
@@ -167,10 +189,14 @@ class KubricTask(Task):
     """The official Kubric release loss, its auxiliary schedule scaled to `train.steps`."""
     steps = experiment.train.steps
     return losses.LossConfig(
-        rgb_loss=experiment.rgb_loss, lambda_rgb=0.8, lambda_ssim=0.2, lambda_vis=1.0,
-        lambda_dyn_aux=experiment.lambda_dyn_aux,
-        dyn_aux_hold_steps=round(experiment.dyn_aux_hold_fraction * steps),
-        dyn_aux_decay_steps=max(round(experiment.dyn_aux_decay_fraction * steps), 1))
+      rgb_loss=experiment.rgb_loss,
+      lambda_rgb=0.8,
+      lambda_ssim=0.2,
+      lambda_vis=1.0,
+      lambda_dyn_aux=experiment.lambda_dyn_aux,
+      dyn_aux_hold_steps=round(experiment.dyn_aux_hold_fraction * steps),
+      dyn_aux_decay_steps=max(round(experiment.dyn_aux_decay_fraction * steps), 1),
+    )
 
   def objective(self, experiment: KubricExperiment) -> ObjectiveConfig:
     # every target view of a Kubric example shares one time: decode once (official)
@@ -181,17 +207,20 @@ class KubricTask(Task):
       raise ValueError("Kubric training needs a time-conditioned model (time_embedding=True)")
     return super().loss_fn(experiment, config)
 
-  def extra_visuals(self, experiment: KubricExperiment, config, params, examples, writer,
-                    step) -> dict:
+  def extra_visuals(
+    self, experiment: KubricExperiment, config, params, examples, writer, step
+  ) -> dict:
     out = pathlib.Path(experiment.output_dir) / "dynamic"
     key, batch = examples[0]
     height, width = batch["target_images"].shape[-3:-1]
     camera = (batch["target_c2w"][:, :1], batch["target_intrinsics"][:, :1])
     times = np.linspace(0.0, 1.0, experiment.flow_times, dtype=np.float32)
-    per_time = [jax.device_get(evaluation.reconstruct(params, batch, config, jnp.asarray([t])))
-                for t in times]
-    renders = [evaluation.render_targets(g, *camera, height=height, width=width).rgb[0, 0]
-               for g in per_time]
+    per_time = [
+      jax.device_get(evaluation.reconstruct(params, batch, config, jnp.asarray([t]))) for t in times
+    ]
+    renders = [
+      evaluation.render_targets(g, *camera, height=height, width=width).rgb[0, 0] for g in per_time
+    ]
     inputs_row = list(batch["context_images"][0])
     grid = export.image_grid([inputs_row, renders])
     export.save_png(out / "in_between_times.png", grid)
@@ -199,54 +228,90 @@ class KubricTask(Task):
       writer.add_image("dynamic/in_between_times", grid, step, dataformats="HWC")
 
     split = config.num_static_gaussians
-    at_target = jax.device_get(evaluation.reconstruct(params, batch, config,
-                                                      batch["target_times"][:, 0]))
-    parts = [at_target, _subset_of(at_target, slice(0, split)), _subset_of(at_target, slice(split, None))]
+    at_target = jax.device_get(
+      evaluation.reconstruct(params, batch, config, batch["target_times"][:, 0])
+    )
+    parts = [
+      at_target,
+      _subset_of(at_target, slice(0, split)),
+      _subset_of(at_target, slice(split, None)),
+    ]
     row = [batch["target_images"][0, 0]] + [
-        evaluation.render_targets(g, *camera, height=height, width=width).rgb[0, 0] for g in parts]
+      evaluation.render_targets(g, *camera, height=height, width=width).rgb[0, 0] for g in parts
+    ]
     export.save_png(out / "static_dynamic.png", export.image_grid([row]))
 
     # Scene flow: centres of the most opaque dynamic Gaussians over time, in the target camera.
     dynamic = np.stack([np.asarray(g.means)[0, split:] for g in per_time], axis=1)  # [Nd, T, 3]
     opacity = np.mean([np.asarray(g.opacities)[0, split:] for g in per_time], axis=0)
-    chosen = np.argsort(-opacity)[:experiment.flow_tracks]
-    uv, depth = project_points(jnp.asarray(dynamic[chosen].reshape(-1, 3)),
-                               invert_rigid(jnp.asarray(camera[0][0])), jnp.asarray(camera[1][0]))
+    chosen = np.argsort(-opacity)[: experiment.flow_tracks]
+    uv, depth = project_points(
+      jnp.asarray(dynamic[chosen].reshape(-1, 3)),
+      invert_rigid(jnp.asarray(camera[0][0])),
+      jnp.asarray(camera[1][0]),
+    )
     tracks = np.where((np.asarray(depth)[0] > 0)[:, None], np.asarray(uv)[0], np.nan)
     tracks = tracks.reshape(len(chosen), len(times), 2)
-    plot.trajectory_plot(out / "scene_flow.png", tracks, title=f"scene flow, {key}",
-                         background=renders[0])
+    plot.trajectory_plot(
+      out / "scene_flow.png", tracks, title=f"scene flow, {key}", background=renders[0]
+    )
     motion = np.linalg.norm(dynamic[:, -1] - dynamic[:, 0], axis=-1)
     static_motion = np.linalg.norm(
-        np.asarray(per_time[-1].means)[0, :split] - np.asarray(per_time[0].means)[0, :split], axis=-1)
-    return {"dynamic": {"scene": key, "times": times.tolist(),
-                        "mean_dynamic_displacement_t0_t1": float(motion.mean()),
-                        # the mean is dominated by a few far, faint Gaussians: also the typical
-                        # motion, and that of the drawn (most opaque) tracks
-                        "median_dynamic_displacement_t0_t1": float(np.median(motion)),
-                        "median_tracked_displacement_t0_t1": float(np.median(motion[chosen])),
-                        "mean_static_displacement_t0_t1": float(static_motion.mean())}}
+      np.asarray(per_time[-1].means)[0, :split] - np.asarray(per_time[0].means)[0, :split], axis=-1
+    )
+    return {
+      "dynamic": {
+        "scene": key,
+        "times": times.tolist(),
+        "mean_dynamic_displacement_t0_t1": float(motion.mean()),
+        # the mean is dominated by a few far, faint Gaussians: also the typical
+        # motion, and that of the drawn (most opaque) tracks
+        "median_dynamic_displacement_t0_t1": float(np.median(motion)),
+        "median_tracked_displacement_t0_t1": float(np.median(motion[chosen])),
+        "mean_static_displacement_t0_t1": float(static_motion.mean()),
+      }
+    }
 
 
 PRESETS = {
-    "synthetic-tiny": KubricExperiment(
-        output_dir="outputs/kubric/tiny_synthetic", synthetic_dir="outputs/synthetic_kubric",
-        model=model.preset("tiny", image_size=(32, 32), num_input_views=2, dec_patch_size=4,
-                           num_dynamic_gs_tokens=8, time_embedding=True, gs_token_std=1.0,
-                           clip_head_readout_std=0.003),
-        synthetic=SyntheticSettings(num_train=24, num_test=4, frames=12, workers=2),
-        min_gap=3, max_gap=8,
-        train=TrainSettings(steps=1200, batch_size=4, num_target_views=2, learning_rate=2e-3,
-                            warmup_steps=100),
-        eval=EvalSettings(num_scenes=4, num_target_views=2, tuning_learning_rate=1e-2,
-                          grid_scenes=2, video_frames=24)),
-    "paper": KubricExperiment(
-        data_dir="datasets/kubric4d", output_dir="outputs/kubric/paper",
-        model=model.preset("kubric_dyn"),
-        train=TrainSettings(steps=50_000, batch_size=64, num_target_views=4,
-                            learning_rate=4e-5, warmup_steps=400, log_every=50,
-                            checkpoint_every=5_000),
-        eval=EvalSettings(num_scenes=16, num_target_views=4, grid_scenes=8, video_frames=96)),
+  "synthetic-tiny": KubricExperiment(
+    output_dir="outputs/kubric/tiny_synthetic",
+    synthetic_dir="outputs/synthetic_kubric",
+    model=model.preset(
+      "tiny",
+      image_size=(32, 32),
+      num_input_views=2,
+      dec_patch_size=4,
+      num_dynamic_gs_tokens=8,
+      time_embedding=True,
+      gs_token_std=1.0,
+      clip_head_readout_std=0.003,
+    ),
+    synthetic=SyntheticSettings(num_train=24, num_test=4, frames=12, workers=2),
+    min_gap=3,
+    max_gap=8,
+    train=TrainSettings(
+      steps=1200, batch_size=4, num_target_views=2, learning_rate=2e-3, warmup_steps=100
+    ),
+    eval=EvalSettings(
+      num_scenes=4, num_target_views=2, tuning_learning_rate=1e-2, grid_scenes=2, video_frames=24
+    ),
+  ),
+  "paper": KubricExperiment(
+    data_dir="datasets/kubric4d",
+    output_dir="outputs/kubric/paper",
+    model=model.preset("kubric_dyn"),
+    train=TrainSettings(
+      steps=50_000,
+      batch_size=64,
+      num_target_views=4,
+      learning_rate=4e-5,
+      warmup_steps=400,
+      log_every=50,
+      checkpoint_every=5_000,
+    ),
+    eval=EvalSettings(num_scenes=16, num_target_views=4, grid_scenes=8, video_frames=96),
+  ),
 }
 
 if __name__ == "__main__":

@@ -65,22 +65,34 @@ def _stop(processes: list[subprocess.Popen], grace: float) -> None:
       time.sleep(0.05)
 
 
-def launch(command: list[str], processes: int, devices_per_process: int | None = None,
-           grace: float = 5.0, timeout: float | None = None, port: int | None = None) -> int:
+def launch(
+  command: list[str],
+  processes: int,
+  devices_per_process: int | None = None,
+  grace: float = 5.0,
+  timeout: float | None = None,
+  port: int | None = None,
+) -> int:
   """Starts `processes` copies of `command`; returns the job's exit status (0: all succeeded)."""
   address = f"127.0.0.1:{port or free_port()}"
   print(f"[launch] {processes} processes, coordinator {address}: {' '.join(command)}", flush=True)
   children, forwarders = [], []
   for index in range(processes):
-    env = {**os.environ, "TOKENGS_COORDINATOR": address, "TOKENGS_NUM_PROCESSES": str(processes),
-           "TOKENGS_PROCESS_ID": str(index)}
+    env = {
+      **os.environ,
+      "TOKENGS_COORDINATOR": address,
+      "TOKENGS_NUM_PROCESSES": str(processes),
+      "TOKENGS_PROCESS_ID": str(index),
+    }
     if devices_per_process is not None:
       env["JAX_NUM_CPU_DEVICES"] = str(devices_per_process)
     # Own process group: stopping a process also stops its data workers.
-    child = subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                             start_new_session=True)
-    forwarder = threading.Thread(target=_forward, args=(f"[p{index}] ", child.stdout, sys.stdout),
-                                 daemon=True)
+    child = subprocess.Popen(
+      command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True
+    )
+    forwarder = threading.Thread(
+      target=_forward, args=(f"[p{index}] ", child.stdout, sys.stdout), daemon=True
+    )
     forwarder.start()
     children.append(child)
     forwarders.append(forwarder)
@@ -92,8 +104,10 @@ def launch(command: list[str], processes: int, devices_per_process: int | None =
       failed = [(i, c.returncode) for i, c in enumerate(children) if c.returncode not in (None, 0)]
       if failed:
         index, returncode = failed[0]
-        print(f"[launch] process {index} {describe(returncode)}; stopping the other processes",
-              flush=True)
+        print(
+          f"[launch] process {index} {describe(returncode)}; stopping the other processes",
+          flush=True,
+        )
         status = exit_status(returncode)
         break
       if deadline is not None and time.monotonic() > deadline:
@@ -125,21 +139,31 @@ def main(argv: list[str] | None = None) -> int:
   if "--" not in argv:
     raise SystemExit("usage: python -m experiments.launch --processes N [options] -- COMMAND ...")
   split = argv.index("--")
-  parser = argparse.ArgumentParser(prog="python -m experiments.launch",
-                                   description=__doc__.split("\n\n")[0])
+  parser = argparse.ArgumentParser(
+    prog="python -m experiments.launch", description=__doc__.split("\n\n")[0]
+  )
   parser.add_argument("--processes", type=int, required=True, help="local processes")
-  parser.add_argument("--devices-per-process", type=int, default=None,
-                      help="CPU devices per process (sets JAX_NUM_CPU_DEVICES)")
-  parser.add_argument("--grace", type=float, default=5.0,
-                      help="seconds between SIGTERM and SIGKILL when stopping processes")
+  parser.add_argument(
+    "--devices-per-process",
+    type=int,
+    default=None,
+    help="CPU devices per process (sets JAX_NUM_CPU_DEVICES)",
+  )
+  parser.add_argument(
+    "--grace",
+    type=float,
+    default=5.0,
+    help="seconds between SIGTERM and SIGKILL when stopping processes",
+  )
   parser.add_argument("--timeout", type=float, default=None, help="stop the job after this long")
   parser.add_argument("--port", type=int, default=None, help="coordinator port (default: free)")
   args = parser.parse_args(argv[:split])
-  command = argv[split + 1:]
+  command = argv[split + 1 :]
   if not command or args.processes < 1:
     parser.error("need a command after -- and --processes >= 1")
-  return launch(command, args.processes, args.devices_per_process, args.grace, args.timeout,
-                args.port)
+  return launch(
+    command, args.processes, args.devices_per_process, args.grace, args.timeout, args.port
+  )
 
 
 if __name__ == "__main__":

@@ -27,8 +27,9 @@ def upscale(image: np.ndarray, min_size: int = MIN_CELL) -> np.ndarray:
   return np.repeat(np.repeat(image, factor, axis=0), factor, axis=1)
 
 
-def depth_row(depths: Sequence[np.ndarray], alphas: Sequence[np.ndarray | None]
-              ) -> tuple[list[np.ndarray], tuple[float, float] | None]:
+def depth_row(
+  depths: Sequence[np.ndarray], alphas: Sequence[np.ndarray | None]
+) -> tuple[list[np.ndarray], tuple[float, float] | None]:
   """Depth maps [H, W, 1] coloured on one shared scale -> (images, (near, far) depth or None)."""
   inverse_range = export.inverse_depth_range(depths, alphas)
   images = [export.colorize_depth(d, a, inverse_range) for d, a in zip(depths, alphas)]
@@ -52,9 +53,13 @@ def _colour_bar(height: int, near_far: tuple[float, float], font) -> Image.Image
   return bar
 
 
-def labelled_grid(rows: Sequence[tuple[str, Sequence[np.ndarray]]], *, title: str = "",
-                  depth_range: tuple[float, float] | None = None,
-                  min_cell: int = MIN_CELL) -> np.ndarray:
+def labelled_grid(
+  rows: Sequence[tuple[str, Sequence[np.ndarray]]],
+  *,
+  title: str = "",
+  depth_range: tuple[float, float] | None = None,
+  min_cell: int = MIN_CELL,
+) -> np.ndarray:
   """Rows of images, each row named on its left; cells upscaled to at least `min_cell` px.
 
   rows: (label, images [H, W, 3] floats in [0, 1] or uint8) per row.
@@ -63,17 +68,29 @@ def labelled_grid(rows: Sequence[tuple[str, Sequence[np.ndarray]]], *, title: st
   Returns the picture, uint8 [H, W, 3].
   """
   font = _font()
-  rows = [(label, [upscale(export.to_uint8(img) if img.dtype != np.uint8 else img, min_cell)
-                   for img in images]) for label, images in rows if len(images)]
+  rows = [
+    (
+      label,
+      [upscale(export.to_uint8(img) if img.dtype != np.uint8 else img, min_cell) for img in images],
+    )
+    for label, images in rows
+    if len(images)
+  ]
   label_width = max([int(font.getlength(label)) for label, _ in rows] + [0]) + 2 * _PAD
   heights = [max(img.shape[0] for img in images) for _, images in rows]
-  bars = {i: _colour_bar(heights[i], depth_range, font) for i, (label, _) in enumerate(rows)
-          if depth_range is not None and label.startswith("depth")}
-  widths = [sum(img.shape[1] + _PAD for img in images) + (bars[i].width + _PAD if i in bars else 0)
-            for i, (_, images) in enumerate(rows)]
+  bars = {
+    i: _colour_bar(heights[i], depth_range, font)
+    for i, (label, _) in enumerate(rows)
+    if depth_range is not None and label.startswith("depth")
+  }
+  widths = [
+    sum(img.shape[1] + _PAD for img in images) + (bars[i].width + _PAD if i in bars else 0)
+    for i, (_, images) in enumerate(rows)
+  ]
   top = 24 if title else _PAD
-  canvas = Image.new("RGB", (label_width + max(widths) + _PAD, top + sum(h + _PAD for h in heights)),
-                     (255, 255, 255))
+  canvas = Image.new(
+    "RGB", (label_width + max(widths) + _PAD, top + sum(h + _PAD for h in heights)), (255, 255, 255)
+  )
   draw = ImageDraw.Draw(canvas)
   if title:
     draw.text((_PAD, _PAD), title, fill=_TEXT, font=font)

@@ -35,6 +35,7 @@ _DEPTH_CHANNEL = 2  # the raw z channel of the TokenGS head layout carries the d
 
 class PixelAlignedGS(nn.Module):
   """Posed images -> one Gaussian per input pixel (depth along its ray)."""
+
   config: ModelConfig
 
   @nn.compact
@@ -43,15 +44,20 @@ class PixelAlignedGS(nn.Module):
     cfg, dtype = self.config, self.config.compute_dtype
     b, v, h, w, _ = images.shape
     p = cfg.patch_size
-    tokens = (PatchEmbed(cfg.enc_embed_dim, p, dtype=dtype, name="rgb_embed")(images)
-              + PatchEmbed(cfg.enc_embed_dim, p, dtype=dtype, name="ray_embed")(plucker))
+    tokens = PatchEmbed(cfg.enc_embed_dim, p, dtype=dtype, name="rgb_embed")(images) + PatchEmbed(
+      cfg.enc_embed_dim, p, dtype=dtype, name="ray_embed"
+    )(plucker)
     tokens = tokens.reshape(b, v * (h // p) * (w // p), cfg.enc_embed_dim)
     for i in range(cfg.enc_depth + cfg.dec_depth):
       tokens = EncoderBlock(cfg, name=f"block_{i}")(tokens)
     tokens = layer_norm(dtype, "norm")(tokens)
-    raw = nn.Dense(RAW_CHANNELS * p * p, dtype=dtype, param_dtype=jnp.float32,
-                   kernel_init=nn.initializers.normal(cfg.clip_head_readout_std),
-                   name="unpatchify")(tokens)
+    raw = nn.Dense(
+      RAW_CHANNELS * p * p,
+      dtype=dtype,
+      param_dtype=jnp.float32,
+      kernel_init=nn.initializers.normal(cfg.clip_head_readout_std),
+      name="unpatchify",
+    )(tokens)
     # [B, V, h/p, w/p, p, p, 14] -> [B, V, H, W, 14]
     raw = raw.reshape(b, v, h // p, w // p, p, p, RAW_CHANNELS)
     return jnp.swapaxes(raw, 3, 4).reshape(b, v, h, w, RAW_CHANNELS).astype(jnp.float32)
@@ -60,17 +66,22 @@ class PixelAlignedGS(nn.Module):
 def init_params(key: jax.Array, config: ModelConfig) -> dict:
   p = config.patch_size
   return PixelAlignedGS(config).init(key, jnp.zeros((1, 1, p, p, 3)), jnp.zeros((1, 1, p, p, 6)))[
-      "params"]
+    "params"
+  ]
 
 
-def reconstruct(params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array, *,
-                config: ModelConfig) -> Gaussians:
+def reconstruct(
+  params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array, *, config: ModelConfig
+) -> Gaussians:
   """Images in [0, 1] [B, V, H, W, 3] + cameras -> Gaussians [B, V * H * W] on the pixel rays."""
   height, width = images.shape[-3:-1]
-  raw = PixelAlignedGS(config).apply({"params": params}, normalize_images(images),
-                                     plucker_rays(c2w, intrinsics, height, width))
+  raw = PixelAlignedGS(config).apply(
+    {"params": params}, normalize_images(images), plucker_rays(c2w, intrinsics, height, width)
+  )
   flat = activate(raw, config)
-  depth = DEPTH_NEAR + (DEPTH_FAR - DEPTH_NEAR) * jax.nn.sigmoid(raw[..., _DEPTH_CHANNEL:_DEPTH_CHANNEL + 1])
+  depth = DEPTH_NEAR + (DEPTH_FAR - DEPTH_NEAR) * jax.nn.sigmoid(
+    raw[..., _DEPTH_CHANNEL : _DEPTH_CHANNEL + 1]
+  )
   origins = c2w[..., None, None, :3, 3]
   means = origins + depth * ray_directions(c2w, intrinsics, height, width)
   flat = jnp.concatenate([means, flat[..., 3:]], axis=-1)
@@ -88,10 +99,22 @@ def loss_fn(config: ModelConfig, loss_config=None, render_config=None, objective
 
   def compute(params, batch, key, step):
     del key, step
-    gaussians = reconstruct(params, batch["context_images"], batch["context_c2w"],
-                            batch["context_intrinsics"], config=config)
-    return supervision_loss(gaussians, batch["target_images"], invert_rigid(batch["target_c2w"]),
-                            batch["target_intrinsics"], loss_config, render_config, objective)
+    gaussians = reconstruct(
+      params,
+      batch["context_images"],
+      batch["context_c2w"],
+      batch["context_intrinsics"],
+      config=config,
+    )
+    return supervision_loss(
+      gaussians,
+      batch["target_images"],
+      invert_rigid(batch["target_c2w"]),
+      batch["target_intrinsics"],
+      loss_config,
+      render_config,
+      objective,
+    )
 
   return compute
 

@@ -15,8 +15,18 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 # Tableau-like palette, distinguishable in print.
-PALETTE = ((31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
-           (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207))
+PALETTE = (
+  (31, 119, 180),
+  (255, 127, 14),
+  (44, 160, 44),
+  (214, 39, 40),
+  (148, 103, 189),
+  (140, 86, 75),
+  (227, 119, 194),
+  (127, 127, 127),
+  (188, 189, 34),
+  (23, 190, 207),
+)
 
 
 def _nice_ticks(low: float, high: float, count: int = 5) -> np.ndarray:
@@ -47,17 +57,28 @@ def _draw_series(draw, points: list[tuple[float, float]], color, *, dashed: bool
     if dashed:
       for t0 in np.arange(0.0, 1.0, 0.2):
         t1 = t0 + 0.1
-        draw.line([u0 + t0 * (u1 - u0), v0 + t0 * (v1 - v0), u0 + t1 * (u1 - u0),
-                   v0 + t1 * (v1 - v0)], fill=color, width=2)
+        draw.line(
+          [u0 + t0 * (u1 - u0), v0 + t0 * (v1 - v0), u0 + t1 * (u1 - u0), v0 + t1 * (v1 - v0)],
+          fill=color,
+          width=2,
+        )
     else:
       draw.line([u0, v0, u1, v1], fill=color, width=2)
   for u, v in points:
     draw.ellipse([u - 3, v - 3, u + 3, v + 3], fill=color)
 
 
-def line_plot(path, series: dict[str, tuple[Sequence[float], Sequence[float]]], *, title: str,
-              xlabel: str, ylabel: str, log_x: bool = False, size: tuple[int, int] = (640, 420),
-              dashed: Sequence[str] = ()) -> pathlib.Path:
+def line_plot(
+  path,
+  series: dict[str, tuple[Sequence[float], Sequence[float]]],
+  *,
+  title: str,
+  xlabel: str,
+  ylabel: str,
+  log_x: bool = False,
+  size: tuple[int, int] = (640, 420),
+  dashed: Sequence[str] = (),
+) -> pathlib.Path:
   """Writes a labelled line chart (markers at the data points) as PNG.
 
   Args:
@@ -99,17 +120,24 @@ def line_plot(path, series: dict[str, tuple[Sequence[float], Sequence[float]]], 
   draw.rectangle([left, top, width - right, height - bottom], outline=(0, 0, 0))
   for tick in y_ticks:
     if y_lo <= tick <= y_hi:
-      _, v = to_pixel(all_x[0] if not log_x else 10 ** x_lo, tick)
+      _, v = to_pixel(all_x[0] if not log_x else 10**x_lo, tick)
       draw.line([left - 4, v, width - right, v], fill=(225, 225, 225))
       draw.text((4, v - 5), _label(tick, y_ticks), fill=(0, 0, 0), font=font)
-  x_ticks = (sorted(set(all_x.tolist())) if log_x or len(set(all_x.tolist())) <= 8
-             else _nice_ticks(x_lo, x_hi).tolist())
+  x_ticks = (
+    sorted(set(all_x.tolist()))
+    if log_x or len(set(all_x.tolist())) <= 8
+    else _nice_ticks(x_lo, x_hi).tolist()
+  )
   for tick in x_ticks:
     if log_x or x_lo <= tick <= x_hi:
       u, _ = to_pixel(tick, y_lo)
       draw.line([u, height - bottom, u, height - bottom + 4], fill=(0, 0, 0))
-      draw.text((u - 8, height - bottom + 6), _label(tick, None if log_x else np.asarray(x_ticks)),
-                fill=(0, 0, 0), font=font)
+      draw.text(
+        (u - 8, height - bottom + 6),
+        _label(tick, None if log_x else np.asarray(x_ticks)),
+        fill=(0, 0, 0),
+        font=font,
+      )
   draw.text((left, 10), title, fill=(0, 0, 0), font=font)
   draw.text(((width - 6 * len(xlabel)) // 2, height - 18), xlabel, fill=(0, 0, 0), font=font)
   draw.text((4, top - 16), ylabel, fill=(0, 0, 0), font=font)
@@ -117,10 +145,12 @@ def line_plot(path, series: dict[str, tuple[Sequence[float], Sequence[float]]], 
   for index, (name, (xs, ys)) in enumerate(clean.items()):
     color = PALETTE[index % len(PALETTE)]
     order = np.argsort(xs)
-    _draw_series(draw, [to_pixel(x, y) for x, y in zip(xs[order], ys[order])], color,
-                 dashed=name in dashed)
-    draw.line([width - right - 150, legend_y + 5, width - right - 130, legend_y + 5], fill=color,
-              width=3)
+    _draw_series(
+      draw, [to_pixel(x, y) for x, y in zip(xs[order], ys[order])], color, dashed=name in dashed
+    )
+    draw.line(
+      [width - right - 150, legend_y + 5, width - right - 130, legend_y + 5], fill=color, width=3
+    )
     draw.text((width - right - 125, legend_y), name, fill=(0, 0, 0), font=font)
     legend_y += 14
   path = pathlib.Path(path)
@@ -129,8 +159,14 @@ def line_plot(path, series: dict[str, tuple[Sequence[float], Sequence[float]]], 
   return path
 
 
-def trajectory_plot(path, trajectories: np.ndarray, *, title: str, background: np.ndarray | None = None,
-                    size: int = 512) -> pathlib.Path:
+def trajectory_plot(
+  path,
+  trajectories: np.ndarray,
+  *,
+  title: str,
+  background: np.ndarray | None = None,
+  size: int = 512,
+) -> pathlib.Path:
   """Draws 2-D trajectories (e.g. projected Gaussian centres over time) as coloured polylines.
 
   Args:
@@ -147,7 +183,8 @@ def trajectory_plot(path, trajectories: np.ndarray, *, title: str, background: n
     base = (np.clip(np.asarray(background, np.float64), 0, 1) * 0.5 + 0.25) * 255
     scale = max(1, size // max(background.shape[:2]))
     image = Image.fromarray(base.astype(np.uint8)).resize(
-        (background.shape[1] * scale, background.shape[0] * scale), Image.NEAREST)
+      (background.shape[1] * scale, background.shape[0] * scale), Image.NEAREST
+    )
     points = trajectories * scale
   else:
     image = Image.new("RGB", (size, size), "white")

@@ -31,31 +31,75 @@ from experiments.cli import main
 from experiments.config import EvalSettings, Experiment, SyntheticSettings, TrainSettings
 from tokengs_jax import model
 
-_PAPER_TRAIN = TrainSettings(steps=150_000, batch_size=64, num_target_views=4, learning_rate=4e-4,
-                             warmup_steps=2_000, log_every=50, checkpoint_every=5_000,
-                             num_workers=8)
-_PAPER_EVAL = EvalSettings(num_scenes=0, num_target_views=3, tuning_steps=50,
-                           tuning_learning_rate=1e-4, grid_scenes=8, video_frames=96)
+_PAPER_TRAIN = TrainSettings(
+  steps=150_000,
+  batch_size=64,
+  num_target_views=4,
+  learning_rate=4e-4,
+  warmup_steps=2_000,
+  log_every=50,
+  checkpoint_every=5_000,
+  num_workers=8,
+)
+_PAPER_EVAL = EvalSettings(
+  num_scenes=0,
+  num_target_views=3,
+  tuning_steps=50,
+  tuning_learning_rate=1e-4,
+  grid_scenes=8,
+  video_frames=96,
+)
 
 PRESETS = {
-    "synthetic-tiny": Experiment(),
-    "smoke": Experiment(
-        output_dir="outputs/re10k/smoke", synthetic_dir="outputs/synthetic_re10k_smoke",
-        model=model.preset("tiny", image_size=(32, 32), num_input_views=2, enc_depth=1,
-                           dec_depth=1, enc_embed_dim=32, enc_num_heads=2, num_gs_tokens=4,
-                           dec_patch_size=4),
-        synthetic=SyntheticSettings(num_train=4, num_test=2, frames=10, workers=1),
-        train=TrainSettings(steps=3, batch_size=2, num_target_views=2, min_context_gap=3,
-                            max_context_gap=6, warmup_steps=1, log_every=1),
-        eval=EvalSettings(num_scenes=2, num_target_views=2, context_gap=6, tuning_steps=2,
-                          tuning_learning_rate=1e-3, grid_scenes=1, video_frames=4)),
-    "paper": Experiment(
-        data_dir="datasets/re10k", output_dir="outputs/re10k/paper", model=model.preset("re10k"),
-        train=_PAPER_TRAIN, eval=_PAPER_EVAL),
-    "paper-4096": Experiment(
-        data_dir="datasets/re10k", output_dir="outputs/re10k/paper_4096",
-        model=model.preset("re10k_4096"), eval=_PAPER_EVAL,
-        train=dataclasses.replace(_PAPER_TRAIN, steps=10_000, learning_rate=4e-5, warmup_steps=400)),
+  "synthetic-tiny": Experiment(),
+  "smoke": Experiment(
+    output_dir="outputs/re10k/smoke",
+    synthetic_dir="outputs/synthetic_re10k_smoke",
+    model=model.preset(
+      "tiny",
+      image_size=(32, 32),
+      num_input_views=2,
+      enc_depth=1,
+      dec_depth=1,
+      enc_embed_dim=32,
+      enc_num_heads=2,
+      num_gs_tokens=4,
+      dec_patch_size=4,
+    ),
+    synthetic=SyntheticSettings(num_train=4, num_test=2, frames=10, workers=1),
+    train=TrainSettings(
+      steps=3,
+      batch_size=2,
+      num_target_views=2,
+      min_context_gap=3,
+      max_context_gap=6,
+      warmup_steps=1,
+      log_every=1,
+    ),
+    eval=EvalSettings(
+      num_scenes=2,
+      num_target_views=2,
+      context_gap=6,
+      tuning_steps=2,
+      tuning_learning_rate=1e-3,
+      grid_scenes=1,
+      video_frames=4,
+    ),
+  ),
+  "paper": Experiment(
+    data_dir="datasets/re10k",
+    output_dir="outputs/re10k/paper",
+    model=model.preset("re10k"),
+    train=_PAPER_TRAIN,
+    eval=_PAPER_EVAL,
+  ),
+  "paper-4096": Experiment(
+    data_dir="datasets/re10k",
+    output_dir="outputs/re10k/paper_4096",
+    model=model.preset("re10k_4096"),
+    eval=_PAPER_EVAL,
+    train=dataclasses.replace(_PAPER_TRAIN, steps=10_000, learning_rate=4e-5, warmup_steps=400),
+  ),
 }
 
 if __name__ == "__main__":

@@ -21,23 +21,29 @@ from experiments import pictures
 from tokengs_jax import evaluation, export, splatting
 
 
-def markdown_table(rows: Mapping[str, Mapping[str, float]], columns: Sequence[str],
-                   header: str = "method") -> str:
+def markdown_table(
+  rows: Mapping[str, Mapping[str, float]], columns: Sequence[str], header: str = "method"
+) -> str:
   """A Markdown table: one row per key of `rows`, one column per metric (blank where missing)."""
-  lines = [f"| {header} | " + " | ".join(columns) + " |",
-           "|" + "---|" * (len(columns) + 1)]
+  lines = [f"| {header} | " + " | ".join(columns) + " |", "|" + "---|" * (len(columns) + 1)]
   for name, values in rows.items():
-    cells = [f"{values[c]:.4f}" if isinstance(values.get(c), float) else str(values.get(c, ""))
-             for c in columns]
+    cells = [
+      f"{values[c]:.4f}" if isinstance(values.get(c), float) else str(values.get(c, ""))
+      for c in columns
+    ]
     lines.append(f"| {name} | " + " | ".join(cells) + " |")
   return "\n".join(lines) + "\n"
 
 
 def _set_payload(result: evaluation.Evaluation) -> dict:
   summary = result.summary()
-  return {"metrics": {name: {"mean": summary[name], "per_scene": s.per_scene, "seconds": s.seconds}
-                      for name, s in result.scores.items()},
-          "checks": evaluation.checks(summary)}
+  return {
+    "metrics": {
+      name: {"mean": summary[name], "per_scene": s.per_scene, "seconds": s.seconds}
+      for name, s in result.scores.items()
+    },
+    "checks": evaluation.checks(summary),
+  }
 
 
 def _set_summary(name: str, result: evaluation.Evaluation) -> list[str]:
@@ -45,9 +51,11 @@ def _set_summary(name: str, result: evaluation.Evaluation) -> list[str]:
   summary = result.summary()
   columns = list(dict.fromkeys(c for values in summary.values() for c in values))
   count = max((len(s.per_scene) for s in result.scores.values()), default=0)
-  text = [f"\n## Test set `{name}`\n",
-          f"Mean over held-out scenes (each scene: mean over its target views); {count} scenes.\n",
-          markdown_table(summary, columns)]
+  text = [
+    f"\n## Test set `{name}`\n",
+    f"Mean over held-out scenes (each scene: mean over its target views); {count} scenes.\n",
+    markdown_table(summary, columns),
+  ]
   unscored = [method for method, values in summary.items() if not values]
   if unscored:
     text.append(f"\nScored no scene: {', '.join(unscored)}.\n")
@@ -62,8 +70,10 @@ def _set_per_scene(result: evaluation.Evaluation) -> list[str]:
   text = []
   for method, scores in result.scores.items():
     if scores.per_scene:
-      text += [f"\n### {method}: per scene\n", markdown_table(
-          {s["key"]: s for s in scores.per_scene}, columns, header="scene")]
+      text += [
+        f"\n### {method}: per scene\n",
+        markdown_table({s["key"]: s for s in scores.per_scene}, columns, header="scene"),
+      ]
   return text
 
 
@@ -72,8 +82,12 @@ def write_metrics(out_dir, results: Mapping[str, evaluation.Evaluation], info: d
   payload (also on processes that do not write)."""
   sets = {name: _set_payload(result) for name, result in results.items()}
   first = next(iter(sets), None)
-  payload = {**info, "test_sets": list(sets), **(sets[first] if first else {}),
-             "other_test_sets": {name: sets[name] for name in list(sets)[1:]}}
+  payload = {
+    **info,
+    "test_sets": list(sets),
+    **(sets[first] if first else {}),
+    "other_test_sets": {name: sets[name] for name in list(sets)[1:]},
+  }
   if evaluation.writes_results():
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -104,7 +118,10 @@ def write_scalars(writer, results: Mapping[str, evaluation.Evaluation], step: in
 def scene_grid(entry: dict, methods: Sequence[str]) -> np.ndarray:
   """inputs | targets | one row per method | depth of the last Gaussian method (colour bar)."""
   batch = entry["batch"]
-  rows = [("inputs", list(batch["context_images"][0])), ("targets", list(batch["target_images"][0]))]
+  rows = [
+    ("inputs", list(batch["context_images"][0])),
+    ("targets", list(batch["target_images"][0])),
+  ]
   rows += [(m, list(entry[m]["rgb"])) for m in methods]
   splatted = [m for m in methods if entry[m]["depth"] is not None]
   near_far = None
@@ -115,8 +132,14 @@ def scene_grid(entry: dict, methods: Sequence[str]) -> np.ndarray:
   return pictures.labelled_grid(rows, title=str(entry["key"]), depth_range=near_far)
 
 
-def write_grids(out_dir, kept: Sequence[dict], methods: Sequence[str], writer=None, step: int = 0,
-                tag: str = "eval") -> list[pathlib.Path]:
+def write_grids(
+  out_dir,
+  kept: Sequence[dict],
+  methods: Sequence[str],
+  writer=None,
+  step: int = 0,
+  tag: str = "eval",
+) -> list[pathlib.Path]:
   """grids/<scene>.png for every kept scene (and TensorBoard images)."""
   if not evaluation.writes_results():
     return []
@@ -130,8 +153,13 @@ def write_grids(out_dir, kept: Sequence[dict], methods: Sequence[str], writer=No
   return written
 
 
-def write_scene_exports(out_dir, entry: dict, method: str, video_frames: int,
-                        render_config: splatting.RenderConfig | None = None) -> list[pathlib.Path]:
+def write_scene_exports(
+  out_dir,
+  entry: dict,
+  method: str,
+  video_frames: int,
+  render_config: splatting.RenderConfig | None = None,
+) -> list[pathlib.Path]:
   """gaussians.ply and flythrough.mp4 of one kept scene's `method` Gaussians."""
   if not evaluation.writes_results():
     return []
@@ -139,8 +167,11 @@ def write_scene_exports(out_dir, entry: dict, method: str, video_frames: int,
   gaussians = entry[method]["gaussians"]
   leading = gaussians.means.ndim - 2  # [1] or [1, Vt]: the first set
   one = jax.tree.map(lambda x: np.asarray(x)[(0,) * leading], gaussians)
-  written = [export.write_ply(out_dir / "gaussians.ply", one.means, one.opacities, one.scales,
-                              one.quats, one.colors)]
+  written = [
+    export.write_ply(
+      out_dir / "gaussians.ply", one.means, one.opacities, one.scales, one.quats, one.colors
+    )
+  ]
   if video_frames > 0:
     batch = entry["batch"]
     keyframes = np.concatenate([batch["context_c2w"][0], batch["context_c2w"][0][::-1]])
@@ -148,8 +179,9 @@ def write_scene_exports(out_dir, entry: dict, method: str, video_frames: int,
     height, width = batch["target_images"].shape[-3:-1]
     intrinsics = np.broadcast_to(batch["context_intrinsics"][0, :1], (len(poses), 4))
     single = jax.tree.map(lambda x: x[None], one)
-    rgb = evaluation.render_targets(single, poses[None], intrinsics[None], height=height,
-                                    width=width, render_config=render_config).rgb
+    rgb = evaluation.render_targets(
+      single, poses[None], intrinsics[None], height=height, width=width, render_config=render_config
+    ).rgb
     frames = [pictures.upscale(export.to_uint8(frame), 256) for frame in rgb[0]]
     written.append(export.write_mp4(out_dir / "flythrough.mp4", frames, fps=12))
   return written

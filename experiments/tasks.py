@@ -27,6 +27,7 @@ class Task:
   The default is the static chunked datasets (RE10K, DL3DV and the synthetic set); Kubric
   overrides it (`experiments.kubric.KubricTask`).
   """
+
   name: str | None = None  # results title; default the experiment's dataset
 
   def prepare(self, experiment: Experiment) -> None:
@@ -64,49 +65,77 @@ class Task:
   def loss_fn(self, experiment: Experiment, config: model.ModelConfig):
     from tokengs_jax.train.objective import tokengs_loss_fn
 
-    return tokengs_loss_fn(config, self.loss_config(experiment),
-                           objective=self.objective(experiment))
+    return tokengs_loss_fn(
+      config, self.loss_config(experiment), objective=self.objective(experiment)
+    )
 
-  def methods(self, experiment: Experiment, params, include_untrained: bool
-              ) -> dict[str, evaluation.Method]:
+  def methods(
+    self, experiment: Experiment, params, include_untrained: bool
+  ) -> dict[str, evaluation.Method]:
     """The image baselines, (untrained,) trained and trained + token tuning."""
     config, e = experiment.model, experiment.eval
     methods = evaluation.baselines()
     if include_untrained:
       methods["untrained"] = evaluation.feed_forward(
-          model.init_params(jax.random.key(experiment.seed), config), config)
+        model.init_params(jax.random.key(experiment.seed), config), config
+      )
     methods["trained"] = evaluation.feed_forward(params, config)
     if e.tuning_steps > 0:
       methods["trained+token_tuning"] = evaluation.tuned(
-          params, config, TuningConfig(steps=e.tuning_steps, learning_rate=e.tuning_learning_rate),
-          loss_config=self.loss_config(experiment))
+        params,
+        config,
+        TuningConfig(steps=e.tuning_steps, learning_rate=e.tuning_learning_rate),
+        loss_config=self.loss_config(experiment),
+      )
     return methods
 
-  def extra_visuals(self, experiment: Experiment, config: model.ModelConfig, params,
-                    examples: list[evaluation.Scene], writer, step: int) -> dict:
+  def extra_visuals(
+    self,
+    experiment: Experiment,
+    config: model.ModelConfig,
+    params,
+    examples: list[evaluation.Scene],
+    writer,
+    step: int,
+  ) -> dict:
     """Task-specific pictures (called on the writing process only); returns facts to add to
     metrics.json."""
     return {}
 
 
-def _write_pictures(experiment: Experiment, scored: dict[str, evaluation.Evaluation],
-                    methods, writer, step: int) -> None:
+def _write_pictures(
+  experiment: Experiment, scored: dict[str, evaluation.Evaluation], methods, writer, step: int
+) -> None:
   """grids/ (grids/<set>/ for the non-primary sets); PLY and fly-through of the primary set's
   first scene, from the last method with Gaussians."""
   out = pathlib.Path(experiment.output_dir)
   for position, (name, result) in enumerate(scored.items()):
     folder = out / "grids" if position == 0 else out / "grids" / name
-    results.write_grids(folder, result.kept, list(methods), writer, step,
-                        tag="eval" if position == 0 else f"eval/{name}")
+    results.write_grids(
+      folder,
+      result.kept,
+      list(methods),
+      writer,
+      step,
+      tag="eval" if position == 0 else f"eval/{name}",
+    )
   primary = next(iter(scored.values()))
   splatted = [name for name, m in methods.items() if m.reconstruct is not None]
   if primary.kept and splatted:
     results.write_scene_exports(out, primary.kept[0], splatted[-1], experiment.eval.video_frames)
 
 
-def run_eval(experiment: Experiment, params, *, task: Task, writer=None, step: int = 0,
-             include_untrained: bool = True, extra_info: dict | None = None,
-             started: float | None = None) -> dict:
+def run_eval(
+  experiment: Experiment,
+  params,
+  *,
+  task: Task,
+  writer=None,
+  step: int = 0,
+  include_untrained: bool = True,
+  extra_info: dict | None = None,
+  started: float | None = None,
+) -> dict:
   """Evaluates `params` (and the baselines) on every test set and writes the results folder.
 
   started: `time.perf_counter()` at the start of the command (for `total_seconds`).
@@ -115,18 +144,28 @@ def run_eval(experiment: Experiment, params, *, task: Task, writer=None, step: i
   start = time.perf_counter()
   test_sets = task.test_sets(experiment)
   methods = task.methods(experiment, params, include_untrained)
-  print(f"[eval] {', '.join(f'{name}: {len(s)} scenes' for name, s in test_sets.items())}; "
-        f"methods: {', '.join(methods)}", flush=True)
-  scored = evaluation.evaluate_sets(test_sets, methods, evaluation.Scorer(e.lpips),
-                                    keep=e.grid_scenes)
+  print(
+    f"[eval] {', '.join(f'{name}: {len(s)} scenes' for name, s in test_sets.items())}; "
+    f"methods: {', '.join(methods)}",
+    flush=True,
+  )
+  scored = evaluation.evaluate_sets(
+    test_sets, methods, evaluation.Scorer(e.lpips), keep=e.grid_scenes
+  )
   kind = "real" if experiment.data_dir else "synthetic"
-  info = {"title": f"{task.name or experiment.dataset} evaluation ({kind} data)",
-          "experiment": dataclasses.asdict(experiment),
-          "devices": [str(d) for d in jax.devices()], **(extra_info or {})}
+  info = {
+    "title": f"{task.name or experiment.dataset} evaluation ({kind} data)",
+    "experiment": dataclasses.asdict(experiment),
+    "devices": [str(d) for d in jax.devices()],
+    **(extra_info or {}),
+  }
   _write_pictures(experiment, scored, methods, writer, step)
   if evaluation.writes_results():  # pictures only: the other processes write nothing
-    info.update(task.extra_visuals(experiment, experiment.model, params,
-                                   next(iter(test_sets.values())), writer, step))
+    info.update(
+      task.extra_visuals(
+        experiment, experiment.model, params, next(iter(test_sets.values())), writer, step
+      )
+    )
   info["eval_seconds"] = time.perf_counter() - start
   info["total_seconds"] = time.perf_counter() - (start if started is None else started)
   payload = results.write_metrics(experiment.output_dir, scored, info)
@@ -140,25 +179,33 @@ def _train(experiment: Experiment, task: Task, command: Command, writer, info: d
   out = pathlib.Path(experiment.output_dir)
   config = experiment.model
   params = weights.initial_params(experiment, finetune=command == "finetune")
-  print(f"[model] {model.count_params(config):,} parameters, {config.num_gaussians} Gaussians; "
-        f"devices: {jax.devices()}", flush=True)
+  print(
+    f"[model] {model.count_params(config):,} parameters, {config.num_gaussians} Gaussians; "
+    f"devices: {jax.devices()}",
+    flush=True,
+  )
   pipeline = task.training_batches(experiment)
   # The loop's history covers the whole run, resumed or not: the checkpoints carry its log.
   params, history, seconds = training.train_model(
-      experiment, params, task.loss_fn(experiment, config), iter(pipeline), writer)
+    experiment, params, task.loss_fn(experiment, config), iter(pipeline), writer
+  )
   rejected = pipeline.rejection_summary()
   print(f"[data] training data rejected:\n{rejected}", flush=True)
-  info.update(train_seconds=seconds, train_steps=experiment.train.steps,
-              final_train_loss=history[-1].get("loss") if history else None,
-              training_data_rejections=rejected)
+  info.update(
+    train_seconds=seconds,
+    train_steps=experiment.train.steps,
+    final_train_loss=history[-1].get("loss") if history else None,
+    training_data_rejections=rejected,
+  )
   if evaluation.writes_results():
     weights.save_params(out / "params.msgpack", params)
     (out / "train_history.json").write_text(json.dumps(history, indent=1))
   return params
 
 
-def execute(command: Command, experiment: Experiment, task: Task | None = None,
-            invocation: str = "") -> dict | None:
+def execute(
+  command: Command, experiment: Experiment, task: Task | None = None, invocation: str = ""
+) -> dict | None:
   """Runs one command; returns the metrics payload when it evaluated."""
   from tokengs_jax.train import initialize
 
@@ -175,16 +222,31 @@ def execute(command: Command, experiment: Experiment, task: Task | None = None,
   try:
     if command == "eval":
       if not (experiment.checkpoint or experiment.official_checkpoint):
-        print("[eval] no --checkpoint / --official-checkpoint: scoring freshly initialised weights",
-              flush=True)
+        print(
+          "[eval] no --checkpoint / --official-checkpoint: scoring freshly initialised weights",
+          flush=True,
+        )
       params = weights.initial_params(experiment, finetune=False)
-      return run_eval(experiment, params, task=task, writer=writer, extra_info=info,
-                      include_untrained=not experiment.official_checkpoint)
+      return run_eval(
+        experiment,
+        params,
+        task=task,
+        writer=writer,
+        extra_info=info,
+        include_untrained=not experiment.official_checkpoint,
+      )
     params = _train(experiment, task, command, writer, info)
     if command in ("train", "finetune"):
       return None
-    return run_eval(experiment, params, task=task, writer=writer, step=experiment.train.steps,
-                    extra_info=info, started=started)
+    return run_eval(
+      experiment,
+      params,
+      task=task,
+      writer=writer,
+      step=experiment.train.steps,
+      extra_info=info,
+      started=started,
+    )
   finally:
     if writer is not None:
       writer.close()

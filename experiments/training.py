@@ -16,8 +16,14 @@ class _TrainLogger:
   def __init__(self, total_steps: int, writer, start_step: int = 0):
     from tqdm.auto import tqdm
 
-    self.bar = tqdm(total=total_steps, initial=start_step, desc="train", unit="step",
-                    dynamic_ncols=True, mininterval=1.0)
+    self.bar = tqdm(
+      total=total_steps,
+      initial=start_step,
+      desc="train",
+      unit="step",
+      dynamic_ncols=True,
+      mininterval=1.0,
+    )
     self.writer = writer
 
   def __call__(self, step: int, logged: dict) -> None:
@@ -32,8 +38,9 @@ class _TrainLogger:
     self.bar.close()
 
 
-def train_model(experiment: Experiment, params, loss_fn, batches, writer=None
-                ) -> tuple[dict, list[dict], float]:
+def train_model(
+  experiment: Experiment, params, loss_fn, batches, writer=None
+) -> tuple[dict, list[dict], float]:
   """Trains with the library loop (sharded over every device); returns (params, history, seconds).
 
   loss_fn: `(params, batch, key, step) -> (loss, aux)`.
@@ -42,11 +49,14 @@ def train_model(experiment: Experiment, params, loss_fn, batches, writer=None
   from tokengs_jax.train import LoopConfig, train
 
   out = pathlib.Path(experiment.output_dir)
-  loop = LoopConfig(total_steps=experiment.train.steps, seed=experiment.seed,
-                    log_every=experiment.train.log_every,
-                    checkpoint_every=experiment.train.checkpoint_every,
-                    checkpoint_dir=str((out / "checkpoints").resolve()),
-                    async_checkpoint=False)
+  loop = LoopConfig(
+    total_steps=experiment.train.steps,
+    seed=experiment.seed,
+    log_every=experiment.train.log_every,
+    checkpoint_every=experiment.train.checkpoint_every,
+    checkpoint_dir=str((out / "checkpoints").resolve()),
+    async_checkpoint=False,
+  )
   logger = _TrainLogger(experiment.train.steps, writer)
   start = time.perf_counter()
   try:
@@ -55,4 +65,3 @@ def train_model(experiment: Experiment, params, loss_fn, batches, writer=None
     logger.close()
   seconds = time.perf_counter() - start
   return jax.device_get(state.params), history, seconds
-

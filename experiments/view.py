@@ -47,6 +47,7 @@ class ViewSettings:
     screenshot: write a headless-Chromium screenshot of the viewer here and exit.
     window: browser window (width, height) of the screenshot.
   """
+
   source: Annotated[str, tyro.conf.Positional]
   checkpoint: str | None = None
   data_dir: str | None = None
@@ -65,24 +66,36 @@ def start(settings: ViewSettings):
   """Loads the source and serves it; returns (server, app)."""
   import viser
 
-  options = {k: getattr(settings, k) for k in ("checkpoint", "data_dir", "synthetic_dir",
-                                               "num_scenes")}
+  options = {
+    k: getattr(settings, k) for k in ("checkpoint", "data_dir", "synthetic_dir", "num_scenes")
+  }
   source = scenes.open_source(settings.source, **options)
   server = viser.ViserServer(host=settings.host, port=settings.port, verbose=False)
-  return server, app.ViewerApp(source, server, render_size=settings.render_size,
-                                pull_back=settings.pull_back, background=settings.background)
+  return server, app.ViewerApp(
+    source,
+    server,
+    render_size=settings.render_size,
+    pull_back=settings.pull_back,
+    background=settings.background,
+  )
 
 
 def main(argv=None) -> None:
-  settings = tyro.cli(ViewSettings, args=sys.argv[1:] if argv is None else argv,
-                      prog="python -m experiments.view")
+  settings = tyro.cli(
+    ViewSettings, args=sys.argv[1:] if argv is None else argv, prog="python -m experiments.view"
+  )
   enable_compile_cache()
   server, _ = start(settings)
   url = f"http://{'127.0.0.1' if settings.host == '0.0.0.0' else settings.host}:{server.get_port()}"
   try:
     if settings.screenshot:
-      path = browser.screenshot(url, settings.screenshot, ready_text=app.READY_TEXT,
-                                width=settings.window[0], height=settings.window[1])
+      path = browser.screenshot(
+        url,
+        settings.screenshot,
+        ready_text=app.READY_TEXT,
+        width=settings.window[0],
+        height=settings.window[1],
+      )
       print(f"[view] screenshot of {url} written to {path}", flush=True)
       return
     print(f"[view] serving {settings.source} at {url} (Ctrl-C stops)", flush=True)

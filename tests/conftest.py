@@ -10,7 +10,9 @@ import jax
 import pytest
 
 jax.config.update("jax_num_cpu_devices", 4)
-_CACHE = pathlib.Path(os.environ.get("TOKENGS_JAX_CACHE", pathlib.Path(__file__).parent.parent / ".jax_cache"))
+_CACHE = pathlib.Path(
+  os.environ.get("TOKENGS_JAX_CACHE", pathlib.Path(__file__).parent.parent / ".jax_cache")
+)
 jax.config.update("jax_compilation_cache_dir", str(_CACHE))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
@@ -32,5 +34,6 @@ def reference_fixture(*parts: str) -> pathlib.Path:
 def tiny():
   """(config, params) of the `tiny` model preset, initialised once per test session."""
   from tokengs_jax.model import init_params, preset
+
   config = preset("tiny")
   return config, init_params(jax.random.PRNGKey(0), config)

@@ -37,29 +37,44 @@ def scenes() -> list[dict]:
     rng = np.random.default_rng(index)
     c2w = np.tile(np.eye(4), (8, 1, 1))
     c2w[:, :3, 3] = np.cumsum(rng.normal(scale=0.1, size=(8, 3)), axis=0) + rng.normal(size=3)
-    records.append({"key": f"scene{index}", "c2w": c2w,
-                    "intrinsics": np.tile([10.0, 10.0, 6.0, 6.0], (8, 1)),
-                    "images": rng.integers(0, 255, (8, 12, 12, 3), dtype=np.uint8)})
+    records.append(
+      {
+        "key": f"scene{index}",
+        "c2w": c2w,
+        "intrinsics": np.tile([10.0, 10.0, 6.0, 6.0], (8, 1)),
+        "images": rng.integers(0, 255, (8, 12, 12, 3), dtype=np.uint8),
+      }
+    )
   return records
 
 
 def pipeline(shard_index: int | None = None, shard_count: int | None = None) -> InputPipeline:
   """Default shard: `jax.process_index()` of `jax.process_count()` (the multi-host default)."""
-  return InputPipeline(scenes(), EXAMPLES, batch_size=LOCAL_BATCH, seed=0,
-                       shard_index=shard_index, shard_count=shard_count)
+  return InputPipeline(
+    scenes(),
+    EXAMPLES,
+    batch_size=LOCAL_BATCH,
+    seed=0,
+    shard_index=shard_index,
+    shard_count=shard_count,
+  )
 
 
 def init_params() -> dict:
   k1, k2 = jax.random.split(jax.random.PRNGKey(0))
-  return {"hidden": jax.random.normal(k1, (6, 16)) * 0.5, "out": jax.random.normal(k2, (16, 3)) * 0.5}
+  return {
+    "hidden": jax.random.normal(k1, (6, 16)) * 0.5,
+    "out": jax.random.normal(k2, (16, 3)) * 0.5,
+  }
 
 
 def loss_fn(params, batch, key, step):
   """Predicts the target view's mean colour from the context views' mean colour and position
   (`step`: the train step passes it; unused)."""
   del step
-  features = jnp.concatenate([batch["context_images"].mean((1, 2, 3)),
-                              batch["context_c2w"][:, :, :3, 3].mean(1)], -1)
+  features = jnp.concatenate(
+    [batch["context_images"].mean((1, 2, 3)), batch["context_c2w"][:, :, :3, 3].mean(1)], -1
+  )
   features = features + 0.01 * jax.random.normal(key, features.shape)
   prediction = jnp.tanh(features @ params["hidden"]) @ params["out"]
   loss = jnp.mean((prediction - batch["target_images"].mean((1, 2, 3))) ** 2)
@@ -100,18 +115,33 @@ def main() -> None:
       os.kill(os.getpid(), signal.SIGKILL)
 
   batches = RecordingBatches(iter(pipeline()))
-  state, history = train(loss_fn, init_params(), batches, OPTIM,
-                         LoopConfig(total_steps=args.steps, log_every=1, checkpoint_every=2,
-                                    checkpoint_dir=str(args.out / "checkpoints"), max_to_keep=None,
-                                    async_checkpoint=False), log_fn=log)
+  state, history = train(
+    loss_fn,
+    init_params(),
+    batches,
+    OPTIM,
+    LoopConfig(
+      total_steps=args.steps,
+      log_every=1,
+      checkpoint_every=2,
+      checkpoint_dir=str(args.out / "checkpoints"),
+      max_to_keep=None,
+      async_checkpoint=False,
+    ),
+    log_fn=log,
+  )
   (args.out / f"scenes_{index}.json").write_text(json.dumps(batches.seen))
   params = jax.device_get(state.params)
   if index == 0:
-    np.savez(args.out / "result.npz", losses=[entry["loss"] for entry in history],
-             steps=[entry["step"] for entry in history],
-             **{f"params/{name}": value for name, value in params.items()})
-  print(f"done on process {index} of {jax.process_count()}, devices {jax.local_devices()}",
-        flush=True)
+    np.savez(
+      args.out / "result.npz",
+      losses=[entry["loss"] for entry in history],
+      steps=[entry["step"] for entry in history],
+      **{f"params/{name}": value for name, value in params.items()},
+    )
+  print(
+    f"done on process {index} of {jax.process_count()}, devices {jax.local_devices()}", flush=True
+  )
 
 
 if __name__ == "__main__":

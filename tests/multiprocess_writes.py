@@ -25,7 +25,8 @@ def main() -> None:
       return
     path, mode, flags = event_args
     writing = (mode is not None and any(c in mode for c in "wax+")) or bool(
-        flags & (os.O_WRONLY | os.O_RDWR | os.O_CREAT))
+      flags & (os.O_WRONLY | os.O_RDWR | os.O_CREAT)
+    )
     path = os.path.realpath(os.fsdecode(path))
     if writing and path.startswith(watched + os.sep):
       written.add(os.path.relpath(path, watched))

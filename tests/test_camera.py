@@ -9,6 +9,7 @@ from tokengs_jax import camera
 def _random_pose(key):
   q = jax.random.normal(key, (4,))
   from tokengs_jax.math import quat_to_rotmat
+
   pose = jnp.eye(4).at[:3, :3].set(quat_to_rotmat(q)).at[:3, 3].set(jax.random.normal(key, (3,)))
   return pose
 
@@ -40,5 +41,6 @@ def test_project_points_hits_the_pixel_its_ray_came_from():
 def test_intrinsics_round_trip():
   k = camera.intrinsics_matrix(jnp.array([1.0, 2.0, 3.0, 4.0]))
   np.testing.assert_allclose(k, [[1, 0, 3], [0, 2, 4], [0, 0, 1]])
-  np.testing.assert_allclose(camera.intrinsics_to_pixels(jnp.array([0.5, 0.5, 0.5, 0.5]), 36, 64),
-                             [32, 18, 32, 18])
+  np.testing.assert_allclose(
+    camera.intrinsics_to_pixels(jnp.array([0.5, 0.5, 0.5, 0.5]), 36, 64), [32, 18, 32, 18]
+  )

@@ -9,12 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from tokengs_jax.train import (
-  Checkpointer,
-  OptimConfig,
-  create_train_state,
-  make_optimizer,
-)
+from tokengs_jax.train import Checkpointer, OptimConfig, create_train_state, make_optimizer
 from tokengs_jax.train.checkpoint import (
   ChecksumError,
   UnusableCheckpointError,
@@ -27,8 +22,10 @@ OPTIMIZER = make_optimizer(OptimConfig(learning_rate=1e-2, schedule="constant"))
 
 def state_at(step):
   """A train state whose arrays depend on `step`; "big" (256 KiB) is the large array file."""
-  params = {"big": jnp.arange(64 * 1024, dtype=jnp.float32).reshape(64, 1024) + step,
-            "bias": jnp.full((3,), float(step))}
+  params = {
+    "big": jnp.arange(64 * 1024, dtype=jnp.float32).reshape(64, 1024) + step,
+    "bias": jnp.full((3,), float(step)),
+  }
   state = create_train_state(params, OPTIMIZER, seed=0)
   return state.replace(step=jnp.asarray(step, jnp.int32))
 
@@ -97,8 +94,7 @@ def test_restore_walks_back_past_a_damaged_latest_step(saved, case, caplog):
     state, data_state = checkpointer.restore(state_at(0))
   checkpointer.close()
   assert int(state.step) == 2 and data_state == {"position": 2}
-  jax.tree.map(np.testing.assert_array_equal, jax.device_get(state),
-               jax.device_get(state_at(2)))
+  jax.tree.map(np.testing.assert_array_equal, jax.device_get(state), jax.device_get(state_at(2)))
   skipped = [r.getMessage() for r in caplog.records if "unusable, skipped" in r.getMessage()]
   assert len(skipped) == 1 and "step 4" in skipped[0] and reason in skipped[0], skipped
   # set aside for inspection, invisible to orbax: the step number can be saved again
@@ -118,8 +114,12 @@ def test_missing_step_metadata_alone_still_restores_the_latest_step(saved, caplo
 def test_no_usable_step_is_a_clear_error_naming_the_directory(saved):
   flip_one_bit(saved / "4")
   truncate_json(saved / "2")
-  with pytest.raises(UnusableCheckpointError, match=(
-      rf"no usable checkpoint in {saved}.*\n  step 4: ChecksumError.*\n  step 2: JSONDecodeError")):
+  with pytest.raises(
+    UnusableCheckpointError,
+    match=(
+      rf"no usable checkpoint in {saved}.*\n  step 4: ChecksumError.*\n  step 2: JSONDecodeError"
+    ),
+  ):
     Checkpointer(saved).restore(state_at(0))
 
 
@@ -136,8 +136,9 @@ def test_checksums_detect_a_changed_value_and_name_the_array():
 
 def test_checksums_of_sharded_arrays_are_per_shard():
   mesh = jax.make_mesh((4,), ("data",), axis_types=(jax.sharding.AxisType.Auto,))
-  sharded = jax.device_put(jnp.arange(8.0), jax.sharding.NamedSharding(
-      mesh, jax.sharding.PartitionSpec("data")))
+  sharded = jax.device_put(
+    jnp.arange(8.0), jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data"))
+  )
   assert sorted(array_checksums({"x": sharded})["['x']"]) == ["0:2", "2:4", "4:6", "6:8"]
 
 

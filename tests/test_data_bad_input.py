@@ -17,8 +17,17 @@ import zipfile
 import numpy as np
 import pytest
 
-from tokengs_jax.data import (BadExampleError, BoundedSamplerConfig, ChunkedSceneSource, ExampleConfig,
-                              InputPipeline, NoUsableExamplesError, chunks, make_example, write_chunk)
+from tokengs_jax.data import (
+  BadExampleError,
+  BoundedSamplerConfig,
+  ChunkedSceneSource,
+  ExampleConfig,
+  InputPipeline,
+  NoUsableExamplesError,
+  chunks,
+  make_example,
+  write_chunk,
+)
 from tokengs_jax.data.chunks import ChunkError, UnsafeChunkError
 
 SAMPLER = BoundedSamplerConfig(2, 1, 2, 4, 0, 0, 2, 4)
@@ -28,8 +37,10 @@ CONFIG = ExampleConfig((8, 8), SAMPLER, 0.25)
 @contextlib.contextmanager
 def _deadline(seconds):
   """Fails (instead of hanging) if the block takes longer than `seconds`."""
+
   def expire(*_):
     raise TimeoutError(f"still running after {seconds} s: a hang")
+
   previous = signal.signal(signal.SIGALRM, expire)
   signal.alarm(seconds)
   try:
@@ -71,11 +82,19 @@ def test_one_nan_camera_drops_only_its_scene(tmp_path, caplog):
   assert len(source) == 49 and "s17" not in {e.key for e in source.entries}
   assert source.rejections.counts == {"bad_scene": 1, "bad_chunk": 1}
   assert any("s17" in r.getMessage() and "bad_scene" in r.getMessage() for r in caplog.records)
-  assert any("000001.torch" in r.getMessage() and "bad_chunk" in r.getMessage() for r in caplog.records)
-  summary = InputPipeline(source, CONFIG, batch_size=1, shard_index=0, shard_count=1).rejection_summary()
-  assert "source: 2 rejected (bad_chunk 1, bad_scene 1)" in summary and "pipeline: nothing" in summary
+  assert any(
+    "000001.torch" in r.getMessage() and "bad_chunk" in r.getMessage() for r in caplog.records
+  )
+  summary = InputPipeline(
+    source, CONFIG, batch_size=1, shard_index=0, shard_count=1
+  ).rejection_summary()
+  assert (
+    "source: 2 rejected (bad_chunk 1, bad_scene 1)" in summary and "pipeline: nothing" in summary
+  )
   # scenes after the bad one in the same chunk are still addressable and correct
-  assert source[source.entries.index(next(e for e in source.entries if e.key == "s18"))]["key"] == "s18"
+  assert (
+    source[source.entries.index(next(e for e in source.entries if e.key == "s18"))]["key"] == "s18"
+  )
 
 
 def test_bad_camera_scenes_by_key_are_counted_once(tmp_path):
@@ -96,20 +115,39 @@ def test_bad_camera_scenes_by_key_are_counted_once(tmp_path):
 def test_all_bad_examples_raise_promptly_instead_of_hanging(tmp_path):
   write_chunk(tmp_path / "000000.torch", [_scene(f"short{i}", frames=10, seed=i) for i in range(3)])
   long_gaps = ExampleConfig((8, 8), BoundedSamplerConfig(2, 1, 45, 135, 0, 0, 45, 135), 0.25)
-  pipeline = InputPipeline(ChunkedSceneSource(tmp_path), long_gaps, batch_size=2, shard_index=0,
-                           shard_count=1, skip_bad=True)  # num_epochs=None: repeats forever
+  pipeline = InputPipeline(
+    ChunkedSceneSource(tmp_path),
+    long_gaps,
+    batch_size=2,
+    shard_index=0,
+    shard_count=1,
+    skip_bad=True,
+  )  # num_epochs=None: repeats forever
   start = time.perf_counter()
-  with _deadline(60), pytest.raises(NoUsableExamplesError, match=r"(?s)256 examples.*NotEnoughFramesError 256"):
+  with (
+    _deadline(60),
+    pytest.raises(NoUsableExamplesError, match=r"(?s)256 examples.*NotEnoughFramesError 256"),
+  ):
     next(iter(pipeline))
   assert time.perf_counter() - start < 30
   assert pipeline.rejections.counts == {"NotEnoughFramesError": 256}
 
 
 def test_good_examples_between_bad_ones_are_all_kept(tmp_path):
-  scenes = [_scene(f"good{i}", seed=i) for i in range(4)] + [_scene(f"short{i}", frames=2) for i in range(3)]
+  scenes = [_scene(f"good{i}", seed=i) for i in range(4)] + [
+    _scene(f"short{i}", frames=2) for i in range(3)
+  ]
   write_chunk(tmp_path / "000000.torch", scenes)
-  pipeline = InputPipeline(ChunkedSceneSource(tmp_path), CONFIG, batch_size=1, shard_index=0,
-                           shard_count=1, skip_bad=True, num_epochs=1, max_consecutive_bad=4)
+  pipeline = InputPipeline(
+    ChunkedSceneSource(tmp_path),
+    CONFIG,
+    batch_size=1,
+    shard_index=0,
+    shard_count=1,
+    skip_bad=True,
+    num_epochs=1,
+    max_consecutive_bad=4,
+  )
   assert sorted(int(b["scene_index"][0]) for b in pipeline) == [0, 1, 2, 3]
   assert pipeline.rejections.counts == {"NotEnoughFramesError": 3}
 
@@ -130,9 +168,19 @@ def test_index_entries_must_be_regular_files_inside_the_root(tmp_path):
   os.mkfifo(root / "fifo.torch")
   os.symlink("/dev/zero", root / "zero.torch")
   os.symlink(outside / "000000.torch", root / "link.torch")
-  _index(root, {"good": "000000.torch", "escaped": "../elsewhere/000000.torch", "zero": "/dev/zero",
-                "fifo": "fifo.torch", "zerolink": "zero.torch", "link": "link.torch", "dir": ".",
-                "number": 7})
+  _index(
+    root,
+    {
+      "good": "000000.torch",
+      "escaped": "../elsewhere/000000.torch",
+      "zero": "/dev/zero",
+      "fifo": "fifo.torch",
+      "zerolink": "zero.torch",
+      "link": "link.torch",
+      "dir": ".",
+      "number": 7,
+    },
+  )
   keys = ["escaped", "zero", "fifo", "zerolink", "link", "dir", "number", "good"]
   with _deadline(30):
     with pytest.raises(ChunkError, match="outside the data root"):
@@ -158,9 +206,9 @@ def _archive_with_pickle(path, payload, extra=()):
       archive.writestr(f"{path.stem}/{name}", data)
 
 
-BUILD_ON_STORAGE = (b"\x80\x02ctorch\nFloatStorage\n}X\x05\x00\x00\x00dtypeX\x04\x00\x00\x00int8sb.")
-BUILD_SLOTSTATE = (b"\x80\x02ctorch\nFloatStorage\nN}X\x05\x00\x00\x00dtypeK\x01s\x86b.")
-BUILD_ON_FUNCTION = (b"\x80\x02ctorch._utils\n_rebuild_tensor_v2\n}X\x01\x00\x00\x00xK\x01sb.")
+BUILD_ON_STORAGE = b"\x80\x02ctorch\nFloatStorage\n}X\x05\x00\x00\x00dtypeX\x04\x00\x00\x00int8sb."
+BUILD_SLOTSTATE = b"\x80\x02ctorch\nFloatStorage\nN}X\x05\x00\x00\x00dtypeK\x01s\x86b."
+BUILD_ON_FUNCTION = b"\x80\x02ctorch._utils\n_rebuild_tensor_v2\n}X\x01\x00\x00\x00xK\x01sb."
 
 
 @pytest.mark.parametrize("payload", [BUILD_ON_STORAGE, BUILD_SLOTSTATE, BUILD_ON_FUNCTION])
@@ -187,14 +235,17 @@ def test_build_on_a_rebuilt_tensor_is_refused(tmp_path):
     chunks.load_tensor_archive(tmp_path / "t.torch")
 
 
-@pytest.mark.parametrize("payload, message", [
-    (b"\x80\x02]q\x00(K\x01", "truncated"),                   # no STOP
-    (b"\x80\x02e.", "malformed"),                             # APPENDS with no mark
-    (b"\x80\x02](K\x01K\x02u.", "malformed"),                 # SETITEMS on a list
-    (b"\x80\x02\xff.", "opcode"),                             # unknown opcode
+@pytest.mark.parametrize(
+  "payload, message",
+  [
+    (b"\x80\x02]q\x00(K\x01", "truncated"),  # no STOP
+    (b"\x80\x02e.", "malformed"),  # APPENDS with no mark
+    (b"\x80\x02](K\x01K\x02u.", "malformed"),  # SETITEMS on a list
+    (b"\x80\x02\xff.", "opcode"),  # unknown opcode
     (b"\x80\x02X\xff\xff\xff\x7fabc.", "truncated|malformed"),  # string longer than the data
     (b"\x80\x02ctorch\nFloatStorage\n)R.", "refusing to call"),  # calling a storage type
-])
+  ],
+)
 def test_malformed_pickles_raise_chunk_errors(tmp_path, payload, message):
   _archive_with_pickle(tmp_path / "bad.torch", payload)
   with pytest.raises(ChunkError, match=rf"bad\.torch.*({message})"):
@@ -207,8 +258,8 @@ def _set_declared_size(path, member, size):
     offset = archive.getinfo(member).header_offset
   data = bytearray(path.read_bytes())
   struct.pack_into("<I", data, offset + 22, size)
-  central = data.rfind(b"PK\x01\x02" + data[offset + 4:offset + 8])  # same version/flags prefix
-  while data[central + 46:central + 46 + len(member)] != member.encode():
+  central = data.rfind(b"PK\x01\x02" + data[offset + 4 : offset + 8])  # same version/flags prefix
+  while data[central + 46 : central + 46 + len(member)] != member.encode():
     central = data.rfind(b"PK\x01\x02", 0, central)
   struct.pack_into("<I", data, central + 24, size)
   path.write_bytes(bytes(data))
@@ -222,12 +273,16 @@ def test_zip_bomb_storage_is_refused_before_it_is_inflated(tmp_path):
     records = {n: archive.read(n) for n in archive.namelist()}
   # the pickle's storage claims `declared` elements, its record is deflated zeros claiming as much
   records["bomb/data.pkl"] = records["bomb/data.pkl"].replace(
-      b"K\x04tQ", b"J" + struct.pack("<i", declared) + b"tQ")
+    b"K\x04tQ", b"J" + struct.pack("<i", declared) + b"tQ"
+  )
   with zipfile.ZipFile(path, "w") as archive:
     for name, data in records.items():
       compress = zipfile.ZIP_DEFLATED if name == "bomb/data/0" else zipfile.ZIP_STORED
-      archive.writestr(zipfile.ZipInfo(name), data if compress == zipfile.ZIP_STORED
-                       else b"\0" * (1 << 20), compress_type=compress)
+      archive.writestr(
+        zipfile.ZipInfo(name),
+        data if compress == zipfile.ZIP_STORED else b"\0" * (1 << 20),
+        compress_type=compress,
+      )
   _set_declared_size(path, "bomb/data/0", declared)
   before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
   with pytest.raises(ChunkError, match=r"bomb\.torch.*would inflate to 1700000000"):
@@ -244,8 +299,10 @@ def test_unreadable_chunks_are_skipped_and_the_good_one_kept(tmp_path):
   write_chunk(tmp_path / "000000.torch", [_scene("good")])
   _archive_with_pickle(tmp_path / "000001.torch", BUILD_ON_STORAGE)
   _archive_with_pickle(tmp_path / "000002.torch", b"\x80\x02e.")
-  _archive_with_pickle(tmp_path / "000003.torch", pickle.dumps([{"key": "x", "images": [10**12],
-                                                                 "cameras": 1}], protocol=2))
+  _archive_with_pickle(
+    tmp_path / "000003.torch",
+    pickle.dumps([{"key": "x", "images": [10**12], "cameras": 1}], protocol=2),
+  )
   source = ChunkedSceneSource(tmp_path, skip_bad=True)
   assert [e.key for e in source.entries] == ["good"]
   assert source.rejections.counts == {"bad_chunk": 2, "bad_scene": 1}
@@ -262,12 +319,22 @@ def test_negative_focal_length_and_bad_frames_are_rejected_per_example():
   negative = {**record, "intrinsics": record["intrinsics"] * [-1, 1, 1, 1]}
   with pytest.raises(BadExampleError, match="fx, fy > 0"):
     make_example(negative, CONFIG, np.random.default_rng(0), views=views)
-  for images, what in [(scene["images"].astype(np.float32), "float32"),
-                       (scene["images"][..., :1], r"\[8, 8, 1\]")]:
+  for images, what in [
+    (scene["images"].astype(np.float32), "float32"),
+    (scene["images"][..., :1], r"\[8, 8, 1\]"),
+  ]:
     with pytest.raises(BadExampleError, match=f"uint8 .*{what}"):
       make_example({**record, "images": images}, CONFIG, np.random.default_rng(0), views=views)
-  pipeline = InputPipeline([record, negative, record], CONFIG, batch_size=1, shard_index=0,
-                           shard_count=1, skip_bad=True, num_epochs=1, shuffle=False)
+  pipeline = InputPipeline(
+    [record, negative, record],
+    CONFIG,
+    batch_size=1,
+    shard_index=0,
+    shard_count=1,
+    skip_bad=True,
+    num_epochs=1,
+    shuffle=False,
+  )
   assert [int(b["scene_index"][0]) for b in pipeline] == [0, 2]
   assert pipeline.rejections.counts == {"BadExampleError": 1}
 
@@ -280,9 +347,15 @@ def _kubric_view(path, frames=4, size=8, sensor_width=32.0, resolution=None):
 
   path.parent.mkdir(parents=True, exist_ok=True)
   positions = [[0.3 * f, 0.0, 5.0] for f in range(frames)]
-  metadata = {"metadata": {"resolution": resolution or [size, size]},
-              "camera": {"focal_length": 35.0, "sensor_width": sensor_width, "positions": positions,
-                         "quaternions": [[1.0, 0.0, 0.0, 0.0]] * frames}}
+  metadata = {
+    "metadata": {"resolution": resolution or [size, size]},
+    "camera": {
+      "focal_length": 35.0,
+      "sensor_width": sensor_width,
+      "positions": positions,
+      "quaternions": [[1.0, 0.0, 0.0, 0.0]] * frames,
+    },
+  }
   images = np.random.default_rng(0).integers(0, 255, (frames, size, size, 3), dtype=np.uint8)
   write_kubric_view(path, metadata, images, np.full((frames, size, size), 5.0, np.float32))
 
@@ -291,11 +364,17 @@ def _truncate(path):
   path.write_bytes(path.read_bytes()[: path.stat().st_size * 2 // 3])
 
 
-@pytest.mark.parametrize("damage, message", [
+@pytest.mark.parametrize(
+  "damage, message",
+  [
     (lambda p: _truncate(p), "truncated|not a readable tar"),
     (lambda p: _kubric_view(p, sensor_width=0.0), "sensor_width 0.0"),
-    (lambda p: _kubric_view(p, resolution=[32, 32]), r"is \[8, 8\], metadata.json resolution is \[32, 32\]"),
-])
+    (
+      lambda p: _kubric_view(p, resolution=[32, 32]),
+      r"is \[8, 8\], metadata.json resolution is \[32, 32\]",
+    ),
+  ],
+)
 def test_damaged_kubric_views_raise_kubric_errors(tmp_path, damage, message):
   from tokengs_jax.data import kubric
 
@@ -315,9 +394,17 @@ def test_kubric_pipeline_keeps_the_good_scene_and_counts_the_bad_ones(tmp_path):
   _kubric_view(tmp_path / "v0" / "c_sensor" / "output_000.tar", sensor_width=0.0)
   _kubric_view(tmp_path / "v0" / "d_resolution" / "output_000.tar", resolution=[32, 32])
   config = dataclasses.replace(DATASET_PRESETS["kubric"], image_shape=(8, 8))
-  pipeline = InputPipeline(kubric.KubricSceneSource(tmp_path, ["v0"]), config, batch_size=1,
-                           shard_index=0, shard_count=1, num_epochs=1, shuffle=False, skip_bad=True,
-                           select_views=kubric.kubric_view_selector(2, 1, 1, 3))
+  pipeline = InputPipeline(
+    kubric.KubricSceneSource(tmp_path, ["v0"]),
+    config,
+    batch_size=1,
+    shard_index=0,
+    shard_count=1,
+    num_epochs=1,
+    shuffle=False,
+    skip_bad=True,
+    select_views=kubric.kubric_view_selector(2, 1, 1, 3),
+  )
   with _deadline(60):
     assert [int(b["scene_index"][0]) for b in pipeline] == [0]
   counts = dict(pipeline.rejections.counts)
@@ -325,22 +412,32 @@ def test_kubric_pipeline_keeps_the_good_scene_and_counts_the_bad_ones(tmp_path):
   # the 4x-wrong intrinsics are caught where a decoded frame (or depth map) meets the metadata's
   # resolution
   assert counts == {"KubricError": 2, "BadExampleError": 1}
-  assert any("d_resolution" in m and "(8, 8)" in m and "(32, 32)" in m
-             for m in pipeline.rejections.messages)
+  assert any(
+    "d_resolution" in m and "(8, 8)" in m and "(32, 32)" in m for m in pipeline.rejections.messages
+  )
 
 
 # ---- 1 (and issue 15). an evaluation index is checked against the data before any work
 
 
 def test_evaluation_index_is_validated_against_the_data(tmp_path, caplog):
-  from tokengs_jax.data import (EvaluationIndexError, load_evaluation_index,
-                                validate_evaluation_index)
+  from tokengs_jax.data import (
+    EvaluationIndexError,
+    load_evaluation_index,
+    validate_evaluation_index,
+  )
 
   write_chunk(tmp_path / "000000.torch", [_scene("a"), _scene("b")])
   _index(tmp_path, {"a": "000000.torch", "b": "000000.torch"})
-  (tmp_path / "eval.json").write_text(json.dumps({
-      "a": {"context": [0, 4], "target": [2]}, "gone": {"context": [0, 1], "target": [1]},
-      "b": {"context": [0, 3], "target": [1]}}))
+  (tmp_path / "eval.json").write_text(
+    json.dumps(
+      {
+        "a": {"context": [0, 4], "target": [2]},
+        "gone": {"context": [0, 1], "target": [1]},
+        "b": {"context": [0, 3], "target": [1]},
+      }
+    )
+  )
   index = load_evaluation_index(tmp_path / "eval.json")
   source = ChunkedSceneSource(tmp_path, keys=list(index), skip_bad=True)
   with caplog.at_level(logging.WARNING, logger="tokengs_jax.data"):

@@ -13,7 +13,6 @@ from tokengs_jax.data import chunks
 from tokengs_jax.data.chunks import ChunkError, UnsafeChunkError, read_chunk, write_chunk
 
 
-
 def _scene(key="s0", frames=3, height=12, width=20, seed=0):
   rng = np.random.default_rng(seed)
   angles = rng.uniform(-0.3, 0.3, (frames, 3))
@@ -29,8 +28,14 @@ def _scene(key="s0", frames=3, height=12, width=20, seed=0):
   images[..., 0] = ramp
   images[..., 1] = np.linspace(0, 255, height)[:, None]
   images[..., 2] = (np.arange(frames) * 40)[:, None, None]
-  return {"key": key, "url": f"https://example.invalid/{key}", "c2w": c2w, "intrinsics": intrinsics,
-          "images": images, "timestamps": np.arange(frames) * 1000}
+  return {
+    "key": key,
+    "url": f"https://example.invalid/{key}",
+    "c2w": c2w,
+    "intrinsics": intrinsics,
+    "images": images,
+    "timestamps": np.arange(frames) * 1000,
+  }
 
 
 def test_reads_torch_written_fixture_with_true_cameras():
@@ -72,9 +77,14 @@ def test_jpeg_bytes_are_stored_verbatim_and_lazy_frames_load(tmp_path):
 
 
 def test_tensor_archive_dtypes_and_containers(tmp_path):
-  obj = {"f64": np.arange(6.0).reshape(2, 3), "b": np.array([True, False]), "i8": np.arange(-3, 3, dtype=np.int8),
-         "t": np.arange(12, dtype=np.int32).reshape(3, 4).T, "e": np.zeros((0, 2), np.float32),
-         "n": [None, 1.5, -7, 2**40, 70000, (1, "a"), ()]}
+  obj = {
+    "f64": np.arange(6.0).reshape(2, 3),
+    "b": np.array([True, False]),
+    "i8": np.arange(-3, 3, dtype=np.int8),
+    "t": np.arange(12, dtype=np.int32).reshape(3, 4).T,
+    "e": np.zeros((0, 2), np.float32),
+    "n": [None, 1.5, -7, 2**40, 70000, (1, "a"), ()],
+  }
   chunks.save_tensor_archive(tmp_path / "m.torch", obj)
   back = chunks.load_tensor_archive(tmp_path / "m.torch")
   for key in ("f64", "b", "i8", "t", "e"):
@@ -151,6 +161,7 @@ def test_wrong_camera_row_length_names_file_and_scene(tmp_path):
 def test_nan_pose_names_file_scene_and_frame(tmp_path):
   def poison(record):
     record["cameras"][1, 9] = np.nan
+
   path = _rewrite_record(tmp_path, poison)
   with pytest.raises(ChunkError, match=r"scene 'sceneX'.*NaN/inf.*frames \[1\]"):
     read_chunk(path)
@@ -159,6 +170,7 @@ def test_nan_pose_names_file_scene_and_frame(tmp_path):
 def test_corrupt_jpeg_names_file_scene_and_frame(tmp_path):
   def corrupt(record):
     record["images"][2] = np.frombuffer(b"\xff\xd8garbage" * 10, np.uint8)
+
   path = _rewrite_record(tmp_path, corrupt)
   with pytest.raises(ChunkError, match=r"000001\.torch scene 'sceneX' frame 2"):
     read_chunk(path)

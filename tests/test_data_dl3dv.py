@@ -42,8 +42,12 @@ def _gl_look_at(position, target):
 
 
 def _gl_poses():
-  return np.stack([_gl_look_at(np.array([0.2 * f - 0.5, 0.1 * f, 0.3]), POINT_NS + [0.1, 0.05, 0.0])
-                   for f in range(FRAMES)])
+  return np.stack(
+    [
+      _gl_look_at(np.array([0.2 * f - 0.5, 0.1 * f, 0.3]), POINT_NS + [0.1, 0.05, 0.0])
+      for f in range(FRAMES)
+    ]
+  )
 
 
 def _project_gl(pose, point, intrinsics):
@@ -67,14 +71,14 @@ def _stored_intrinsics():
 
 def _blob_image(center, shape=STORED):
   """uint8 [H, W, 3]: a Gaussian blob (sigma 1.5 px) centred at pixel coordinates `center`."""
-  rows, cols = np.mgrid[:shape[0], :shape[1]] + 0.5
-  blob = np.exp(-((cols - center[0]) ** 2 + (rows - center[1]) ** 2) / (2 * 1.5 ** 2))
+  rows, cols = np.mgrid[: shape[0], : shape[1]] + 0.5
+  blob = np.exp(-((cols - center[0]) ** 2 + (rows - center[1]) ** 2) / (2 * 1.5**2))
   return np.repeat((blob * 255).round().astype(np.uint8)[..., None], 3, -1)
 
 
 def _centroid(image):
   weight = image[..., 0].astype(np.float64)
-  rows, cols = np.mgrid[:image.shape[0], :image.shape[1]] + 0.5
+  rows, cols = np.mgrid[: image.shape[0], : image.shape[1]] + 0.5
   return np.array([(weight * cols).sum(), (weight * rows).sum()]) / weight.sum()
 
 
@@ -83,14 +87,26 @@ def _scene_files(poses=None, names=None):
   poses = _gl_poses() if poses is None else poses
   names = names or [f"frame_{f + 1:05d}.png" for f in range(FRAMES)]
   fx, fy, cx, cy = RAW_INTRINSICS
-  transforms = {"w": CAPTURE[1], "h": CAPTURE[0], "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy,
-                "k1": 0.0, "camera_model": "OPENCV",
-                "frames": [{"file_path": f"images/{name}", "transform_matrix": pose.tolist()}
-                           for name, pose in zip(names, poses)]}
+  transforms = {
+    "w": CAPTURE[1],
+    "h": CAPTURE[0],
+    "fl_x": fx,
+    "fl_y": fy,
+    "cx": cx,
+    "cy": cy,
+    "k1": 0.0,
+    "camera_model": "OPENCV",
+    "frames": [
+      {"file_path": f"images/{name}", "transform_matrix": pose.tolist()}
+      for name, pose in zip(names, poses)
+    ],
+  }
   files = {"transforms.json": json.dumps(transforms).encode()}
   for name, pose in zip(names, poses):
     buffer = io.BytesIO()
-    Image.fromarray(_blob_image(_project_gl(pose, POINT_NS, _stored_intrinsics()))).save(buffer, "PNG")
+    Image.fromarray(_blob_image(_project_gl(pose, POINT_NS, _stored_intrinsics()))).save(
+      buffer, "PNG"
+    )
     files[f"images_4/{name}"] = buffer.getvalue()
   return files
 
@@ -126,7 +142,9 @@ def test_official_conversion_is_the_documented_row_and_column_operations():
   expected = expected[[1, 0, 2, 3]]
   expected[:3, 1:3] *= -1
   np.testing.assert_allclose(nerfstudio_to_opencv_c2w(matrix), expected)
-  np.testing.assert_allclose(opencv_to_nerfstudio_c2w(nerfstudio_to_opencv_c2w(matrix)), matrix, atol=1e-12)
+  np.testing.assert_allclose(
+    opencv_to_nerfstudio_c2w(nerfstudio_to_opencv_c2w(matrix)), matrix, atol=1e-12
+  )
   rotation = nerfstudio_to_opencv_c2w(_gl_poses())[:, :3, :3]  # still rotations (det +1)
   np.testing.assert_allclose(np.linalg.det(rotation), 1.0, atol=1e-9)
 
@@ -137,7 +155,9 @@ def test_point_projects_to_the_same_pixel_before_and_after_conversion(dl3dv_root
   record = source[index]
   assert record["key"] == ["aaaa", "bbbb"][index]
   assert (record["height"], record["width"]) == STORED
-  np.testing.assert_allclose(record["intrinsics"], np.tile(_stored_intrinsics(), (FRAMES, 1)), rtol=1e-6)
+  np.testing.assert_allclose(
+    record["intrinsics"], np.tile(_stored_intrinsics(), (FRAMES, 1)), rtol=1e-6
+  )
   # The point in the converted world, placed from frame 0's OpenGL view (so the test does not
   # assume the world change), must land where the OpenGL projection put it in every frame, and
   # where the image's blob is.
@@ -153,13 +173,19 @@ def test_point_projects_to_the_same_pixel_before_and_after_conversion(dl3dv_root
 
 def test_pipeline_crop_keeps_the_point_on_its_blob(dl3dv_root):
   record = DL3DVSceneSource(dl3dv_root)[0]
-  config = ExampleConfig((24, 24), BoundedSamplerConfig(2, 2, 2, 5, 0, 0, 2, 5), 0.15, random_flip=False)
+  config = ExampleConfig(
+    (24, 24), BoundedSamplerConfig(2, 2, 2, 5, 0, 0, 2, 5), 0.15, random_flip=False
+  )
   views = (np.array([1, 4]), np.array([2, 5]))
   example = make_example(record, config, np.random.default_rng(0), views=views)
   gl = _gl_poses()
-  in_camera1 = (np.linalg.inv(gl[1]) @ np.append(POINT_NS, 1.0))[:3] * [1, -1, -1] * 0.15  # first_cam
-  for images, c2w, intrinsics in (("context_images", "context_c2w", "context_intrinsics"),
-                                  ("target_images", "target_c2w", "target_intrinsics")):
+  in_camera1 = (
+    (np.linalg.inv(gl[1]) @ np.append(POINT_NS, 1.0))[:3] * [1, -1, -1] * 0.15
+  )  # first_cam
+  for images, c2w, intrinsics in (
+    ("context_images", "context_c2w", "context_intrinsics"),
+    ("target_images", "target_c2w", "target_intrinsics"),
+  ):
     for v in range(2):
       pixel = _project_cv(example[c2w][v].astype(np.float64), in_camera1, example[intrinsics][v])
       np.testing.assert_allclose(_centroid(example[images][v]), pixel, atol=0.35)
@@ -185,12 +211,15 @@ def test_benchmark_layout_keys_and_subsets(tmp_path):
 
 def test_pipeline_batches_from_a_zip_dataset(dl3dv_root):
   config = ExampleConfig((16, 32), BoundedSamplerConfig(2, 3, 2, 5, 0, 0, 2, 5), 0.15)
-  pipeline = InputPipeline(DL3DVSceneSource(dl3dv_root), config, batch_size=2, seed=0, shard_index=0,
-                           shard_count=1)
+  pipeline = InputPipeline(
+    DL3DVSceneSource(dl3dv_root), config, batch_size=2, seed=0, shard_index=0, shard_count=1
+  )
   batch = next(iter(pipeline))
   assert batch["context_images"].shape == (2, 2, 16, 32, 3)
   assert batch["target_c2w"].shape == (2, 3, 4, 4)
-  np.testing.assert_allclose(batch["context_c2w"][:, 0], np.broadcast_to(np.eye(4), (2, 4, 4)), atol=1e-6)
+  np.testing.assert_allclose(
+    batch["context_c2w"][:, 0], np.broadcast_to(np.eye(4), (2, 4, 4)), atol=1e-6
+  )
 
 
 def _bad_transforms(tmp_path, name, edit):
@@ -202,13 +231,24 @@ def _bad_transforms(tmp_path, name, edit):
   return DL3DVSceneSource(tmp_path / name)
 
 
-@pytest.mark.parametrize("name, edit, message", [
+@pytest.mark.parametrize(
+  "name, edit, message",
+  [
     ("no_fx", lambda t: t.pop("fl_x"), "no 'fl_x'"),
-    ("shape", lambda t: t["frames"][2].update(transform_matrix=[[1, 0, 0], [0, 1, 0]]), "frame 2 .*\\[2, 3\\]"),
-    ("nan", lambda t: t["frames"][3]["transform_matrix"][0].__setitem__(3, float("nan")), "NaN/inf.*\\[3\\]"),
+    (
+      "shape",
+      lambda t: t["frames"][2].update(transform_matrix=[[1, 0, 0], [0, 1, 0]]),
+      "frame 2 .*\\[2, 3\\]",
+    ),
+    (
+      "nan",
+      lambda t: t["frames"][3]["transform_matrix"][0].__setitem__(3, float("nan")),
+      "NaN/inf.*\\[3\\]",
+    ),
     ("no_frames", lambda t: t.update(frames=[]), "non-empty"),
     ("no_path", lambda t: t["frames"][0].pop("file_path"), "frame 0 needs"),
-])
+  ],
+)
 def test_bad_transforms_name_file_and_scene(tmp_path, name, edit, message):
   source = _bad_transforms(tmp_path, name, edit)
   with pytest.raises(DL3DVError, match=message) as error:
@@ -244,8 +284,17 @@ def test_bad_files_name_file_and_scene(tmp_path):
     make_example(record, config, np.random.default_rng(0), views=(np.array([0, 2]), np.array([1])))
   with pytest.raises(BadExampleError, match="s.zip scene 's'.*images_4/frame_00005.png: missing"):
     make_example(record, config, np.random.default_rng(0), views=(np.array([0, 4]), np.array([1])))
-  pipeline = InputPipeline(DL3DVSceneSource(tmp_path / "d"), config, batch_size=1, seed=0, shard_index=0,
-                           shard_count=1, num_epochs=1, skip_bad=True, evaluation_index={"s": ((0, 4), (1,))})
+  pipeline = InputPipeline(
+    DL3DVSceneSource(tmp_path / "d"),
+    config,
+    batch_size=1,
+    seed=0,
+    shard_index=0,
+    shard_count=1,
+    num_epochs=1,
+    skip_bad=True,
+    evaluation_index={"s": ((0, 4), (1,))},
+  )
   assert list(pipeline) == [] and pipeline.rejections.counts == {"DL3DVError": 1}
 
 

@@ -5,7 +5,13 @@ import math
 import numpy as np
 import pytest
 
-from tokengs_jax.data import BadExampleError, BoundedSamplerConfig, ExampleConfig, InputPipeline, make_example
+from tokengs_jax.data import (
+  BadExampleError,
+  BoundedSamplerConfig,
+  ExampleConfig,
+  InputPipeline,
+  make_example,
+)
 from tokengs_jax.data.pipeline import field_of_view
 
 HEIGHT, WIDTH = 20, 32
@@ -20,8 +26,14 @@ def _record(key="scene", frames=10, seed=0, fx=30.0, fy=30.0):
   c2w[:, :3, 3] = np.cumsum(rng.normal(scale=0.1, size=(frames, 3)), axis=0) + rng.normal(size=3)
   intrinsics = np.tile([fx, fy, WIDTH / 2, HEIGHT / 2], (frames, 1))
   images = rng.integers(0, 255, (frames, HEIGHT, WIDTH, 3), dtype=np.uint8)
-  return {"key": key, "c2w": c2w, "intrinsics": intrinsics, "images": images, "height": HEIGHT,
-          "width": WIDTH}
+  return {
+    "key": key,
+    "c2w": c2w,
+    "intrinsics": intrinsics,
+    "images": images,
+    "height": HEIGHT,
+    "width": WIDTH,
+  }
 
 
 def _on(**kwargs):
@@ -48,9 +60,11 @@ def test_field_of_view_matches_pixelsplat_get_fov():
       a, b = inverse @ a, inverse @ b
       return math.degrees(math.acos(a @ b / np.linalg.norm(a) / np.linalg.norm(b)))
 
-    expected = [angle([0, .5, 1], [1, .5, 1]), angle([.5, 0, 1], [.5, 1, 1])]
+    expected = [angle([0, 0.5, 1], [1, 0.5, 1]), angle([0.5, 0, 1], [0.5, 1, 1])]
     np.testing.assert_allclose(got[row], expected, rtol=1e-12)
-  np.testing.assert_allclose(field_of_view([[16.0, 10.0, 16.0, 10.0]], HEIGHT, WIDTH), [[90.0, 90.0]])
+  np.testing.assert_allclose(
+    field_of_view([[16.0, 10.0, 16.0, 10.0]], HEIGHT, WIDTH), [[90.0, 90.0]]
+  )
 
 
 @pytest.mark.parametrize("axis", ["horizontal", "vertical"])
@@ -116,13 +130,21 @@ def test_pipeline_skips_and_counts_filtered_examples():
   still["c2w"][:, :3, 3] = 1.5  # every pair of cameras coincides
   source = [good[0], wide, good[1], still, good[2]]
   config = _on(max_fov_degrees=100.0, min_context_baseline=1e-3)
-  kwargs = {"batch_size": 1, "seed": 0, "shard_index": 0, "shard_count": 1, "shuffle": False,
-            "num_epochs": 1}
+  kwargs = {
+    "batch_size": 1,
+    "seed": 0,
+    "shard_index": 0,
+    "shard_count": 1,
+    "shuffle": False,
+    "num_epochs": 1,
+  }
   with pytest.raises(BadExampleError, match="scene 'wide'"):
     list(InputPipeline(source, config, **kwargs))
   lenient = InputPipeline(source, config, skip_bad=True, **kwargs)
   assert [int(b["scene_index"][0]) for b in lenient] == [0, 2, 4]
   assert lenient.rejections.counts == {"BadExampleError": 2}
   assert any("scene 'wide'" in m and "field of view" in m for m in lenient.rejections.messages)
-  assert any("scene 'still'" in m and "context baseline 0 " in m for m in lenient.rejections.messages)
+  assert any(
+    "scene 'still'" in m and "context baseline 0 " in m for m in lenient.rejections.messages
+  )
   assert len(list(InputPipeline(source, OFF, **kwargs))) == 5

@@ -5,10 +5,22 @@ import json
 import numpy as np
 import pytest
 
-from tokengs_jax.data import (SAMPLER_PRESETS, BadExampleError, BoundedSamplerConfig, ChunkedSceneSource,
-                              ExampleConfig, InputPipeline, MissingIndexEntryError, NotEnoughFramesError,
-                              chunks, context_gap_bounds, evaluation_views, load_evaluation_index,
-                              sample_bounded, write_chunk)
+from tokengs_jax.data import (
+  SAMPLER_PRESETS,
+  BadExampleError,
+  BoundedSamplerConfig,
+  ChunkedSceneSource,
+  ExampleConfig,
+  InputPipeline,
+  MissingIndexEntryError,
+  NotEnoughFramesError,
+  chunks,
+  context_gap_bounds,
+  evaluation_views,
+  load_evaluation_index,
+  sample_bounded,
+  write_chunk,
+)
 
 SMALL_SAMPLER = BoundedSamplerConfig(2, 3, 2, 6, 0, 0, 2, 6)
 SMALL = ExampleConfig((16, 24), SMALL_SAMPLER, 0.25)
@@ -37,7 +49,9 @@ def _write_dataset(root, scenes_per_chunk):
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
   root = tmp_path_factory.mktemp("re10k") / "train"
-  return _write_dataset(root, [[_scene(f"k{c}{s}", seed=10 * c + s) for s in range(3)] for c in range(2)])
+  return _write_dataset(
+    root, [[_scene(f"k{c}{s}", seed=10 * c + s) for s in range(3)] for c in range(2)]
+  )
 
 
 # ---- sampler
@@ -50,7 +64,9 @@ def test_bounded_sampler_respects_bounds():
     context, target = sample_bounded(config, 30, rng)
     gap = context[-1] - context[0]
     assert 4 <= gap <= 9 and len(set(context.tolist())) == 3 and np.all(np.diff(context) > 0)
-    assert target.shape == (5,) and context[0] + 1 <= target.min() and target.max() <= context[-1] - 1
+    assert (
+      target.shape == (5,) and context[0] + 1 <= target.min() and target.max() <= context[-1] - 1
+    )
     assert 0 <= context[0] and context[-1] < 30
 
 
@@ -101,10 +117,16 @@ def test_batches_have_fixed_shapes_and_normalised_cameras(dataset):
   for batch in batches:
     assert batch["context_images"].shape == (2, 2, 16, 24, 3)
     assert batch["target_images"].shape == (2, 3, 16, 24, 3)
-    assert batch["context_c2w"].shape == (2, 2, 4, 4) and batch["target_intrinsics"].shape == (2, 3, 4)
+    assert batch["context_c2w"].shape == (2, 2, 4, 4) and batch["target_intrinsics"].shape == (
+      2,
+      3,
+      4,
+    )
     assert batch["context_images"].dtype == np.float32
     assert 0.0 <= batch["context_images"].min() and batch["context_images"].max() <= 1.0
-    np.testing.assert_allclose(batch["context_c2w"][:, 0], np.broadcast_to(np.eye(4), (2, 4, 4)), atol=1e-6)
+    np.testing.assert_allclose(
+      batch["context_c2w"][:, 0], np.broadcast_to(np.eye(4), (2, 4, 4)), atol=1e-6
+    )
     assert batch["scene_index"].dtype == np.int64
 
 
@@ -112,6 +134,7 @@ def test_translation_scale_is_applied(dataset):
   source = ChunkedSceneSource(dataset)
   record = source[0]
   from tokengs_jax.data import make_example
+
   views = (np.array([0, 4]), np.array([2, 3, 5]))
   config = ExampleConfig((20, 32), SMALL_SAMPLER, 0.25, random_flip=False)
   example = make_example(record, config, np.random.default_rng(0), views=views)
@@ -155,12 +178,19 @@ def test_bad_scenes_raise_naming_file_and_scene_or_are_skipped_and_counted(tmp_p
   source = ChunkedSceneSource(root)
   assert len(source) == 5
   sampler = BoundedSamplerConfig(2, 3, 3, 9, 0, 0, 3, 9)
-  strict = _pipeline(source, ExampleConfig((16, 16), sampler, 0.25), shuffle=False, num_epochs=1,
-                     batch_size=1)
+  strict = _pipeline(
+    source, ExampleConfig((16, 16), sampler, 0.25), shuffle=False, num_epochs=1, batch_size=1
+  )
   with pytest.raises(BadExampleError, match=r"000000\.torch scene 'short'.*2 frames"):
     list(strict)
-  lenient = _pipeline(source, ExampleConfig((16, 16), sampler, 0.25), shuffle=False, num_epochs=1,
-                      batch_size=1, skip_bad=True)
+  lenient = _pipeline(
+    source,
+    ExampleConfig((16, 16), sampler, 0.25),
+    shuffle=False,
+    num_epochs=1,
+    batch_size=1,
+    skip_bad=True,
+  )
   keys = [int(b["scene_index"][0]) for b in lenient]
   assert len(keys) == 3
   assert lenient.rejections.total() == 2
@@ -181,10 +211,18 @@ def test_missing_index_entry_and_evaluation_views(dataset, tmp_path):
   with pytest.raises(MissingIndexEntryError, match="'nope'"):
     ChunkedSceneSource(dataset, keys=["k01", "nope"])
   source = ChunkedSceneSource(dataset, keys=["k12", "k01", "nope"], skip_bad=True)
-  assert [e.key for e in source.entries] == ["k12", "k01"] and source.rejections.counts["missing_index_entry"] == 1
+  assert [e.key for e in source.entries] == ["k12", "k01"] and source.rejections.counts[
+    "missing_index_entry"
+  ] == 1
   index = {"k12": ((0, 8), (2, 4)), "k01": ((1, 9), (3, 5))}
-  pipeline = _pipeline(source, ExampleConfig((20, 32), SMALL_SAMPLER, 0.25, random_flip=False),
-                       evaluation_index=index, shuffle=False, num_epochs=1, batch_size=1)
+  pipeline = _pipeline(
+    source,
+    ExampleConfig((20, 32), SMALL_SAMPLER, 0.25, random_flip=False),
+    evaluation_index=index,
+    shuffle=False,
+    num_epochs=1,
+    batch_size=1,
+  )
   batches = list(pipeline)
   assert [int(b["scene_index"][0]) for b in batches] == [0, 1]
   record = source[1]
@@ -195,8 +233,13 @@ def test_missing_index_entry_and_evaluation_views(dataset, tmp_path):
 def test_dynamic_records_get_normalised_times():
   scene = _scene("dyn", frames=8)
   record = {**scene, "times": np.arange(8) * 0.5 + 3.0, "height": 20, "width": 32}
-  pipeline = _pipeline([record], batch_size=1, num_epochs=1, shuffle=False,
-                       select_views=lambda rec, rng, step: (np.array([0, 2]), np.array([1, 3, 6])))
+  pipeline = _pipeline(
+    [record],
+    batch_size=1,
+    num_epochs=1,
+    shuffle=False,
+    select_views=lambda rec, rng, step: (np.array([0, 2]), np.array([1, 3, 6])),
+  )
   (batch,) = list(pipeline)
   np.testing.assert_allclose(batch["context_times"][0], [0.0, 2 / 6])
   np.testing.assert_allclose(batch["target_times"][0], [1 / 6, 0.5, 1.0])

@@ -22,9 +22,11 @@ def _camera_looking_at_origin(rng):
 
 
 def _project(point, c2w, intrinsics):
-  uv, depth = project_points(np.asarray(point, np.float32)[None],
-                             transforms.rigid_inverse(c2w).astype(np.float32)[None],
-                             np.asarray(intrinsics, np.float32)[None])
+  uv, depth = project_points(
+    np.asarray(point, np.float32)[None],
+    transforms.rigid_inverse(c2w).astype(np.float32)[None],
+    np.asarray(intrinsics, np.float32)[None],
+  )
   assert float(depth[0, 0]) > 0
   return np.asarray(uv[0, 0], np.float64)
 
@@ -38,7 +40,7 @@ def _blob_image(uv, height, width, sigma=2.0):
 
 def _centroid(image):
   weight = image[..., 0].astype(np.float64)
-  v, u = np.mgrid[0:image.shape[0], 0:image.shape[1]] + 0.5
+  v, u = np.mgrid[0 : image.shape[0], 0 : image.shape[1]] + 0.5
   return np.array([(u * weight).sum(), (v * weight).sum()]) / weight.sum()
 
 
@@ -71,7 +73,9 @@ def test_flip_mirrors_world_and_image_together(scene):
     uv_f = _project(mirrored, c2w_f[view], intr_f[view])
     np.testing.assert_allclose(uv_f, [W - uv[0], uv[1]], atol=1e-4)
     np.testing.assert_allclose(_centroid(flipped[view]), uv_f, atol=0.05)
-    np.testing.assert_allclose(np.linalg.det(c2w_f[view, :3, :3]), 1.0, atol=1e-5)  # still a rotation
+    np.testing.assert_allclose(
+      np.linalg.det(c2w_f[view, :3, :3]), 1.0, atol=1e-5
+    )  # still a rotation
 
 
 @pytest.mark.parametrize("method", ["first_cam", "mean_cam"])
@@ -89,8 +93,11 @@ def test_normalisation_and_scale_keep_projections(scene, method, scale_method):
   reference = c2w[0] if method == "first_cam" else transforms._mean_camera(c2w[:2])
   moved = (transforms.rigid_inverse(reference) @ np.append(point, 1.0))[:3] * scale
   for view in range(3):
-    np.testing.assert_allclose(_project(moved, normalised[view], intrinsics[view]),
-                               _project(point, c2w[view], intrinsics[view]), atol=2e-3)
+    np.testing.assert_allclose(
+      _project(moved, normalised[view], intrinsics[view]),
+      _project(point, c2w[view], intrinsics[view]),
+      atol=2e-3,
+    )
 
 
 def test_all_transforms_chained(scene):
@@ -100,10 +107,13 @@ def test_all_transforms_chained(scene):
   normalised = transforms.normalize_cameras(c2w, 2, "first_cam")
   images, normalised, intrinsics = transforms.flip_horizontal(images, normalised, intrinsics)
   normalised[:, :3, 3] *= 0.25
-  moved = (transforms.rigid_inverse(c2w[0]) @ np.append(point, 1.0))[:3] * 0.25 * np.array([-1, 1, 1])
+  moved = (
+    (transforms.rigid_inverse(c2w[0]) @ np.append(point, 1.0))[:3] * 0.25 * np.array([-1, 1, 1])
+  )
   for view in range(3):
-    np.testing.assert_allclose(_centroid(images[view]), _project(moved, normalised[view], intrinsics[view]),
-                               atol=0.3)
+    np.testing.assert_allclose(
+      _centroid(images[view]), _project(moved, normalised[view], intrinsics[view]), atol=0.3
+    )
 
 
 def test_unknown_methods_raise(scene):

@@ -22,12 +22,16 @@ def _batch(rng, context_frames, target_frames, height=HEIGHT, width=WIDTH) -> di
     return c2w
 
   intrinsics = np.tile(np.array([width, height, width / 2, height / 2], np.float32), (1, 1, 1))
-  return {"context_images": rng.uniform(size=(1, vc, height, width, 3)).astype(np.float32),
-          "target_images": rng.uniform(size=(1, vt, height, width, 3)).astype(np.float32),
-          "context_c2w": cameras(context_frames), "target_c2w": cameras(target_frames),
-          "context_intrinsics": np.repeat(intrinsics, vc, axis=1),
-          "target_intrinsics": np.repeat(intrinsics, vt, axis=1),
-          "context_frames": np.asarray([context_frames]), "target_frames": np.asarray([target_frames])}
+  return {
+    "context_images": rng.uniform(size=(1, vc, height, width, 3)).astype(np.float32),
+    "target_images": rng.uniform(size=(1, vt, height, width, 3)).astype(np.float32),
+    "context_c2w": cameras(context_frames),
+    "target_c2w": cameras(target_frames),
+    "context_intrinsics": np.repeat(intrinsics, vc, axis=1),
+    "target_intrinsics": np.repeat(intrinsics, vt, axis=1),
+    "context_frames": np.asarray([context_frames]),
+    "target_frames": np.asarray([target_frames]),
+  }
 
 
 def test_nearest_view_is_the_input_with_the_nearest_frame_index():
@@ -52,8 +56,9 @@ def test_mean_colour_and_input_average_baselines():
   batch = _batch(np.random.default_rng(1), [0, 4], [1, 2, 3])
   mean = evaluation.mean_colour_images(batch)
   assert mean.shape == (1, 3, HEIGHT, WIDTH, 3)
-  np.testing.assert_allclose(mean[0, 2, 1, 1], batch["context_images"][0].mean(axis=(0, 1, 2)),
-                             rtol=1e-6)
+  np.testing.assert_allclose(
+    mean[0, 2, 1, 1], batch["context_images"][0].mean(axis=(0, 1, 2)), rtol=1e-6
+  )
   average = evaluation.input_average_images(batch)
   np.testing.assert_allclose(average[0, 1], batch["context_images"][0].mean(axis=0), rtol=1e-6)
 
@@ -83,16 +88,23 @@ def test_scorer_clips_every_metric_to_the_displayed_range():
   raw, clipped = scorer(pred, target), scorer(np.clip(pred, 0, 1), target)
   for name in ("psnr", "ssim"):
     np.testing.assert_allclose(raw[name], clipped[name], rtol=1e-6)
-  assert not np.allclose(raw["ssim"], np.asarray(metrics.ssim(pred, target)))  # SSIM alone would not clip
+  assert not np.allclose(
+    raw["ssim"], np.asarray(metrics.ssim(pred, target))
+  )  # SSIM alone would not clip
 
 
 def test_a_method_that_scored_nothing_has_an_empty_summary_and_no_check():
   assert evaluation.MethodScores().summary() == {}
-  summary = {"trained": {}, "nearest_view": {"psnr": 20.0},
-             "trained+token_tuning": {"psnr": 22.0}}
+  summary = {"trained": {}, "nearest_view": {"psnr": 20.0}, "trained+token_tuning": {"psnr": 22.0}}
   assert evaluation.checks(summary) == {}
-  lines = evaluation.checks({"trained": {"psnr": 21.0}, "nearest_view": {"psnr": 20.0},
-                             "mean_colour": {"psnr": 15.0}, "trained+token_tuning": {"psnr": 20.5}})
+  lines = evaluation.checks(
+    {
+      "trained": {"psnr": 21.0},
+      "nearest_view": {"psnr": 20.0},
+      "mean_colour": {"psnr": 15.0},
+      "trained+token_tuning": {"psnr": 20.5},
+    }
+  )
   assert lines["trained beats nearest_view"] == "True (PSNR margin +1.000 dB)"
   assert lines["trained beats mean_colour"].startswith("True")
   assert lines["token tuning improves trained"] == "False (PSNR gain -0.500 dB)"
@@ -114,24 +126,38 @@ def test_only_process_zero_writes(monkeypatch):
 def _gaussians(batch_shape, n=6, seed=0) -> Gaussians:
   key = jax.random.split(jax.random.key(seed), 2)
   means = jax.random.uniform(key[0], batch_shape + (n, 3), minval=-0.4, maxval=0.4)
-  return Gaussians(means=means.at[..., 2].add(2.0), opacities=jnp.full(batch_shape + (n,), 0.8),
-                   scales=jnp.full(batch_shape + (n, 3), 0.15),
-                   quats=jnp.tile(jnp.array([1.0, 0, 0, 0]), batch_shape + (n, 1)),
-                   colors=jax.random.uniform(key[1], batch_shape + (n, 3)))
+  return Gaussians(
+    means=means.at[..., 2].add(2.0),
+    opacities=jnp.full(batch_shape + (n,), 0.8),
+    scales=jnp.full(batch_shape + (n, 3), 0.15),
+    quats=jnp.tile(jnp.array([1.0, 0, 0, 0]), batch_shape + (n, 1)),
+    colors=jax.random.uniform(key[1], batch_shape + (n, 3)),
+  )
 
 
 def test_render_targets_renders_one_set_per_target_view_when_given():
   """Gaussians [B, V]: set v is seen by camera v only (dynamic models decode one per target)."""
   batch = _batch(np.random.default_rng(4), [0, 4], [1, 3])
   per_view = _gaussians((1, 2))
-  rendered = evaluation.render_targets(per_view, batch["target_c2w"], batch["target_intrinsics"],
-                                       height=HEIGHT, width=WIDTH)
-  assert rendered.rgb.shape == (1, 2, HEIGHT, WIDTH, 3) and rendered.depth.shape == (1, 2, HEIGHT, WIDTH, 1)
+  rendered = evaluation.render_targets(
+    per_view, batch["target_c2w"], batch["target_intrinsics"], height=HEIGHT, width=WIDTH
+  )
+  assert rendered.rgb.shape == (1, 2, HEIGHT, WIDTH, 3) and rendered.depth.shape == (
+    1,
+    2,
+    HEIGHT,
+    WIDTH,
+    1,
+  )
   for view in range(2):
     one = jax.tree.map(lambda x: x[:, view], per_view)
-    alone = evaluation.render_targets(one, batch["target_c2w"][:, view:view + 1],
-                                      batch["target_intrinsics"][:, view:view + 1],
-                                      height=HEIGHT, width=WIDTH)
+    alone = evaluation.render_targets(
+      one,
+      batch["target_c2w"][:, view : view + 1],
+      batch["target_intrinsics"][:, view : view + 1],
+      height=HEIGHT,
+      width=WIDTH,
+    )
     np.testing.assert_allclose(rendered.rgb[:, view], alone.rgb[:, 0], atol=1e-6)
   assert np.abs(rendered.rgb[0, 0] - rendered.rgb[0, 1]).max() > 1e-3
 
@@ -139,13 +165,16 @@ def test_render_targets_renders_one_set_per_target_view_when_given():
 def test_evaluate_renders_gaussian_methods_and_keeps_pictures():
   batch = _batch(np.random.default_rng(5), [0, 4], [1, 3])
   gaussians = _gaussians((1,))
-  methods = {"splats": evaluation.Method(reconstruct=lambda b: gaussians),
-             **evaluation.baselines()}
+  methods = {"splats": evaluation.Method(reconstruct=lambda b: gaussians), **evaluation.baselines()}
   scored = evaluation.evaluate([("s", batch)], methods, evaluation.Scorer(lpips=False), keep=1)
-  expected = evaluation.render_targets(gaussians, batch["target_c2w"], batch["target_intrinsics"],
-                                       height=HEIGHT, width=WIDTH).rgb
-  np.testing.assert_allclose(scored.scores["splats"].per_view[0]["psnr"],
-                             metrics.psnr(expected[0], batch["target_images"][0]), rtol=1e-5)
+  expected = evaluation.render_targets(
+    gaussians, batch["target_c2w"], batch["target_intrinsics"], height=HEIGHT, width=WIDTH
+  ).rgb
+  np.testing.assert_allclose(
+    scored.scores["splats"].per_view[0]["psnr"],
+    metrics.psnr(expected[0], batch["target_images"][0]),
+    rtol=1e-5,
+  )
   kept = scored.kept[0]
   assert kept["key"] == "s" and kept["splats"]["rgb"].shape == (2, HEIGHT, WIDTH, 3)
   assert kept["splats"]["depth"].shape == (2, HEIGHT, WIDTH, 1)
@@ -155,8 +184,10 @@ def test_evaluate_renders_gaussian_methods_and_keeps_pictures():
 
 def test_evaluate_sets_scores_each_named_set():
   rng = np.random.default_rng(6)
-  sets = {"test": [("a", _batch(rng, [0, 4], [2]))],
-          "ood": [("b", _batch(rng, [0, 6], [1, 5])), ("c", _batch(rng, [0, 6], [3]))]}
+  sets = {
+    "test": [("a", _batch(rng, [0, 4], [2]))],
+    "ood": [("b", _batch(rng, [0, 6], [1, 5])), ("c", _batch(rng, [0, 6], [3]))],
+  }
   scored = evaluation.evaluate_sets(sets, evaluation.baselines(), evaluation.Scorer(lpips=False))
   assert list(scored) == ["test", "ood"]
   assert [s["key"] for s in scored["ood"].scores["nearest_view"].per_scene] == ["b", "c"]
@@ -167,8 +198,10 @@ def test_feed_forward_and_tuned_methods_on_the_tiny_model(tiny):
   config, params = tiny
   rng = np.random.default_rng(7)
   batch = _batch(rng, [0, 4], [1, 3], height=32, width=32)
-  methods = {"trained": evaluation.feed_forward(params, config),
-             "tuned": evaluation.tuned(params, config, TuningConfig(steps=2))}
+  methods = {
+    "trained": evaluation.feed_forward(params, config),
+    "tuned": evaluation.tuned(params, config, TuningConfig(steps=2)),
+  }
   scored = evaluation.evaluate([("s", batch)], methods, evaluation.Scorer(lpips=True), keep=1)
   for name in methods:
     views = scored.scores[name].per_view[0]
@@ -185,20 +218,34 @@ def test_dynamic_methods_decode_at_each_target_views_time():
 
   params = dynamic_params()
   batch = dynamic_batch([[0.0, 1.0]], [[0.3, 0.8]])
-  scored = evaluation.evaluate([("s", batch)], {"ff": evaluation.feed_forward(params, DYNAMIC_CONFIG)},
-                               evaluation.Scorer(lpips=False))
+  scored = evaluation.evaluate(
+    [("s", batch)],
+    {"ff": evaluation.feed_forward(params, DYNAMIC_CONFIG)},
+    evaluation.Scorer(lpips=False),
+  )
   context = (batch["context_images"], batch["context_c2w"], batch["context_intrinsics"])
   expected = []
   for t in range(2):
-    gaussians = model.reconstruct(params, *context, config=DYNAMIC_CONFIG,
-                                  times=batch["context_times"],
-                                  target_times=batch["target_times"][:, t])
+    gaussians = model.reconstruct(
+      params,
+      *context,
+      config=DYNAMIC_CONFIG,
+      times=batch["context_times"],
+      target_times=batch["target_times"][:, t],
+    )
     view = slice(t, t + 1)
-    rgb = evaluation.render_targets(gaussians, batch["target_c2w"][:, view],
-                                    batch["target_intrinsics"][:, view], height=HEIGHT,
-                                    width=WIDTH).rgb
-    expected.append(np.asarray(metrics.psnr(np.clip(rgb, 0, 1), batch["target_images"][:, view]))[0])
-  np.testing.assert_allclose(scored.scores["ff"].per_view[0]["psnr"], np.concatenate(expected),
-                             rtol=1e-5)
+    rgb = evaluation.render_targets(
+      gaussians,
+      batch["target_c2w"][:, view],
+      batch["target_intrinsics"][:, view],
+      height=HEIGHT,
+      width=WIDTH,
+    ).rgb
+    expected.append(
+      np.asarray(metrics.psnr(np.clip(rgb, 0, 1), batch["target_images"][:, view]))[0]
+    )
+  np.testing.assert_allclose(
+    scored.scores["ff"].per_view[0]["psnr"], np.concatenate(expected), rtol=1e-5
+  )
   tuned = evaluation.tuned(params, DYNAMIC_CONFIG, TuningConfig(steps=2, learning_rate=1e-2))
   assert tuned.reconstruct(batch).batch_shape == (1, 2)  # one tuned set per target time

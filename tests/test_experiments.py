@@ -29,9 +29,22 @@ def test_parse_defaults_to_run_with_default_preset():
 
 def test_parse_command_preset_and_typed_overrides():
   command, experiment = cli.parse(
-      ["eval", "paper", "--data-dir", "/x", "--train.steps", "7",
-       "--official-checkpoint", "w.safetensors", "--model.enc-depth", "1"],
-      re10k.PRESETS, "synthetic-tiny", "prog")
+    [
+      "eval",
+      "paper",
+      "--data-dir",
+      "/x",
+      "--train.steps",
+      "7",
+      "--official-checkpoint",
+      "w.safetensors",
+      "--model.enc-depth",
+      "1",
+    ],
+    re10k.PRESETS,
+    "synthetic-tiny",
+    "prog",
+  )
   assert command == "eval"
   assert experiment.data_dir == "/x" and experiment.train.steps == 7
   assert experiment.official_checkpoint == "w.safetensors"
@@ -46,18 +59,31 @@ def test_parse_rejects_unknown_preset():
 
 
 def _evaluation(per_scene: dict[str, list[dict]]) -> evaluation.Evaluation:
-  return evaluation.Evaluation({name: evaluation.MethodScores(per_scene=rows)
-                                for name, rows in per_scene.items()}, kept=[])
+  return evaluation.Evaluation(
+    {name: evaluation.MethodScores(per_scene=rows) for name, rows in per_scene.items()}, kept=[]
+  )
 
 
 def test_write_metrics_means_over_scenes_markdown_and_checks(tmp_path):
-  primary = _evaluation({
-      "mean_colour": [{"key": "a", "psnr": 8.0, "ssim": 0.1}, {"key": "b", "psnr": 9.0, "ssim": 0.2}],
-      "nearest_view": [{"key": "a", "psnr": 16.0, "ssim": 0.5}, {"key": "b", "psnr": 17.0,
-                                                                 "ssim": 0.5}],
-      "trained": [{"key": "a", "psnr": 10.0, "ssim": 0.5}, {"key": "b", "psnr": 20.0, "ssim": 0.7}]})
-  other = _evaluation({"nearest_view": [{"key": "c", "psnr": 12.0, "ssim": 0.3}],
-                       "trained": [{"key": "c", "psnr": 14.0, "ssim": 0.4}]})
+  primary = _evaluation(
+    {
+      "mean_colour": [
+        {"key": "a", "psnr": 8.0, "ssim": 0.1},
+        {"key": "b", "psnr": 9.0, "ssim": 0.2},
+      ],
+      "nearest_view": [
+        {"key": "a", "psnr": 16.0, "ssim": 0.5},
+        {"key": "b", "psnr": 17.0, "ssim": 0.5},
+      ],
+      "trained": [{"key": "a", "psnr": 10.0, "ssim": 0.5}, {"key": "b", "psnr": 20.0, "ssim": 0.7}],
+    }
+  )
+  other = _evaluation(
+    {
+      "nearest_view": [{"key": "c", "psnr": 12.0, "ssim": 0.3}],
+      "trained": [{"key": "c", "psnr": 14.0, "ssim": 0.4}],
+    }
+  )
   payload = results.write_metrics(tmp_path, {"test": primary, "ood": other}, {"title": "t"})
   assert payload["test_sets"] == ["test", "ood"]
   assert payload["metrics"]["trained"]["mean"]["psnr"] == pytest.approx(15.0)
@@ -65,7 +91,9 @@ def test_write_metrics_means_over_scenes_markdown_and_checks(tmp_path):
   assert written["metrics"]["mean_colour"]["mean"]["ssim"] == pytest.approx(0.15)
   assert written["other_test_sets"]["ood"]["metrics"]["trained"]["mean"]["psnr"] == 14.0
   assert written["checks"]["trained beats nearest_view"].startswith("False (PSNR margin -1.500")
-  assert written["other_test_sets"]["ood"]["checks"]["trained beats nearest_view"].startswith("True")
+  assert written["other_test_sets"]["ood"]["checks"]["trained beats nearest_view"].startswith(
+    "True"
+  )
   text = (tmp_path / "metrics.md").read_text()
   assert "| trained | 15.0000 | 0.6000 |" in text
   assert "trained beats mean_colour: True (PSNR margin +6.500 dB)" in text
@@ -88,9 +116,14 @@ def test_only_process_zero_writes_results(tmp_path, monkeypatch):
   payload = results.write_metrics(tmp_path / "out", {"test": scored}, {"title": "t"})
   assert payload["metrics"]["trained"]["mean"]["psnr"] == 9.0  # computed everywhere
   assert results.tensorboard_writer(tmp_path / "out") is None
-  entry = {"key": "s", "batch": {"context_images": np.zeros((1, 2, 16, 16, 3)),
-                                 "target_images": np.zeros((1, 1, 16, 16, 3))},
-           "trained": {"rgb": np.zeros((1, 16, 16, 3)), "depth": None, "alpha": None}}
+  entry = {
+    "key": "s",
+    "batch": {
+      "context_images": np.zeros((1, 2, 16, 16, 3)),
+      "target_images": np.zeros((1, 1, 16, 16, 3)),
+    },
+    "trained": {"rgb": np.zeros((1, 16, 16, 3)), "depth": None, "alpha": None},
+  }
   assert results.write_grids(tmp_path / "out" / "grids", [entry], ["trained"]) == []
   assert not (tmp_path / "out").exists()
 
@@ -98,11 +131,19 @@ def test_only_process_zero_writes_results(tmp_path, monkeypatch):
 def test_scene_grid_is_readable_upscaled_labelled_with_a_depth_colour_bar():
   rng = np.random.default_rng(0)
   depth = rng.uniform(1.0, 3.0, size=(2, 16, 16, 1)).astype(np.float32)
-  entry = {"key": "s", "batch": {"context_images": rng.uniform(size=(1, 2, 16, 16, 3)),
-                                 "target_images": rng.uniform(size=(1, 2, 16, 16, 3))},
-           "nearest_view": {"rgb": rng.uniform(size=(2, 16, 16, 3)), "depth": None, "alpha": None},
-           "trained": {"rgb": rng.uniform(size=(2, 16, 16, 3)), "depth": depth,
-                       "alpha": np.ones_like(depth)}}
+  entry = {
+    "key": "s",
+    "batch": {
+      "context_images": rng.uniform(size=(1, 2, 16, 16, 3)),
+      "target_images": rng.uniform(size=(1, 2, 16, 16, 3)),
+    },
+    "nearest_view": {"rgb": rng.uniform(size=(2, 16, 16, 3)), "depth": None, "alpha": None},
+    "trained": {
+      "rgb": rng.uniform(size=(2, 16, 16, 3)),
+      "depth": depth,
+      "alpha": np.ones_like(depth),
+    },
+  }
   grid = results.scene_grid(entry, ["nearest_view", "trained"])
   # five rows (inputs, targets, two methods, depth) of 16-px views upscaled 8x to 128 px
   assert grid.dtype == np.uint8 and grid.shape[0] >= 5 * 128
@@ -112,8 +153,10 @@ def test_scene_grid_is_readable_upscaled_labelled_with_a_depth_colour_bar():
   assert (labels[:, :40] < 128).any()  # dark text left of the cells
   # the depth row carries a colour bar: the ramp from near (top, t = 1) to far (bottom, t = 0)
   rows = [("depth", [export.colorize_depth(depth[0])])]
-  assert (pictures.labelled_grid(rows, depth_range=(1.0, 3.0)).shape[1]
-          > pictures.labelled_grid(rows).shape[1])
+  assert (
+    pictures.labelled_grid(rows, depth_range=(1.0, 3.0)).shape[1]
+    > pictures.labelled_grid(rows).shape[1]
+  )
   bar = np.asarray(pictures._colour_bar(128, (1.0, 3.0), pictures._font()))
   np.testing.assert_array_equal(bar[0, 0], export.to_uint8(export.depth_ramp(1.0)))
   np.testing.assert_array_equal(bar[-1, 0], export.to_uint8(export.depth_ramp(0.0)))
@@ -128,9 +171,15 @@ def test_upscale_is_nearest_neighbour_to_at_least_the_minimum():
 
 
 def test_line_plot_draws_every_series(tmp_path):
-  path = plot.line_plot(tmp_path / "p.png", {"a": ([1, 2, 4], [1.0, 2.0, 1.5]),
-                                             "b": ([1, 2, 4], [0.5, float("nan"), 3.0])},
-                        title="t", xlabel="x", ylabel="y", log_x=True, dashed=("b",))
+  path = plot.line_plot(
+    tmp_path / "p.png",
+    {"a": ([1, 2, 4], [1.0, 2.0, 1.5]), "b": ([1, 2, 4], [0.5, float("nan"), 3.0])},
+    title="t",
+    xlabel="x",
+    ylabel="y",
+    log_x=True,
+    dashed=("b",),
+  )
   image = np.asarray(Image.open(path))
   for color in plot.PALETTE[:2]:
     assert np.any(np.all(image == np.array(color, np.uint8), axis=-1)), color
@@ -138,8 +187,9 @@ def test_line_plot_draws_every_series(tmp_path):
 
 def test_trajectory_plot_on_background(tmp_path):
   tracks = np.stack([np.linspace([2, 2], [20, 10], 5), np.linspace([30, 5], [5, 30], 5)])
-  path = plot.trajectory_plot(tmp_path / "t.png", tracks, title="flow",
-                              background=np.zeros((32, 32, 3)), size=64)
+  path = plot.trajectory_plot(
+    tmp_path / "t.png", tracks, title="flow", background=np.zeros((32, 32, 3)), size=64
+  )
   assert Image.open(path).size == (64, 64)
 
 
@@ -147,23 +197,50 @@ def test_entry_point_end_to_end(tmp_path):
   """`python -m experiments.re10k run smoke`: generate, train, evaluate, write every file."""
   out = tmp_path / "results"
   completed = subprocess.run(
-      [sys.executable, "-m", "experiments.re10k", "run", "smoke", "--output-dir", str(out),
-       "--synthetic-dir", str(tmp_path / "data")],
-      cwd=REPO, capture_output=True, text=True, timeout=600, check=False)
+    [
+      sys.executable,
+      "-m",
+      "experiments.re10k",
+      "run",
+      "smoke",
+      "--output-dir",
+      str(out),
+      "--synthetic-dir",
+      str(tmp_path / "data"),
+    ],
+    cwd=REPO,
+    capture_output=True,
+    text=True,
+    timeout=600,
+    check=False,
+  )
   assert completed.returncode == 0, completed.stderr[-4000:]
   payload = json.loads((out / "metrics.json").read_text())
-  assert set(payload["metrics"]) == {"mean_colour", "input_average", "nearest_view", "untrained",
-                                     "trained", "trained+token_tuning"}
+  assert set(payload["metrics"]) == {
+    "mean_colour",
+    "input_average",
+    "nearest_view",
+    "untrained",
+    "trained",
+    "trained+token_tuning",
+  }
   for method in payload["metrics"].values():
     assert len(method["per_scene"]) == 2
     for value in method["mean"].values():
       assert math.isfinite(value)
-  for name in ("metrics.md", "flythrough.mp4", "gaussians.ply", "params.msgpack",
-               "train_history.json"):
+  for name in (
+    "metrics.md",
+    "flythrough.mp4",
+    "gaussians.ply",
+    "params.msgpack",
+    "train_history.json",
+  ):
     assert (out / name).stat().st_size > 0, name
   assert list((out / "grids").glob("*.png"))
   assert "trained beats nearest_view" in payload["checks"]
-  assert payload["training_data_rejections"] == "source: nothing rejected\npipeline: nothing rejected"
+  assert (
+    payload["training_data_rejections"] == "source: nothing rejected\npipeline: nothing rejected"
+  )
   assert list((out / "tensorboard").glob("events.out.tfevents.*"))
   ply = export.read_ply(out / "gaussians.ply")
   assert ply["means"].shape == (64, 3) and np.isfinite(ply["means"]).all()
@@ -174,20 +251,71 @@ def test_kubric_entry_point_end_to_end(tmp_path):
   """`python -m experiments.kubric` on two tiny generated scenes: dynamic pictures and metrics."""
   out = tmp_path / "results"
   completed = subprocess.run(
-      [sys.executable, "-m", "experiments.kubric", "--output-dir", str(out),
-       "--synthetic-dir", str(tmp_path / "data"), "--synthetic.num-train", "2",
-       "--synthetic.num-test", "1", "--synthetic.frames", "6", "--synthetic.workers", "1",
-       "--num-cameras", "2", "--max-gap", "4", "--train.steps", "2", "--train.batch-size", "2",
-       "--train.log-every", "1", "--eval.num-scenes", "1", "--eval.video-frames", "2",
-       "--eval.tuning-steps", "2",
-       "--flow-times", "3", "--model.dec-patch-size", "4", "--model.num-dynamic-gs-tokens", "2",
-       "--model.enc-depth", "1", "--model.dec-depth", "1", "--model.enc-embed-dim", "32",
-       "--model.enc-num-heads", "2", "--model.num-gs-tokens", "4"],
-      cwd=REPO, capture_output=True, text=True, timeout=600, check=False)
+    [
+      sys.executable,
+      "-m",
+      "experiments.kubric",
+      "--output-dir",
+      str(out),
+      "--synthetic-dir",
+      str(tmp_path / "data"),
+      "--synthetic.num-train",
+      "2",
+      "--synthetic.num-test",
+      "1",
+      "--synthetic.frames",
+      "6",
+      "--synthetic.workers",
+      "1",
+      "--num-cameras",
+      "2",
+      "--max-gap",
+      "4",
+      "--train.steps",
+      "2",
+      "--train.batch-size",
+      "2",
+      "--train.log-every",
+      "1",
+      "--eval.num-scenes",
+      "1",
+      "--eval.video-frames",
+      "2",
+      "--eval.tuning-steps",
+      "2",
+      "--flow-times",
+      "3",
+      "--model.dec-patch-size",
+      "4",
+      "--model.num-dynamic-gs-tokens",
+      "2",
+      "--model.enc-depth",
+      "1",
+      "--model.dec-depth",
+      "1",
+      "--model.enc-embed-dim",
+      "32",
+      "--model.enc-num-heads",
+      "2",
+      "--model.num-gs-tokens",
+      "4",
+    ],
+    cwd=REPO,
+    capture_output=True,
+    text=True,
+    timeout=600,
+    check=False,
+  )
   assert completed.returncode == 0, completed.stderr[-4000:]
   payload = json.loads((out / "metrics.json").read_text())
-  assert set(payload["metrics"]) == {"mean_colour", "input_average", "nearest_view", "untrained",
-                                     "trained", "trained+token_tuning"}
+  assert set(payload["metrics"]) == {
+    "mean_colour",
+    "input_average",
+    "nearest_view",
+    "untrained",
+    "trained",
+    "trained+token_tuning",
+  }
   for method in ("trained", "trained+token_tuning"):
     assert math.isfinite(payload["metrics"][method]["mean"]["psnr"])
   history = json.loads((out / "train_history.json").read_text())
@@ -205,10 +333,18 @@ def test_kubric_loss_is_the_official_release_scaled_to_the_run():
   paper = kubric.PRESETS["paper"]
   config = kubric.KubricTask().loss_config(paper)
   assert (config.rgb_loss, config.lambda_rgb, config.lambda_ssim, config.lambda_vis) == (
-      "l1", 0.8, 0.2, 1.0)
+    "l1",
+    0.8,
+    0.2,
+    1.0,
+  )
   # official release: 0.3 held for 5k steps, decayed to 0 over 10k (of 50k finetuning steps)
-  assert (config.lambda_dyn_aux, config.dyn_aux_hold_steps, config.dyn_aux_decay_steps,
-          config.dyn_aux_min) == (0.3, 5_000, 10_000, 0.0)
+  assert (
+    config.lambda_dyn_aux,
+    config.dyn_aux_hold_steps,
+    config.dyn_aux_decay_steps,
+    config.dyn_aux_min,
+  ) == (0.3, 5_000, 10_000, 0.0)
   tiny = kubric.PRESETS["synthetic-tiny"]
   config = kubric.KubricTask().loss_config(tiny)
   assert config.dyn_aux_hold_steps == round(0.1 * tiny.train.steps)
@@ -228,19 +364,24 @@ def test_evaluation_examples_read_a_list_format_index(tmp_path):
   """A Long-LRM list index (official DL3DV eval form): its context list, every frame a target."""
   smoke = re10k.PRESETS["smoke"]
   experiment = dataclasses.replace(
-      smoke, synthetic_dir=str(tmp_path / "data"),
-      synthetic=dataclasses.replace(smoke.synthetic, num_train=1, num_test=1, workers=1))
+    smoke,
+    synthetic_dir=str(tmp_path / "data"),
+    synthetic=dataclasses.replace(smoke.synthetic, num_train=1, num_test=1, workers=1),
+  )
   data.ensure_synthetic(experiment)
   key = data.evaluation_scenes(experiment)[0][0]
   index = tmp_path / "index.json"
   index.write_text(json.dumps([{"scene_name": key, "fold_8_kmeans_2_input": [1, 7]}]))
-  (got_key, batch), = data.evaluation_scenes(
-      dataclasses.replace(experiment, eval_index=str(index)))
+  ((got_key, batch),) = data.evaluation_scenes(
+    dataclasses.replace(experiment, eval_index=str(index))
+  )
   assert got_key == key
   frames = smoke.synthetic.frames
   assert batch["context_images"].shape[1] == 2 and batch["target_images"].shape[1] == frames
   for view, frame in enumerate([1, 7]):  # the listed inputs are frames 1 and 7 of the targets
-    np.testing.assert_array_equal(batch["context_images"][0, view], batch["target_images"][0, frame])
+    np.testing.assert_array_equal(
+      batch["context_images"][0, view], batch["target_images"][0, frame]
+    )
   # the batch names its frames (the nearest-view baseline reads them)
   np.testing.assert_array_equal(batch["context_frames"], [[1, 7]])
   np.testing.assert_array_equal(batch["target_frames"], [np.arange(frames)])
@@ -251,19 +392,27 @@ def test_evaluation_examples_read_a_list_format_index(tmp_path):
 def test_an_index_matching_no_scene_fails_before_any_work_and_lists_unknown_keys(tmp_path):
   smoke = re10k.PRESETS["smoke"]
   experiment = dataclasses.replace(
-      smoke, synthetic_dir=str(tmp_path / "data"),
-      synthetic=dataclasses.replace(smoke.synthetic, num_train=1, num_test=1, workers=1))
+    smoke,
+    synthetic_dir=str(tmp_path / "data"),
+    synthetic=dataclasses.replace(smoke.synthetic, num_train=1, num_test=1, workers=1),
+  )
   data.ensure_synthetic(experiment)
   key = data.evaluation_scenes(experiment)[0][0]
   index = tmp_path / "index.json"
   index.write_text(json.dumps({"nope": {"context": [0, 4], "target": [2]}}))
   with pytest.raises(ValueError, match=f"none of its 1 scenes is in the data.*'nope'.*'{key}'"):
     data.check_evaluation_data(dataclasses.replace(experiment, eval_index=str(index)))
-  index.write_text(json.dumps({"nope": {"context": [0, 4], "target": [2]},
-                               key: {"context": [0, 4], "target": [2]}}))
+  index.write_text(
+    json.dumps(
+      {"nope": {"context": [0, 4], "target": [2]}, key: {"context": [0, 4], "target": [2]}}
+    )
+  )
   partial = dataclasses.replace(experiment, eval_index=str(index))
-  assert data.check_evaluation_data(partial) == {"requested": 2, "evaluated": 1,
-                                                 "missing": ["nope"]}
+  assert data.check_evaluation_data(partial) == {
+    "requested": 2,
+    "evaluated": 1,
+    "missing": ["nope"],
+  }
   assert [k for k, _ in data.evaluation_scenes(partial)] == [key]
   index.write_text(json.dumps({key: {"context": [0, 4], "target": [99]}}))
   with pytest.raises(ValueError, match="frame 99"):
@@ -282,8 +431,10 @@ def test_default_evaluation_scores_no_input_view_as_a_target(tmp_path):
   """Without an index, every evaluated target is a frame that is not an input."""
   smoke = re10k.PRESETS["smoke"]
   experiment = dataclasses.replace(
-      smoke, synthetic_dir=str(tmp_path / "data"),
-      synthetic=dataclasses.replace(smoke.synthetic, num_train=1, num_test=2, workers=1))
+    smoke,
+    synthetic_dir=str(tmp_path / "data"),
+    synthetic=dataclasses.replace(smoke.synthetic, num_train=1, num_test=2, workers=1),
+  )
   data.ensure_synthetic(experiment)
   for _, batch in data.evaluation_scenes(experiment):
     context, target = batch["context_frames"][0], batch["target_frames"][0]

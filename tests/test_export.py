@@ -7,9 +7,13 @@ from tokengs_jax import export
 
 def _gaussians(n=50, seed=0):
   rng = np.random.default_rng(seed)
-  return dict(means=rng.normal(size=(n, 3)), opacities=rng.uniform(0.05, 0.95, n),
-              scales=rng.uniform(0.01, 0.2, (n, 3)), quats=rng.normal(size=(n, 4)),
-              colors=rng.uniform(0, 1, (n, 3)))
+  return dict(
+    means=rng.normal(size=(n, 3)),
+    opacities=rng.uniform(0.05, 0.95, n),
+    scales=rng.uniform(0.01, 0.2, (n, 3)),
+    quats=rng.normal(size=(n, 4)),
+    colors=rng.uniform(0, 1, (n, 3)),
+  )
 
 
 def test_ply_round_trip_in_viewer_layout(tmp_path):
@@ -33,8 +37,25 @@ def test_ply_read_by_plyfile_in_the_3dgs_layout(tmp_path):
   ply = plyfile.PlyData.read(str(export.write_ply(tmp_path / "g.ply", **g)))
   assert ply.byte_order == "<" and not ply.text
   vertex = ply["vertex"]
-  names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
-           "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+  names = [
+    "x",
+    "y",
+    "z",
+    "nx",
+    "ny",
+    "nz",
+    "f_dc_0",
+    "f_dc_1",
+    "f_dc_2",
+    "opacity",
+    "scale_0",
+    "scale_1",
+    "scale_2",
+    "rot_0",
+    "rot_1",
+    "rot_2",
+    "rot_3",
+  ]
   assert [p.name for p in vertex.properties] == names
   assert all(vertex.data.dtype[name] == np.dtype("<f4") for name in names)
   assert vertex.count == 37
@@ -42,22 +63,28 @@ def test_ply_read_by_plyfile_in_the_3dgs_layout(tmp_path):
   sh_c0 = 1.0 / (2.0 * np.sqrt(np.pi))  # Y_0^0
   np.testing.assert_allclose(column("x", "y", "z"), g["means"], rtol=1e-6, atol=1e-6)
   np.testing.assert_array_equal(column("nx", "ny", "nz"), 0.0)
-  np.testing.assert_allclose(column("f_dc_0", "f_dc_1", "f_dc_2"), (g["colors"] - 0.5) / sh_c0,
-                             rtol=1e-5, atol=1e-5)
-  np.testing.assert_allclose(vertex["opacity"], np.log(g["opacities"] / (1 - g["opacities"])),
-                             rtol=1e-4, atol=1e-5)
-  np.testing.assert_allclose(column("scale_0", "scale_1", "scale_2"), np.log(g["scales"]),
-                             rtol=1e-5, atol=1e-5)
+  np.testing.assert_allclose(
+    column("f_dc_0", "f_dc_1", "f_dc_2"), (g["colors"] - 0.5) / sh_c0, rtol=1e-5, atol=1e-5
+  )
+  np.testing.assert_allclose(
+    vertex["opacity"], np.log(g["opacities"] / (1 - g["opacities"])), rtol=1e-4, atol=1e-5
+  )
+  np.testing.assert_allclose(
+    column("scale_0", "scale_1", "scale_2"), np.log(g["scales"]), rtol=1e-5, atol=1e-5
+  )
   rot = column("rot_0", "rot_1", "rot_2", "rot_3")
   np.testing.assert_allclose(np.linalg.norm(rot, axis=-1), 1.0, atol=1e-6)
-  np.testing.assert_allclose(rot, g["quats"] / np.linalg.norm(g["quats"], axis=-1, keepdims=True),
-                             atol=1e-6)
+  np.testing.assert_allclose(
+    rot, g["quats"] / np.linalg.norm(g["quats"], axis=-1, keepdims=True), atol=1e-6
+  )
   # what a viewer decodes: colour = 0.5 + C0 f_dc, opacity = sigmoid, scale = exp
-  np.testing.assert_allclose(0.5 + sh_c0 * column("f_dc_0", "f_dc_1", "f_dc_2"), g["colors"],
-                             atol=1e-5)
+  np.testing.assert_allclose(
+    0.5 + sh_c0 * column("f_dc_0", "f_dc_1", "f_dc_2"), g["colors"], atol=1e-5
+  )
   np.testing.assert_allclose(1 / (1 + np.exp(-vertex["opacity"])), g["opacities"], atol=1e-5)
-  np.testing.assert_allclose(np.exp(column("scale_0", "scale_1", "scale_2")), g["scales"],
-                             rtol=1e-5)
+  np.testing.assert_allclose(
+    np.exp(column("scale_0", "scale_1", "scale_2")), g["scales"], rtol=1e-5
+  )
 
 
 def test_ply_refuses_non_finite(tmp_path):
@@ -74,7 +101,11 @@ def test_grid_and_png(tmp_path):
   assert grid.dtype == np.uint8 and grid.shape == (2 + 8 + 2 + 6 + 2, 2 + 10 + 2 + 4 + 2, 3)
   assert grid[2, 2].tolist() == [0, 0, 0] and grid[2, 14].tolist() == [255, 255, 255]
   from PIL import Image
-  assert Image.open(export.save_png(tmp_path / "g.png", grid)).size == (grid.shape[1], grid.shape[0])
+
+  assert Image.open(export.save_png(tmp_path / "g.png", grid)).size == (
+    grid.shape[1],
+    grid.shape[0],
+  )
 
 
 def test_colorize_depth_masks_empty_pixels():
@@ -105,4 +136,5 @@ def test_mp4_is_written(tmp_path):
   path = export.write_mp4(tmp_path / "v.mp4", frames, fps=5)
   assert path.stat().st_size > 0
   import imageio.v2 as imageio
+
   assert sum(1 for _ in imageio.get_reader(path)) == 5

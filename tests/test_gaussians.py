@@ -41,11 +41,13 @@ def test_validate_returns_the_batch_shape_and_names_a_bad_field():
   # batch shapes broadcast: one scene's colours shared by a batch of 2
   shared = Gaussians(g.means, g.opacities, g.scales, g.quats, g.colors[:1])
   assert shared.validate() == (2,)
-  cases = {"colors": (jnp.ones((2, 5, 4)), r"colors must be \[..., N, 3\]"),
-           "quats": (jnp.ones((2, 5, 3)), r"quats must be \[..., N, 4\]"),
-           "opacities": (jnp.ones((2, 6)), "N = 6"),
-           "scales": (jnp.ones((3, 5, 3)), "do not broadcast"),
-           "means": (jnp.ones((2, 5, 3), jnp.complex64), "real numbers")}
+  cases = {
+    "colors": (jnp.ones((2, 5, 4)), r"colors must be \[..., N, 3\]"),
+    "quats": (jnp.ones((2, 5, 3)), r"quats must be \[..., N, 4\]"),
+    "opacities": (jnp.ones((2, 6)), "N = 6"),
+    "scales": (jnp.ones((3, 5, 3)), "do not broadcast"),
+    "means": (jnp.ones((2, 5, 3), jnp.complex64), "real numbers"),
+  }
   for field, (value, match) in cases.items():
     fields = {**vars(g), field: value}
     with pytest.raises(ValueError, match=match):

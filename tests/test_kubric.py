@@ -13,8 +13,13 @@ import numpy as np
 import pytest
 
 from tokengs_jax import camera
-from tokengs_jax.data import (DATASET_PRESETS, InputPipeline, NotEnoughFramesError, kubric,
-                              make_example)
+from tokengs_jax.data import (
+  DATASET_PRESETS,
+  InputPipeline,
+  NotEnoughFramesError,
+  kubric,
+  make_example,
+)
 from tokengs_jax.data.transforms import normalize_times
 from tokengs_jax.data.synthetic import generate
 from tokengs_jax.data.synthetic.scenes import random_rotation
@@ -364,8 +369,16 @@ def test_scene_records_batch_through_the_generic_pipeline(kubric_root):
 
 
 def _pipeline(root, **kwargs):
-  return InputPipeline(kubric.KubricSceneSource(root), CONFIG, batch_size=1, seed=5, shard_index=0,
-                       shard_count=1, select_views=kubric.kubric_view_selector(2, 1, 2, 5), **kwargs)
+  return InputPipeline(
+    kubric.KubricSceneSource(root),
+    CONFIG,
+    batch_size=1,
+    seed=5,
+    shard_index=0,
+    shard_count=1,
+    select_views=kubric.kubric_view_selector(2, 1, 2, 5),
+    **kwargs,
+  )
 
 
 def test_resumed_pipeline_sees_the_same_batches_as_an_uninterrupted_one(kubric_root):

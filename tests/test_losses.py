@@ -21,8 +21,9 @@ def _translated(tx):
 
 
 # One compiled program per shape instead of op-by-op dispatch (keeps the tests fast).
-_visibility = jax.jit(losses.visibility_loss, static_argnums=(3, 4),
-                      static_argnames=("threshold", "near"))
+_visibility = jax.jit(
+  losses.visibility_loss, static_argnums=(3, 4), static_argnames=("threshold", "near")
+)
 
 
 def _vis(means, w2c=IDENTITY, intrinsics=INTRINSICS, **kwargs):
@@ -42,13 +43,14 @@ def test_ssim_loss_matches_a_zero_padded_numpy_reference():
   rng = np.random.default_rng(0)
   target = rng.uniform(0, 1, (2, 18, 21, 3))
   pred = np.clip(target + rng.normal(0, 0.2, target.shape), 0, 1)
-  blur = lambda z: ndimage.gaussian_filter(z, sigma=(0, 1.5, 1.5, 0), truncate=3.5,
-                                           mode="constant", cval=0.0)
+  blur = lambda z: ndimage.gaussian_filter(
+    z, sigma=(0, 1.5, 1.5, 0), truncate=3.5, mode="constant", cval=0.0
+  )
   mx, my = blur(pred), blur(target)
   vx = blur(pred * pred) - mx * mx
   vy = blur(target * target) - my * my
   cxy = blur(pred * target) - mx * my
-  c1, c2 = 0.01 ** 2, 0.03 ** 2
+  c1, c2 = 0.01**2, 0.03**2
   ssim = ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
   expected = (1 - ssim.mean()) / 2
   ours = losses.ssim_loss(jnp.asarray(pred, jnp.float32), jnp.asarray(target, jnp.float32))
@@ -57,11 +59,13 @@ def test_ssim_loss_matches_a_zero_padded_numpy_reference():
 
 
 def test_visibility_loss_hand_values():
-  means = [[1.5, 0.0, 1.0],   # u_n = 1.5 -> 0.5
-           [0.0, 0.0, 1.0],   # centre -> 0
-           [0.3, 0.75, 1.0],  # v_n = 1.5 -> 0.5
-           [1.4, 0.6, 1.0],   # 0.4 + 0.2 = 0.6 (u and v add)
-           [3.0, 0.0, 1.0]]   # u_n = 3 -> 2, clamped to 1
+  means = [
+    [1.5, 0.0, 1.0],  # u_n = 1.5 -> 0.5
+    [0.0, 0.0, 1.0],  # centre -> 0
+    [0.3, 0.75, 1.0],  # v_n = 1.5 -> 0.5
+    [1.4, 0.6, 1.0],  # 0.4 + 0.2 = 0.6 (u and v add)
+    [3.0, 0.0, 1.0],
+  ]  # u_n = 3 -> 2, clamped to 1
   np.testing.assert_allclose(_vis(means), (0.5 + 0 + 0.5 + 0.6 + 1.0) / 5, rtol=1e-6)
   # The clamp is the threshold.
   np.testing.assert_allclose(_vis(means, threshold=0.5), (0.5 + 0 + 0.5 + 0.5 + 0.5) / 5, rtol=1e-6)
@@ -121,7 +125,8 @@ def test_render_loss_combines_terms_with_weights():
   # Renders are 12x12 but the cameras were set for 40x20; rescale so u_n = x, v_n = 2 y again.
   intrinsics = intrinsics * jnp.array([12 / WIDTH, 12 / HEIGHT, 12 / WIDTH, 12 / HEIGHT])
   loss, terms = jax.jit(losses.render_loss, static_argnums=2)(
-      pred, target, config, means=means, world_to_camera=w2c, intrinsics=intrinsics)
+    pred, target, config, means=means, world_to_camera=w2c, intrinsics=intrinsics
+  )
   assert float(terms["rgb"]) == pytest.approx(0.25)
   assert float(terms["visibility"]) == pytest.approx(0.25)  # (0.5 + 0) / 2
   assert float(terms["ssim"]) == pytest.approx(float(losses.ssim_loss(pred, target)))
@@ -140,8 +145,9 @@ def test_render_loss_lpips_term_and_argument_checks():
   from tokengs_jax import lpips as lpips_lib
 
   params = lpips_lib.load_vgg_params()
-  loss, terms = jax.jit(losses.render_loss, static_argnums=2)(pred, pred, config,
-                                                            lpips_params=params)
+  loss, terms = jax.jit(losses.render_loss, static_argnums=2)(
+    pred, pred, config, lpips_params=params
+  )
   assert float(terms["lpips"]) == pytest.approx(0.0, abs=1e-7)
   assert float(loss) == float(terms["lpips"]) * 0.5 + float(terms["rgb"])
 
@@ -156,8 +162,9 @@ def test_render_loss_gradients_finite_for_flat_identical_images(rgb):
   intrinsics = jnp.array([[[10.0, 10.0, 6.0, 6.0]]])
 
   def total(pred, m):
-    return losses.render_loss(pred, target, config, means=m, world_to_camera=w2c,
-                              intrinsics=intrinsics)[0]
+    return losses.render_loss(
+      pred, target, config, means=m, world_to_camera=w2c, intrinsics=intrinsics
+    )[0]
 
   loss, (grad_pred, grad_means) = jax.jit(jax.value_and_grad(total, argnums=(0, 1)))(target, means)
   assert np.isfinite(float(loss))
@@ -170,7 +177,7 @@ def test_dynamic_aux_weight_hold_then_decay():
   weights = jax.jit(jax.vmap(lambda s: losses.dynamic_aux_weight(s, config)))(steps)
   np.testing.assert_allclose(weights, [0.3, 0.3, 0.15, 0.0, 0.0], atol=1e-7)
   constant = losses.LossConfig(lambda_dyn_aux=0.3)
-  assert float(losses.dynamic_aux_weight(10 ** 6, constant)) == pytest.approx(0.3)
+  assert float(losses.dynamic_aux_weight(10**6, constant)) == pytest.approx(0.3)
   assert float(losses.dynamic_aux_weight(0, losses.LossConfig())) == 0.0
   floor = losses.LossConfig(lambda_dyn_aux=0.3, dyn_aux_decay_steps=10, dyn_aux_min=0.1)
   assert float(losses.dynamic_aux_weight(100, floor)) == pytest.approx(0.1)
@@ -178,8 +185,9 @@ def test_dynamic_aux_weight_hold_then_decay():
 
 def test_add_dynamic_aux():
   config = losses.LossConfig(lambda_dyn_aux=0.3, dyn_aux_hold_steps=10, dyn_aux_decay_steps=10)
-  loss, terms = losses.add_dynamic_aux(jnp.array(1.0), {"loss": jnp.array(1.0)}, jnp.array(2.0),
-                                       15, config)
+  loss, terms = losses.add_dynamic_aux(
+    jnp.array(1.0), {"loss": jnp.array(1.0)}, jnp.array(2.0), 15, config
+  )
   assert float(loss) == pytest.approx(1.0 + 0.15 * 2.0)
   assert float(terms["loss"]) == float(loss)
   assert float(terms["dyn_aux"]) == 2.0 and float(terms["dyn_aux_weight"]) == pytest.approx(0.15)

@@ -19,7 +19,9 @@ def test_safe_norm_and_normalize_have_finite_gradients_at_zero():
 def test_quat_to_rotmat_is_rotation_and_ignores_scale():
   q = jax.random.normal(jax.random.PRNGKey(0), (16, 4))
   r = tmath.quat_to_rotmat(q)
-  np.testing.assert_allclose(r @ jnp.swapaxes(r, -1, -2), np.broadcast_to(np.eye(3), r.shape), atol=1e-5)
+  np.testing.assert_allclose(
+    r @ jnp.swapaxes(r, -1, -2), np.broadcast_to(np.eye(3), r.shape), atol=1e-5
+  )
   np.testing.assert_allclose(jnp.linalg.det(r), 1.0, atol=1e-5)
   np.testing.assert_allclose(tmath.quat_to_rotmat(7.5 * q), r, atol=1e-6)
   # 90 degrees about z (wxyz): x -> y

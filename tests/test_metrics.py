@@ -16,8 +16,16 @@ DATA = pathlib.Path(__file__).parent / "data"
 
 
 def _skimage_ssim(pred, target):
-  return structural_similarity(pred, target, win_size=11, gaussian_weights=True, sigma=1.5,
-                               use_sample_covariance=True, data_range=1.0, channel_axis=-1)
+  return structural_similarity(
+    pred,
+    target,
+    win_size=11,
+    gaussian_weights=True,
+    sigma=1.5,
+    use_sample_covariance=True,
+    data_range=1.0,
+    channel_axis=-1,
+  )
 
 
 @pytest.mark.parametrize("shape", [(24, 31, 3), (11, 11, 3), (40, 17, 3)])
@@ -25,8 +33,10 @@ def test_ssim_matches_skimage(shape):
   rng = np.random.default_rng(sum(shape))
   target = rng.uniform(0, 1, shape).astype(np.float32)
   # A correlated prediction (SSIM well away from 0) and one with values outside [0, 1].
-  preds = [np.clip(target + rng.normal(0, 0.1, shape), 0, 1).astype(np.float32),
-           (target * 1.3 - 0.1).astype(np.float32)]
+  preds = [
+    np.clip(target + rng.normal(0, 0.1, shape), 0, 1).astype(np.float32),
+    (target * 1.3 - 0.1).astype(np.float32),
+  ]
   for pred in preds:
     np.testing.assert_allclose(metrics.ssim(pred, target), _skimage_ssim(pred, target), atol=1e-5)
 
@@ -72,8 +82,11 @@ def test_lpips_matches_reference_package_numbers():
   np.testing.assert_allclose(metrics.lpips(pred, target), ref["lpips"], atol=1e-5)
   assert ref["lpips"][1] == 0.0  # the identical pair
   # Leading dimensions are kept, also under an outer jit (shape only: no second compile).
-  grid = jax.eval_shape(jax.jit(metrics.lpips), pred[:4].reshape(2, 2, *pred.shape[1:]),
-                        target[:4].reshape(2, 2, *pred.shape[1:]))
+  grid = jax.eval_shape(
+    jax.jit(metrics.lpips),
+    pred[:4].reshape(2, 2, *pred.shape[1:]),
+    target[:4].reshape(2, 2, *pred.shape[1:]),
+  )
   assert grid.shape == (2, 2)
 
 

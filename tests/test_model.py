@@ -40,13 +40,29 @@ from tokengs_jax.model.layers import attend, attention_tiling
 from tokengs_jax.model.official import official_name, read_safetensors
 
 # A config small enough that each test compiles in about a second.
-MICRO = ModelConfig(patch_size=4, dec_patch_size=2, enc_depth=1, dec_depth=2, enc_embed_dim=32,
-                    enc_num_heads=2, num_gs_tokens=4, image_size=(16, 16))
+MICRO = ModelConfig(
+  patch_size=4,
+  dec_patch_size=2,
+  enc_depth=1,
+  dec_depth=2,
+  enc_embed_dim=32,
+  enc_num_heads=2,
+  num_gs_tokens=4,
+  image_size=(16, 16),
+)
 # Every optional part at once: multiscale readout, latent bottleneck, dynamic tokens, time.
-FULL = MICRO.replace(enc_depth=3, use_multiscale_encoder=True, multiscale_encoder_layers=(0, 1, 2),
-                     use_latent_bottleneck=True, num_latents=6, latent_cross_attn_depth=2,
-                     num_dynamic_gs_tokens=3, time_embedding=True, dec_init_values=0.01,
-                     clip_head_z_init=0.1)
+FULL = MICRO.replace(
+  enc_depth=3,
+  use_multiscale_encoder=True,
+  multiscale_encoder_layers=(0, 1, 2),
+  use_latent_bottleneck=True,
+  num_latents=6,
+  latent_cross_attn_depth=2,
+  num_dynamic_gs_tokens=3,
+  time_embedding=True,
+  dec_init_values=0.01,
+  clip_head_z_init=0.1,
+)
 
 
 @functools.cache
@@ -72,8 +88,12 @@ def full_params():
 
 @functools.cache
 def official_fixture():
-  config = config_from_official(json.loads((reference_fixture("official_tokengs_tiny", "options.json")).read_text()))
-  params = load_official_checkpoint(reference_fixture("official_tokengs_tiny", "weights.safetensors"), config)
+  config = config_from_official(
+    json.loads((reference_fixture("official_tokengs_tiny", "options.json")).read_text())
+  )
+  params = load_official_checkpoint(
+    reference_fixture("official_tokengs_tiny", "weights.safetensors"), config
+  )
   io = dict(np.load(reference_fixture("official_tokengs_tiny", "io.npz")))
   # torch NCHW -> our NHWC
   io["images_rgb"] = io["images_rgb"].transpose(0, 1, 3, 4, 2)
@@ -85,24 +105,26 @@ def random_inputs(key, batch, views, height, width):
   k1, k2, k3 = jax.random.split(key, 3)
   images = jax.random.uniform(k1, (batch, views, height, width, 3))
   angles = jax.random.normal(k2, (batch, views, 3)) * 0.3
-  rot = jax.vmap(jax.vmap(lambda a: jax.scipy.linalg.expm(jnp.cross(
-      jnp.eye(3), a))))(angles)
+  rot = jax.vmap(jax.vmap(lambda a: jax.scipy.linalg.expm(jnp.cross(jnp.eye(3), a))))(angles)
   c2w = jnp.zeros((batch, views, 4, 4)).at[..., :3, :3].set(rot).at[..., 3, 3].set(1.0)
   c2w = c2w.at[..., :3, 3].set(jax.random.normal(k3, (batch, views, 3)) * 0.2)
   intrinsics = jnp.broadcast_to(
-      jnp.array([width * 1.1, height * 1.1, width / 2, height / 2]), (batch, views, 4))
+    jnp.array([width * 1.1, height * 1.1, width / 2, height / 2]), (batch, views, 4)
+  )
   return images, c2w, intrinsics
 
 
 # ----- parity with the official model (top priority) ------------------------------------------
+
 
 def test_official_decoder_tokens_and_gaussians_match():
   config, params, io = official_fixture()
   encoded = jax.jit(encode, static_argnums=3)(params, io["images_rgb"], io["plucker"], config)
   tokens = jax.jit(decode_tokens, static_argnums=2)(params, encoded, config)
   np.testing.assert_allclose(tokens, io["decoder_tokens_out"], rtol=0, atol=1e-4)
-  flat = jax.jit(predict_gaussians, static_argnums=3)(params, io["images_rgb"], io["plucker"],
-                                                      config)
+  flat = jax.jit(predict_gaussians, static_argnums=3)(
+    params, io["images_rgb"], io["plucker"], config
+  )
   assert flat.shape == io["gaussians"].shape
   np.testing.assert_allclose(flat, io["gaussians"], rtol=0, atol=1e-4)
 
@@ -120,8 +142,7 @@ def test_official_reconstruct_from_raw_images_and_cameras():
 def test_bfloat16_compute_keeps_float32_params_and_stays_close():
   config, params, io = official_fixture()
   bf16 = config.replace(dtype="bfloat16")
-  flat = jax.jit(predict_gaussians, static_argnums=3)(params, io["images_rgb"], io["plucker"],
-                                                      bf16)
+  flat = jax.jit(predict_gaussians, static_argnums=3)(params, io["images_rgb"], io["plucker"], bf16)
   assert flat.dtype == jnp.float32
   assert all(leaf.dtype == jnp.float32 for leaf in jax.tree.leaves(param_shapes(bf16)))
   err = np.abs(np.asarray(flat) - io["gaussians"]).max()
@@ -129,6 +150,7 @@ def test_bfloat16_compute_keeps_float32_params_and_stays_close():
 
 
 # ----- tiled attention -----------------------------------------------------------------------------
+
 
 def _plain_attention(queries, keys, values, mask=None):
   """The textbook formula, materialising all logits (what `attend` must equal)."""
@@ -156,10 +178,15 @@ def test_tiled_attention_values_and_gradients_match_plain_attention(tile, masked
   def loss(attention):
     return lambda q, k, v: jnp.sum(weights * attention(q, k, v, mask))
 
-  np.testing.assert_allclose(attend(queries, keys, values, mask, tile),
-                             _plain_attention(queries, keys, values, mask), rtol=0, atol=1e-6)
+  np.testing.assert_allclose(
+    attend(queries, keys, values, mask, tile),
+    _plain_attention(queries, keys, values, mask),
+    rtol=0,
+    atol=1e-6,
+  )
   grads = jax.grad(loss(functools.partial(attend, tile=tile)), argnums=(0, 1, 2))(
-      queries, keys, values)
+    queries, keys, values
+  )
   reference = jax.grad(loss(_plain_attention), argnums=(0, 1, 2))(queries, keys, values)
   for got, want in zip(grads, reference):
     np.testing.assert_allclose(got, want, rtol=0, atol=2e-6)
@@ -177,15 +204,25 @@ def test_attention_tiling_splits_big_problems():
 
 # ----- official checkpoints ----------------------------------------------------------------------
 
+
 def test_config_from_official_options():
   config, _, _ = official_fixture()
   assert (config.enc_depth, config.dec_depth, config.enc_embed_dim, config.enc_num_heads) == (
-      2, 2, 32, 2)
+    2,
+    2,
+    32,
+    2,
+  )
   assert config.dec_patch_size == config.patch_size == 8  # dec_patch_size defaults to patch
   assert config.image_size == (16, 24) and config.num_gaussians == 4 * 64
   assert config_from_official({"patch_size": 4, "dec_patch_size": None}).dec_patch_size == 4
-  latent = config_from_official({"use_latent_bottleneck": True, "clip_head_z_init": 0.1,
-                                 "multiscale_encoder_layers": [5, 7, 9, 11]})
+  latent = config_from_official(
+    {
+      "use_latent_bottleneck": True,
+      "clip_head_z_init": 0.1,
+      "multiscale_encoder_layers": [5, 7, 9, 11],
+    }
+  )
   assert latent.use_latent_bottleneck and latent.multiscale_encoder_layers == (5, 7, 9, 11)
   with pytest.raises(ValueError, match="token_dim"):
     config_from_official({"enc_embed_dim": 64, "token_dim": 32, "enc_num_heads": 2})
@@ -220,8 +257,11 @@ def _write_bf16_safetensors(path, state: dict[str, np.ndarray]) -> dict[str, np.
   header, chunks, stored, offset = {"__metadata__": {"format": "pt"}}, [], {}, 0
   for name, value in state.items():
     bits = _bfloat16_bits(value)
-    header[name] = {"dtype": "BF16", "shape": list(value.shape),
-                    "data_offsets": [offset, offset + bits.nbytes]}
+    header[name] = {
+      "dtype": "BF16",
+      "shape": list(value.shape),
+      "data_offsets": [offset, offset + bits.nbytes],
+    }
     chunks.append(bits.astype("<u2").tobytes())
     stored[name] = (bits.astype(np.uint32) << 16).view(np.float32).reshape(value.shape)
     offset += bits.nbytes
@@ -243,10 +283,11 @@ def test_loader_reads_bf16_f16_and_f32_checkpoints(tmp_path):
   # bf16 really rounds these weights (so the comparison below is not vacuous), f16 too
   assert np.abs(stored_bf16["gs_tokens"] - state["gs_tokens"]).max() > 0
   expected = {
-      "bf16": params_from_state_dict(stored_bf16, config),
-      "f16": params_from_state_dict(
-          {k: v.astype(np.float16).astype(np.float32) for k, v in state.items()}, config),
-      "f32": params,
+    "bf16": params_from_state_dict(stored_bf16, config),
+    "f16": params_from_state_dict(
+      {k: v.astype(np.float16).astype(np.float32) for k, v in state.items()}, config
+    ),
+    "f32": params,
   }
   for name, want in expected.items():
     loaded = load_official_checkpoint(tmp_path / f"{name}.safetensors", config)
@@ -278,13 +319,22 @@ def test_state_dict_round_trip_is_exact():
 
 
 def test_latent_multiscale_dynamic_names_follow_official_enc_dec():
-  shapes = {official_name(tuple(k.key for k in path)): leaf.shape
-            for path, leaf in jax.tree_util.tree_leaves_with_path(param_shapes(FULL))}
+  shapes = {
+    official_name(tuple(k.key for k in path)): leaf.shape
+    for path, leaf in jax.tree_util.tree_leaves_with_path(param_shapes(FULL))
+  }
   backbone = "enc_dec_backbone."
-  for name in ("latents", "latent_feature_k_norm.weight", "latent_kv_proj.bias",
-               "latent_blocks.1.gs_cross_attn.q_norm.weight", "latent_blocks.1.mlp_scale.gamma",
-               "multiscale_norms.2.bias", "k_proj_norm.weight", "encoder.2.ls2.gamma",
-               "decoder_blocks.1.gs_self_attn.gs_self_attn.qkv.weight"):
+  for name in (
+    "latents",
+    "latent_feature_k_norm.weight",
+    "latent_kv_proj.bias",
+    "latent_blocks.1.gs_cross_attn.q_norm.weight",
+    "latent_blocks.1.mlp_scale.gamma",
+    "multiscale_norms.2.bias",
+    "k_proj_norm.weight",
+    "encoder.2.ls2.gamma",
+    "decoder_blocks.1.gs_self_attn.gs_self_attn.qkv.weight",
+  ):
     assert backbone + name in shapes, name
   for name in ("kv_proj.weight", "encoder_norm.weight", "multiscale_norms.3.weight"):
     assert backbone + name not in shapes, name
@@ -296,7 +346,8 @@ def test_latent_multiscale_dynamic_names_follow_official_enc_dec():
   params = full_init()
   # the 0.01 decoder LayerScale (dec_init_values) and zero-initialised time embeds
   np.testing.assert_allclose(
-      params["enc_dec_backbone"]["decoder_blocks_0"]["mlp_scale"]["gamma"], 0.01, rtol=1e-6)
+    params["enc_dec_backbone"]["decoder_blocks_0"]["mlp_scale"]["gamma"], 0.01, rtol=1e-6
+  )
   assert not np.any(params["patch_time_embed_tgt"]["proj"]["kernel"])
 
 
@@ -304,12 +355,15 @@ def test_decoder_layer_scale_rule():
   assert MICRO.decoder_layer_scale == pytest.approx(5e-3 * 0.01)  # official default rule
   assert MICRO.replace(dec_init_values=0.01).decoder_layer_scale == 0.01
   no_scale = MICRO.replace(gs_token_std=0.0)  # official: Identity instead of LayerScale
-  names = {official_name(tuple(k.key for k in path))
-           for path, _ in jax.tree_util.tree_leaves_with_path(param_shapes(no_scale))}
+  names = {
+    official_name(tuple(k.key for k in path))
+    for path, _ in jax.tree_util.tree_leaves_with_path(param_shapes(no_scale))
+  }
   assert not any("gs_cross_attn_scale" in n for n in names)
 
 
 # ----- head --------------------------------------------------------------------------------------
+
 
 def test_head_activation_constants():
   act = jax.jit(functools.partial(activate, config=MICRO))
@@ -322,7 +376,7 @@ def test_head_activation_constants():
   # raw order [xyz, rgb, scale, quat, opacity]; huge scale is capped with a finite gradient
   raw = jnp.array([1.0, -2.0, 0.5, 3, 3, 3, 200.0, 0.0, 0.0, 3.0, 0, 4.0, 0, 0.0])
   out = np.asarray(act(raw))
-  np.testing.assert_allclose(out[:3], [np.e - 1, -(np.e ** 2 - 1), np.expm1(0.5) + 1], rtol=1e-6)
+  np.testing.assert_allclose(out[:3], [np.e - 1, -(np.e**2 - 1), np.expm1(0.5) + 1], rtol=1e-6)
   np.testing.assert_allclose(out[4], 0.075)
   np.testing.assert_allclose(out[7:11], [0.6, 0, 0.8, 0], atol=1e-7)
   np.testing.assert_allclose(out[11:], 0.5 * np.tanh(3.0) + 0.5, rtol=1e-6)
@@ -342,13 +396,15 @@ def test_head_z_init_bias():
 
 # ----- semantics ---------------------------------------------------------------------------------
 
+
 def test_gaussian_count_is_independent_of_views_and_resolution():
   params = param_shapes(MICRO)
   counts = set()
   for views, height, width in ((1, 8, 8), (3, 12, 16), (6, 32, 4)):
     images, c2w, intrinsics = random_inputs(jax.random.key(views), 2, views, height, width)
-    shapes = jax.eval_shape(functools.partial(reconstruct, config=MICRO), params, images, c2w,
-                            intrinsics)  # shapes only, nothing is computed
+    shapes = jax.eval_shape(
+      functools.partial(reconstruct, config=MICRO), params, images, c2w, intrinsics
+    )  # shapes only, nothing is computed
     counts.add(shapes.means.shape)
   assert counts == {(2, MICRO.num_gaussians, 3)}
   assert MICRO.num_gaussians == 4 * 2 * 2
@@ -356,11 +412,9 @@ def test_gaussian_count_is_independent_of_views_and_resolution():
 
 def test_block_causal_mask():
   mask = block_causal_mask(2, 3)
-  expected = np.array([[1, 1, 0, 0, 0],
-                       [1, 1, 0, 0, 0],
-                       [1, 1, 1, 1, 1],
-                       [1, 1, 1, 1, 1],
-                       [1, 1, 1, 1, 1]], bool)
+  expected = np.array(
+    [[1, 1, 0, 0, 0], [1, 1, 0, 0, 0], [1, 1, 1, 1, 1], [1, 1, 1, 1, 1], [1, 1, 1, 1, 1]], bool
+  )
   np.testing.assert_array_equal(mask, expected)
   assert block_causal_mask(4, 0) is None
 
@@ -369,22 +423,28 @@ def test_dynamic_tokens_and_time_never_change_static_gaussians():
   config, params = FULL, full_params()
   images, c2w, intrinsics = random_inputs(jax.random.key(3), 2, 2, 8, 8)
   plucker = plucker_rays(c2w, intrinsics, 8, 8)
-  encoded = jax.jit(encode, static_argnums=3)(params, images, plucker, config,
-                                              jnp.array([[0.0, 1.0], [0.2, 0.9]]))
+  encoded = jax.jit(encode, static_argnums=3)(
+    params, images, plucker, config, jnp.array([[0.0, 1.0], [0.2, 0.9]])
+  )
 
   @jax.jit
   def run(tokens, times):  # (final decoder tokens, flat Gaussians)
-    return (decode_tokens(params, encoded, config, tokens, times),
-            decode(params, encoded, config, tokens, times))
+    return (
+      decode_tokens(params, encoded, config, tokens, times),
+      decode(params, encoded, config, tokens, times),
+    )
 
   tokens = initial_tokens(params, config, 2)
   split, first = config.num_static_gaussians, config.num_gs_tokens
   base_tokens, base = run(tokens, jnp.array([0.3, 0.5]))
   # tokens=None decodes the learnt tokens, in the order initial_tokens gives them
   np.testing.assert_allclose(
-      decode(params, encoded, config, None, jnp.array([0.3, 0.5])), base, rtol=0, atol=1e-6)
-  changed = run(tokens.at[:, first:].add(jax.random.normal(jax.random.key(4), (2, 3, 32))),
-                jnp.array([0.9, 0.1]))[1]
+    decode(params, encoded, config, None, jnp.array([0.3, 0.5])), base, rtol=0, atol=1e-6
+  )
+  changed = run(
+    tokens.at[:, first:].add(jax.random.normal(jax.random.key(4), (2, 3, 32))),
+    jnp.array([0.9, 0.1]),
+  )[1]
   np.testing.assert_allclose(changed[:, :split], base[:, :split], rtol=0, atol=1e-6)
   assert np.abs(np.asarray(changed[:, split:] - base[:, split:])).max() > 1e-3
   # the target time alone moves the dynamic Gaussians
@@ -393,8 +453,9 @@ def test_dynamic_tokens_and_time_never_change_static_gaussians():
   assert np.abs(np.asarray(later[:, split:] - base[:, split:])).max() > 1e-3
   # a static token does reach the dynamic ones (dynamic attends to static); a random change,
   # since a constant shift of a token would vanish in the first LayerNorm
-  static_changed = run(tokens.at[:, 0].add(jax.random.normal(jax.random.key(5), (32,))),
-                       jnp.array([0.3, 0.5]))[0]
+  static_changed = run(
+    tokens.at[:, 0].add(jax.random.normal(jax.random.key(5), (32,))), jnp.array([0.3, 0.5])
+  )[0]
   moved = np.abs(np.asarray(static_changed - base_tokens)).max(axis=(0, 2))
   assert np.all(moved[first:] > 1e-4) and moved[0] > 0.5
 
@@ -405,7 +466,7 @@ def test_jit_vmap_grad_through_reconstruct():
 
   def loss(p, imgs, cams, intr):
     g = reconstruct(p, imgs, cams, intr, config=MICRO)
-    return jnp.sum(g.means ** 2) + jnp.sum(g.colors) + jnp.sum(g.opacities), g
+    return jnp.sum(g.means**2) + jnp.sum(g.colors) + jnp.sum(g.opacities), g
 
   grad = jax.grad(loss, argnums=(0, 1), has_aux=True)
   (grads, image_grad), batched = jax.jit(grad)(params, images, c2w, intrinsics)
@@ -414,8 +475,9 @@ def test_jit_vmap_grad_through_reconstruct():
   (scene_grads, scene_image_grad), scene_gaussians = per_scene(images, c2w, intrinsics)
   np.testing.assert_allclose(scene_gaussians.means[:, 0], batched.means, atol=1e-5)
   np.testing.assert_allclose(scene_image_grad[:, 0], image_grad, atol=1e-5)
-  jax.tree.map(lambda a, b: np.testing.assert_allclose(a.sum(0), b, rtol=1e-4, atol=1e-5),
-               scene_grads, grads)
+  jax.tree.map(
+    lambda a, b: np.testing.assert_allclose(a.sum(0), b, rtol=1e-4, atol=1e-5), scene_grads, grads
+  )
   assert all(np.all(np.isfinite(g)) for g in jax.tree.leaves(grads))
   assert np.abs(np.asarray(grads["gs_tokens"])).max() > 0
   assert np.abs(np.asarray(grads["patch_embed"]["proj"]["kernel"])).max() > 0
@@ -428,10 +490,10 @@ def test_encode_views_is_normalise_plucker_encode():
   run = jax.jit(functools.partial(encode_views, config=MICRO))
   encoded = run(params, images, c2w, intrinsics)
   expected = jax.jit(encode, static_argnums=3)(
-      params, normalize_images(images), plucker_rays(c2w, intrinsics, 8, 8), MICRO)
+    params, normalize_images(images), plucker_rays(c2w, intrinsics, 8, 8), MICRO
+  )
   # one program vs two: equal up to XLA's fusion-dependent rounding
-  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=0, atol=1e-5), encoded,
-               expected)
+  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=0, atol=1e-5), encoded, expected)
 
 
 def _bad_views(change: str):
@@ -470,7 +532,9 @@ def _bad_views(change: str):
   return config, images, c2w, intrinsics, times, target_times
 
 
-@pytest.mark.parametrize("change, error, message", [
+@pytest.mark.parametrize(
+  "change, error, message",
+  [
     ("images rank", ValueError, r"images must be \[B, V, H, W, 3\]"),
     ("images channels", ValueError, r"images must be \[B, V, H, W, 3\]"),
     ("images dtype", TypeError, "images must be floating point in \\[0, 1\\] or uint8"),
@@ -485,14 +549,20 @@ def _bad_views(change: str):
     ("times shape", ValueError, r"times must be \[B, V\] = \(2, 3\), got shape \(2, 2\)"),
     ("times dtype", TypeError, "times must be floating point"),
     ("target_times shape", ValueError, r"target_times must be \[B\]"),
-])
+  ],
+)
 def test_reconstruct_rejects_bad_inputs_at_trace_time(change, error, message):
   config, images, c2w, intrinsics, times, target_times = _bad_views(change)
   params = jax.eval_shape(lambda: init_params(jax.random.key(0), config))
   trace = jax.eval_shape if change != "focal" else lambda f, *a: f(*a)  # values: concrete only
   with pytest.raises(error, match=message):
-    trace(lambda *a: reconstruct(*a, config=config, times=times, target_times=target_times),
-          params, images, c2w, intrinsics)
+    trace(
+      lambda *a: reconstruct(*a, config=config, times=times, target_times=target_times),
+      params,
+      images,
+      c2w,
+      intrinsics,
+    )
 
 
 def test_reconstruct_accepts_uint8_images_and_valid_views():
@@ -501,8 +571,7 @@ def test_reconstruct_accepts_uint8_images_and_valid_views():
     if change == "images uint8":
       images = (images * 255).astype(np.uint8)
     params = jax.eval_shape(lambda: init_params(jax.random.key(0), config))
-    out = jax.eval_shape(lambda *a: reconstruct(*a, config=config), params, images, c2w,
-                         intrinsics)
+    out = jax.eval_shape(lambda *a: reconstruct(*a, config=config), params, images, c2w, intrinsics)
     assert out.means.shape == (2, config.num_gaussians, 3)
 
 
@@ -525,7 +594,8 @@ def test_latent_bottleneck_encode_exposes_latents():
   images, c2w, intrinsics = random_inputs(jax.random.key(1), 2, 2, 8, 8)
   times = jnp.zeros((2, 2))
   encoded = jax.jit(encode, static_argnums=3)(
-      params, images, plucker_rays(c2w, intrinsics, 8, 8), config, times)
+    params, images, plucker_rays(c2w, intrinsics, 8, 8), config, times
+  )
   assert encoded.latents.shape == (2, 6, 32)
   assert encoded.keys.shape == (2, 2, 6, 16)  # the decoder sees latents, not image tokens
   again = kv_from_latents(params, encoded.latents, config)
@@ -534,6 +604,7 @@ def test_latent_bottleneck_encode_exposes_latents():
 
 
 # ----- presets -----------------------------------------------------------------------------------
+
 
 def expected_param_count(c: ModelConfig) -> int:
   """Parameter count written out from the official module definitions."""
@@ -564,12 +635,13 @@ def expected_param_count(c: ModelConfig) -> int:
     total += linear(c.encoder_feature_dim, 2 * width)
   total += norm(head)  # k_proj_norm
   total += c.dec_depth * decoder_block(c.decoder_layer_scale)
-  total += linear(width, 14 * c.dec_patch_size ** 2) + c.num_tokens * width
+  total += linear(width, 14 * c.dec_patch_size**2) + c.num_tokens * width
   return total
 
 
-@pytest.mark.parametrize("name", ["tiny", "re10k", "dl3dv_4view",
-                                  "dl3dv_latent_6view", "kubric_dyn"])
+@pytest.mark.parametrize(
+  "name", ["tiny", "re10k", "dl3dv_4view", "dl3dv_latent_6view", "kubric_dyn"]
+)
 def test_preset_parameter_counts(name):
   config = preset(name)
   count = count_params(config)  # jax.eval_shape: nothing is allocated
@@ -580,11 +652,19 @@ def test_preset_parameter_counts(name):
 def test_preset_values():
   re10k = preset("re10k")
   assert (re10k.enc_depth, re10k.dec_depth, re10k.enc_embed_dim, re10k.num_gs_tokens) == (
-      6, 24, 1024, 1024)
+    6,
+    24,
+    1024,
+    1024,
+  )
   assert preset("re10k_4096").num_gaussians == 4096 * 64
   dl3dv = preset("dl3dv_6view")
   assert (dl3dv.enc_depth, dl3dv.dec_depth, dl3dv.image_size, dl3dv.num_input_views) == (
-      3, 12, (256, 448), 6)
+    3,
+    12,
+    (256, 448),
+    6,
+  )
   latent = preset("dl3dv_latent_2view")
   assert latent.use_latent_bottleneck and latent.gaussian_z_offset == 0.0
   assert latent.multiscale_encoder_layers == (5, 7, 9, 11) and latent.decoder_layer_scale == 0.01
@@ -599,10 +679,12 @@ def test_preset_values():
 def test_tiny_preset_runs_at_its_resolution():
   config = preset("tiny")
   params = init_params(jax.random.key(0), config)
-  images, c2w, intrinsics = random_inputs(jax.random.key(1), 1, config.num_input_views,
-                                          *config.image_size)
-  gaussians = jax.jit(functools.partial(reconstruct, config=config))(params, images, c2w,
-                                                                      intrinsics)
+  images, c2w, intrinsics = random_inputs(
+    jax.random.key(1), 1, config.num_input_views, *config.image_size
+  )
+  gaussians = jax.jit(functools.partial(reconstruct, config=config))(
+    params, images, c2w, intrinsics
+  )
   assert gaussians.means.shape == (1, config.num_gaussians, 3)
   # at initialisation the Gaussians sit in front of the first camera (z-offset 1)
   np.testing.assert_allclose(np.asarray(gaussians.means[..., 2]).mean(), 1.0, atol=0.1)
@@ -615,8 +697,9 @@ def test_normalize_images_scales_uint8_and_refuses_what_it_cannot_convert():
   pixels = rng.integers(0, 256, (2, 4, 5, 3), dtype=np.uint8)
   from_uint8 = np.asarray(normalize_images(pixels))
   assert from_uint8.dtype == np.float32 and np.isfinite(from_uint8).all()
-  np.testing.assert_allclose(from_uint8, np.asarray(normalize_images(pixels / np.float32(255))),
-                             atol=1e-6)
+  np.testing.assert_allclose(
+    from_uint8, np.asarray(normalize_images(pixels / np.float32(255))), atol=1e-6
+  )
   np.testing.assert_allclose(np.asarray(jax.jit(normalize_images)(pixels)), from_uint8, atol=1e-6)
   with pytest.raises(ValueError, match=r"images: expected RGB \[\.\.\., 3\].*grayscale"):
     normalize_images(pixels[..., :1])
@@ -630,5 +713,6 @@ def test_normalize_images_checks_a_constant_captured_by_an_outer_jit():
   """A concrete array closed over by a jitted function is range-checked on the host (numpy),
   not with jnp ops that the outer trace would stage."""
   images = jnp.full((1, 2, 2, 3), 0.5)
-  np.testing.assert_allclose(jax.jit(lambda: normalize_images(images))(),
-                             normalize_images(images), atol=1e-6)
+  np.testing.assert_allclose(
+    jax.jit(lambda: normalize_images(images))(), normalize_images(images), atol=1e-6
+  )

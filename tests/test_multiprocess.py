@@ -23,13 +23,30 @@ TIMEOUT = 600  # seconds per launch; a hang fails the test instead of blocking t
 def launch_command(arguments: list[str]) -> tuple[int, list[tuple[float, str]]]:
   """Runs `python ARGUMENTS` as a 2-process job of 2 CPU devices each; returns (exit status,
   [(arrival time, output line)])."""
-  command = [sys.executable, "-m", "experiments.launch", "--processes", "2",
-             "--devices-per-process", "2", "--grace", "5", "--timeout", str(TIMEOUT), "--",
-             sys.executable, *arguments]
-  env = {**os.environ, "JAX_PLATFORMS": "cpu",
-         "TOKENGS_JAX_CACHE": os.environ.get("TOKENGS_JAX_CACHE", str(ROOT / ".jax_cache"))}
-  job = subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                         stderr=subprocess.STDOUT, text=True)
+  command = [
+    sys.executable,
+    "-m",
+    "experiments.launch",
+    "--processes",
+    "2",
+    "--devices-per-process",
+    "2",
+    "--grace",
+    "5",
+    "--timeout",
+    str(TIMEOUT),
+    "--",
+    sys.executable,
+    *arguments,
+  ]
+  env = {
+    **os.environ,
+    "JAX_PLATFORMS": "cpu",
+    "TOKENGS_JAX_CACHE": os.environ.get("TOKENGS_JAX_CACHE", str(ROOT / ".jax_cache")),
+  }
+  job = subprocess.Popen(
+    command, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+  )
   lines = [(time.monotonic(), line.rstrip("\n")) for line in job.stdout]
   return job.wait(timeout=30), lines
 
@@ -70,13 +87,18 @@ def test_two_processes_train_like_one_and_a_killed_job_resumes_exactly(tmp_path)
   killed_at = next(t for t, line in lines if line.startswith("[p1] step 6 "))
   print(f"kill -> job stopped: {lines[-1][0] - killed_at:.1f} s")
   assert lines[-1][0] - killed_at < 30, text
-  first_losses = {int(line.split()[2]): float(line.split()[4]) for _, line in lines
-                  if line.startswith("[p0] step ")}
+  first_losses = {
+    int(line.split()[2]): float(line.split()[4])
+    for _, line in lines
+    if line.startswith("[p0] step ")
+  }
   assert sorted(first_losses) == [1, 2, 3, 4, 5, 6], text
   steps = sorted(int(p.name) for p in (tmp_path / "checkpoints").iterdir() if p.name.isdigit())
   assert steps == [2, 4], steps
   assert sorted(p.name for p in (tmp_path / "checkpoints" / "4" / "data").glob("*.json")) == [
-      "process_0-of-2.json", "process_1-of-2.json"]
+    "process_0-of-2.json",
+    "process_1-of-2.json",
+  ]
 
   status, lines = launch(tmp_path)
   text = "\n".join(line for _, line in lines)
@@ -87,13 +109,18 @@ def test_two_processes_train_like_one_and_a_killed_job_resumes_exactly(tmp_path)
   assert list(result["steps"]) == [1, 2, 3, 4, 5, 6]
   assert list(result["losses"]) == [first_losses[step] for step in range(1, 7)]
 
-  reference, history = train(loss_fn, init_params(), GlobalBatches(), OPTIM,
-                             LoopConfig(total_steps=6, log_every=1), log_fn=lambda *_: None)
+  reference, history = train(
+    loss_fn,
+    init_params(),
+    GlobalBatches(),
+    OPTIM,
+    LoopConfig(total_steps=6, log_every=1),
+    log_fn=lambda *_: None,
+  )
   assert result["losses"][0] == history[0]["loss"]  # the first step's loss is bit-equal
   np.testing.assert_allclose(result["losses"], [entry["loss"] for entry in history], rtol=2e-6)
   for name, value in jax.device_get(reference.params).items():
-    np.testing.assert_allclose(result[f"params/{name}"], value, rtol=2e-5, atol=1e-7,
-                               err_msg=name)
+    np.testing.assert_allclose(result[f"params/{name}"], value, rtol=2e-5, atol=1e-7, err_msg=name)
 
   seen = [set(json.loads((tmp_path / f"scenes_{index}.json").read_text())) for index in range(2)]
   assert seen[0] == {0, 2, 4, 6} and seen[1] == {1, 3, 5, 7}, seen
@@ -105,9 +132,20 @@ def test_entry_point_in_two_processes_writes_results_from_process_0_only(tmp_pat
   (checkpoints from both processes), evaluates, and only process 0 writes results (metrics,
   pictures, params, history, TensorBoard); rerun with more steps resumes and keeps the history."""
   out, record = tmp_path / "out", tmp_path / "writes"
-  experiment = ["-m", "experiments.re10k", "run", "smoke", "--train.batch-size", "4",
-                "--train.checkpoint-every", "2", "--output-dir", str(out),
-                "--synthetic-dir", str(tmp_path / "synthetic")]
+  experiment = [
+    "-m",
+    "experiments.re10k",
+    "run",
+    "smoke",
+    "--train.batch-size",
+    "4",
+    "--train.checkpoint-every",
+    "2",
+    "--output-dir",
+    str(out),
+    "--synthetic-dir",
+    str(tmp_path / "synthetic"),
+  ]
   wrapper = [str(ROOT / "tests" / "multiprocess_writes.py"), str(out), str(record)]
   status, lines = launch_command([*wrapper, *experiment, "--train.steps", "2"])
   text = "\n".join(line for _, line in lines)
@@ -145,9 +183,16 @@ def test_two_processes_walk_back_together_past_a_file_damaged_on_one(tmp_path):
   status, lines = launch(tmp_path, "--steps", "4")
   text = "\n".join(line for _, line in lines)
   assert status == 0, text
-  skipped = {index: [line for _, line in lines if line.startswith(f"[p{index}]")
-                     and "checkpoint step 4" in line and "unusable, skipped" in line]
-             for index in range(2)}
+  skipped = {
+    index: [
+      line
+      for _, line in lines
+      if line.startswith(f"[p{index}]")
+      and "checkpoint step 4" in line
+      and "unusable, skipped" in line
+    ]
+    for index in range(2)
+  }
   assert len(skipped[1]) == 1 and "JSONDecodeError" in skipped[1][0], text
   assert len(skipped[0]) == 1 and "another process could not restore it" in skipped[0][0], text
   for index in range(2):

@@ -33,9 +33,14 @@ def _cameras(views: int, height: int, width: int):
   """Two distinct, non-trivial cameras: c2w [1, V, 4, 4], intrinsics [1, V, 4] (pixels)."""
   eyes = [(0.0, 0.0, 0.0), (0.4, -0.1, 0.2), (-0.3, 0.2, 0.1)][:views]
   c2w = np.stack([_look_at(eye, (0.1 * i, 0.05, 2.0)) for i, eye in enumerate(eyes)])
-  intrinsics = np.array([[1.1 * width, 1.0 * height, 0.5 * width, 0.5 * height],
-                         [0.9 * width, 0.95 * height, 0.45 * width, 0.55 * height],
-                         [width, height, 0.5 * width, 0.5 * height]][:views], np.float32)
+  intrinsics = np.array(
+    [
+      [1.1 * width, 1.0 * height, 0.5 * width, 0.5 * height],
+      [0.9 * width, 0.95 * height, 0.45 * width, 0.55 * height],
+      [width, height, 0.5 * width, 0.5 * height],
+    ][:views],
+    np.float32,
+  )
   return jnp.asarray(c2w[None]), jnp.asarray(intrinsics[None])
 
 
@@ -94,8 +99,9 @@ def test_means_lie_on_their_pixel_rays_at_positive_depth(gaussians, scene):
   centres = pixel_centers(HEIGHT, WIDTH).reshape(-1, 2)
   distances = []
   for v in range(VIEWS):
-    uv, z = project_points(jnp.asarray(means[v]), invert_rigid(c2w[0, v:v + 1]),
-                           intrinsics[0, v:v + 1])
+    uv, z = project_points(
+      jnp.asarray(means[v]), invert_rigid(c2w[0, v : v + 1]), intrinsics[0, v : v + 1]
+    )
     np.testing.assert_allclose(uv[0], centres, atol=2e-3)
     assert (z[0] > 0).all()
     distances.append(np.linalg.norm(means[v] - np.asarray(c2w[0, v, :3, 3]), axis=-1))
@@ -124,13 +130,15 @@ def test_each_output_token_writes_exactly_its_own_patch(baseline, scene):
       if context.module.path == ("norm",) and context.method_name == "__call__":
         out = out.at[:, token].add(delta)
       return out
+
     with nn.intercept_methods(interceptor):
       return pixel_baseline.PixelAlignedGS(config).apply(
-          {"params": params}, images, jnp.zeros((1, VIEWS, HEIGHT, WIDTH, 6)))
+        {"params": params}, images, jnp.zeros((1, VIEWS, HEIGHT, WIDTH, 6))
+      )
 
   changed = np.abs(np.asarray(raw(1.0) - raw(0.0))).max(axis=-1)[0] > 1e-6  # [V, H, W]
   expected = np.zeros_like(changed)
-  expected[view, row * p:(row + 1) * p, col * p:(col + 1) * p] = True
+  expected[view, row * p : (row + 1) * p, col * p : (col + 1) * p] = True
   np.testing.assert_array_equal(changed, expected)
 
 
@@ -141,10 +149,14 @@ def test_training_loss_has_finite_nonzero_gradients(baseline):
   context_c2w, context_k = _cameras(2, height, width)
   target_c2w, target_k = _cameras(3, height, width)
   key = jax.random.key(2)
-  batch = {"context_images": jax.random.uniform(key, (1, 2, height, width, 3)),
-           "context_c2w": context_c2w, "context_intrinsics": context_k,
-           "target_images": jax.random.uniform(jax.random.fold_in(key, 1), (1, 1, height, width, 3)),
-           "target_c2w": target_c2w[:, 2:], "target_intrinsics": target_k[:, 2:]}
+  batch = {
+    "context_images": jax.random.uniform(key, (1, 2, height, width, 3)),
+    "context_c2w": context_c2w,
+    "context_intrinsics": context_k,
+    "target_images": jax.random.uniform(jax.random.fold_in(key, 1), (1, 1, height, width, 3)),
+    "target_c2w": target_c2w[:, 2:],
+    "target_intrinsics": target_k[:, 2:],
+  }
   compute = pixel_baseline.loss_fn(config)
   (loss, terms), grads = jax.jit(jax.value_and_grad(compute, has_aux=True))(params, batch, key, 0)
   assert np.isfinite(float(loss)) and float(loss) > 0
@@ -152,5 +164,5 @@ def test_training_loss_has_finite_nonzero_gradients(baseline):
   for path, leaf in jax.tree_util.tree_leaves_with_path(grads):
     assert np.isfinite(leaf).all(), jax.tree_util.keystr(path)
   for name in ("rgb_embed", "ray_embed", "block_0", "block_1", "unpatchify"):
-    norm = sum(float(jnp.sum(g ** 2)) for g in jax.tree.leaves(grads[name]))
+    norm = sum(float(jnp.sum(g**2)) for g in jax.tree.leaves(grads[name]))
     assert norm > 0, name

@@ -24,8 +24,13 @@ def _intrinsics(ks):
 
 
 def _fixture_gaussians(data):
-  return Gaussians(means=data["means"], opacities=data["opacities"], scales=data["scales"],
-                   quats=data["quats"], colors=data["colors"])
+  return Gaussians(
+    means=data["means"],
+    opacities=data["opacities"],
+    scales=data["scales"],
+    quats=data["quats"],
+    colors=data["colors"],
+  )
 
 
 def _assert_grads_close(grads, data, rtol=1e-3):
@@ -46,9 +51,16 @@ def render200():
 
 
 def _render_rgbed(gaussians, data):
-  return render(gaussians, data["viewmats"], _intrinsics(data["Ks"]), height=int(data["height"]),
-                width=int(data["width"]), background=data["backgrounds"], near=float(data["near"]),
-                far=float(data["far"]))
+  return render(
+    gaussians,
+    data["viewmats"],
+    _intrinsics(data["Ks"]),
+    height=int(data["height"]),
+    width=int(data["width"]),
+    background=data["backgrounds"],
+    near=float(data["near"]),
+    far=float(data["far"]),
+  )
 
 
 def test_rgbed_fixture_images(rgbed):
@@ -73,8 +85,11 @@ def test_rgbed_fixture_projection(rgbed):
 def test_rgbed_fixture_gradients(rgbed):
   def loss(g):
     out = _render_rgbed(g, rgbed)
-    return (jnp.sum(rgbed["w_rgb"] * out.rgb) + jnp.sum(rgbed["w_alpha"] * out.alpha)
-            + jnp.sum(rgbed["w_depth"] * out.depth))
+    return (
+      jnp.sum(rgbed["w_rgb"] * out.rgb)
+      + jnp.sum(rgbed["w_alpha"] * out.alpha)
+      + jnp.sum(rgbed["w_depth"] * out.depth)
+    )
 
   _assert_grads_close(jax.grad(loss)(_fixture_gaussians(rgbed)), rgbed)
 
@@ -111,30 +126,43 @@ INTR = np.array([44.0, 47.0, 25.0, 21.0], np.float32)
 def random_scene(seed, num=NUM, dtype=np.float32):
   rng = np.random.default_rng(seed)
   return Gaussians(
-      means=rng.uniform([-1.2, -1.0, -1.0], [1.2, 1.0, 1.0], (num, 3)).astype(dtype),
-      opacities=rng.uniform(0.05, 1.0, num).astype(dtype),
-      scales=np.exp(rng.uniform(np.log(0.02), np.log(0.4), (num, 3))).astype(dtype),
-      quats=rng.normal(size=(num, 4)).astype(dtype),
-      colors=rng.uniform(0, 1, (num, 3)).astype(dtype))
+    means=rng.uniform([-1.2, -1.0, -1.0], [1.2, 1.0, 1.0], (num, 3)).astype(dtype),
+    opacities=rng.uniform(0.05, 1.0, num).astype(dtype),
+    scales=np.exp(rng.uniform(np.log(0.02), np.log(0.4), (num, 3))).astype(dtype),
+    quats=rng.normal(size=(num, 4)).astype(dtype),
+    colors=rng.uniform(0, 1, (num, 3)).astype(dtype),
+  )
 
 
 @functools.partial(jax.jit, static_argnames="config")
 def _tiled_loss_and_grad(g, weights, config):
   def loss(g):
-    out = render(g, W2C[None], INTR[None], height=HEIGHT, width=WIDTH, background=weights[0, 0, :3],
-                 config=config)
-    return jnp.sum(out.rgb[0] * weights[..., :3]) + jnp.sum(out.alpha[0] * weights[..., 3:4]) + jnp.sum(
-        out.depth[0] * weights[..., 4:]), out
+    out = render(
+      g,
+      W2C[None],
+      INTR[None],
+      height=HEIGHT,
+      width=WIDTH,
+      background=weights[0, 0, :3],
+      config=config,
+    )
+    return jnp.sum(out.rgb[0] * weights[..., :3]) + jnp.sum(
+      out.alpha[0] * weights[..., 3:4]
+    ) + jnp.sum(out.depth[0] * weights[..., 4:]), out
+
   return jax.value_and_grad(loss, has_aux=True)(g)
 
 
 @jax.jit
 def _dense_loss_and_grad(g, weights):
   def loss(g):
-    rgb, alpha, depth = render_dense(g, W2C, INTR, height=HEIGHT, width=WIDTH,
-                                     background=weights[0, 0, :3])
+    rgb, alpha, depth = render_dense(
+      g, W2C, INTR, height=HEIGHT, width=WIDTH, background=weights[0, 0, :3]
+    )
     return jnp.sum(rgb * weights[..., :3]) + jnp.sum(alpha * weights[..., 3:4]) + jnp.sum(
-        depth * weights[..., 4:]), (rgb, alpha, depth)
+      depth * weights[..., 4:]
+    ), (rgb, alpha, depth)
+
   return jax.value_and_grad(loss, has_aux=True)(g)
 
 
@@ -150,8 +178,9 @@ def test_tiled_matches_dense_reference(seed):
   np.testing.assert_allclose(out.depth[0], depth, atol=1e-4 * 5, rtol=0)  # depths reach ~4
   for name in FIELDS:
     ref = np.asarray(getattr(dense_grads, name))
-    np.testing.assert_allclose(getattr(grads, name), ref, rtol=1e-3, atol=1e-3 * np.abs(ref).max(),
-                               err_msg=name)
+    np.testing.assert_allclose(
+      getattr(grads, name), ref, rtol=1e-3, atol=1e-3 * np.abs(ref).max(), err_msg=name
+    )
 
 
 def test_chunking_and_tile_scheduling_do_not_change_the_result():
@@ -160,15 +189,18 @@ def test_chunking_and_tile_scheduling_do_not_change_the_result():
   (loss_small, out_small), grads_small = _tiled_loss_and_grad(g, weights, SMALL_STEPS)
   (loss_default, out_default), grads_default = _tiled_loss_and_grad(g, weights, RenderConfig())
   np.testing.assert_allclose(out_small.rgb, out_default.rgb, atol=2e-6)
-  np.testing.assert_allclose(grads_small.means, grads_default.means, rtol=1e-4,
-                             atol=1e-5 * np.abs(grads_default.means).max())
+  np.testing.assert_allclose(
+    grads_small.means, grads_default.means, rtol=1e-4, atol=1e-5 * np.abs(grads_default.means).max()
+  )
   assert int(out_small.stats.tile_chunks[0]) > int(out_default.stats.tile_chunks[0])
   # 8-pixel tiles (the speed knob of docs/notes/renderer.md): same image and gradients
-  (_, out_tile8), grads_tile8 = _tiled_loss_and_grad(g, weights,
-                                                     RenderConfig(tile_size=8, tiles_per_step=64))
+  (_, out_tile8), grads_tile8 = _tiled_loss_and_grad(
+    g, weights, RenderConfig(tile_size=8, tiles_per_step=64)
+  )
   np.testing.assert_allclose(out_tile8.rgb, out_default.rgb, atol=2e-6)
-  np.testing.assert_allclose(grads_tile8.means, grads_default.means, rtol=1e-4,
-                             atol=1e-5 * np.abs(grads_default.means).max())
+  np.testing.assert_allclose(
+    grads_tile8.means, grads_default.means, rtol=1e-4, atol=1e-5 * np.abs(grads_default.means).max()
+  )
 
 
 def test_float64_finite_difference_gradients():
@@ -177,8 +209,14 @@ def test_float64_finite_difference_gradients():
     weights = np.random.default_rng(4).uniform(0, 1, (HEIGHT, WIDTH, 5))
 
     def loss(g):
-      out = render(g, W2C[None].astype(np.float64), INTR[None].astype(np.float64), height=HEIGHT,
-                   width=WIDTH, config=SMALL_STEPS)
+      out = render(
+        g,
+        W2C[None].astype(np.float64),
+        INTR[None].astype(np.float64),
+        height=HEIGHT,
+        width=WIDTH,
+        config=SMALL_STEPS,
+      )
       assert out.rgb.dtype == jnp.float64
       return jnp.sum(out.rgb[0] * weights[..., :3]) + jnp.sum(out.depth[0] * weights[..., 4:])
 
@@ -190,12 +228,16 @@ def test_float64_finite_difference_gradients():
       plus = jax.tree.map(lambda x, d: x + eps * d, g, direction)
       minus = jax.tree.map(lambda x, d: x - eps * d, g, direction)
       numeric = (loss(plus) - loss(minus)) / (2 * eps)
-      analytic = sum(jnp.vdot(a, d) for a, d in zip(jax.tree.leaves(grads), jax.tree.leaves(direction)))
+      analytic = sum(
+        jnp.vdot(a, d) for a, d in zip(jax.tree.leaves(grads), jax.tree.leaves(direction))
+      )
       np.testing.assert_allclose(analytic, numeric, rtol=1e-5)
 
 
 def test_batch_and_multi_camera_shapes_match_single_renders():
-  scenes = jax.tree.map(lambda a, b: np.stack([a, b]), random_scene(1, num=16), random_scene(2, num=16))
+  scenes = jax.tree.map(
+    lambda a, b: np.stack([a, b]), random_scene(1, num=16), random_scene(2, num=16)
+  )
   shift = np.eye(4, dtype=np.float32)
   shift[0, 3] = 0.3
   w2c = np.broadcast_to(np.stack([W2C, shift @ W2C, W2C]), (2, 3, 4, 4))
@@ -207,16 +249,34 @@ def test_batch_and_multi_camera_shapes_match_single_renders():
   assert out.stats.overflow.shape == (2, 3)
   for b in range(2):
     for v in range(3):
-      single = render(jax.tree.map(lambda x: x[b], scenes), w2c[b, v][None], intr[b, v][None],
-                      height=HEIGHT, width=WIDTH, background=backgrounds[b, v])
+      single = render(
+        jax.tree.map(lambda x: x[b], scenes),
+        w2c[b, v][None],
+        intr[b, v][None],
+        height=HEIGHT,
+        width=WIDTH,
+        background=backgrounds[b, v],
+      )
       np.testing.assert_allclose(out.rgb[b, v], single.rgb[0], atol=1e-6)
       np.testing.assert_allclose(out.depth[b, v], single.depth[0], atol=1e-5)
   # One scene seen by a [V] camera stack with a shared [3] background broadcasts too.
-  shared = render(random_scene(1, num=16), w2c[0], intr[0], height=HEIGHT, width=WIDTH,
-                  background=backgrounds[0, 0])
+  shared = render(
+    random_scene(1, num=16),
+    w2c[0],
+    intr[0],
+    height=HEIGHT,
+    width=WIDTH,
+    background=backgrounds[0, 0],
+  )
   assert shared.rgb.shape == (3, HEIGHT, WIDTH, 3)
-  single = render(random_scene(1, num=16), w2c[0, 1][None], intr[0, 1][None], height=HEIGHT,
-                  width=WIDTH, background=backgrounds[0, 0])
+  single = render(
+    random_scene(1, num=16),
+    w2c[0, 1][None],
+    intr[0, 1][None],
+    height=HEIGHT,
+    width=WIDTH,
+    background=backgrounds[0, 0],
+  )
   np.testing.assert_allclose(shared.rgb[1], single.rgb[0], atol=1e-6)
 
 
@@ -231,15 +291,24 @@ def test_grad_under_jit_and_vmap_agree_with_eager_grad():
   for a, b in zip(jax.tree.leaves(eager), jax.tree.leaves(jitted)):
     np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5 * np.abs(a).max())
   per_camera = jax.vmap(jax.grad(loss), in_axes=(None, 0))(g, np.stack([W2C, W2C]))
-  np.testing.assert_allclose(per_camera.means[1], eager.means, rtol=1e-5,
-                             atol=1e-5 * np.abs(eager.means).max())
+  np.testing.assert_allclose(
+    per_camera.means[1], eager.means, rtol=1e-5, atol=1e-5 * np.abs(eager.means).max()
+  )
 
 
 def test_means2d_carry_gradient_for_visibility_losses():
   g = random_scene(12, num=16)
-  grad = jax.grad(lambda m: jnp.sum(render(Gaussians(m, g.opacities, g.scales, g.quats, g.colors),
-                                           W2C[None], INTR[None], height=HEIGHT,
-                                           width=WIDTH).means2d[0, :, 0]))(g.means)
+  grad = jax.grad(
+    lambda m: jnp.sum(
+      render(
+        Gaussians(m, g.opacities, g.scales, g.quats, g.colors),
+        W2C[None],
+        INTR[None],
+        height=HEIGHT,
+        width=WIDTH,
+      ).means2d[0, :, 0]
+    )
+  )(g.means)
   # d u / d x = fx / z for a camera looking down +z.
   z = g.means[:, 2] + 3.0
   np.testing.assert_allclose(grad[:, 0], INTR[0] / z, rtol=1e-5)
@@ -258,9 +327,17 @@ def test_min_sigma_over_tile_is_the_minimum_over_its_pixels(seed):
   inv = np.linalg.inv(cov)
   conics = np.stack([inv[:, 0, 0], inv[:, 0, 1], inv[:, 1, 1]], -1)
   tile_x, tile_y = rng.integers(0, 4, 64), rng.integers(0, 3, 64)
-  bound = np.asarray(binning.min_sigma_over_tile(
-      jnp.asarray(means, jnp.float32), jnp.asarray(conics, jnp.float32), jnp.asarray(tile_x),
-      jnp.asarray(tile_y), tile_size=tile, height=height, width=width))
+  bound = np.asarray(
+    binning.min_sigma_over_tile(
+      jnp.asarray(means, jnp.float32),
+      jnp.asarray(conics, jnp.float32),
+      jnp.asarray(tile_x),
+      jnp.asarray(tile_y),
+      tile_size=tile,
+      height=height,
+      width=width,
+    )
+  )
   for i in range(64):
     cols = np.arange(tile_x[i] * tile, min(tile_x[i] * tile + tile, width)) + 0.5
     rows = np.arange(tile_y[i] * tile, min(tile_y[i] * tile + tile, height)) + 0.5
@@ -275,15 +352,17 @@ def test_min_sigma_over_tile_is_the_minimum_over_its_pixels(seed):
 
 # ---- exactness: render_exact re-renders what overflowed ------------------------------------------
 
+
 def _crowded_scene(num=64, seed=3):
   """Half-transparent Gaussians spread over the image: many tiles each, no pixel saturates."""
   rng = np.random.default_rng(seed)
   return Gaussians(
-      means=rng.uniform([-1.0, -0.8, -0.5], [1.0, 0.8, 0.5], (num, 3)).astype(np.float32),
-      opacities=np.full(num, 0.05, np.float32),
-      scales=rng.uniform(0.2, 0.4, (num, 3)).astype(np.float32),
-      quats=rng.normal(size=(num, 4)).astype(np.float32),
-      colors=rng.uniform(0, 1, (num, 3)).astype(np.float32))
+    means=rng.uniform([-1.0, -0.8, -0.5], [1.0, 0.8, 0.5], (num, 3)).astype(np.float32),
+    opacities=np.full(num, 0.05, np.float32),
+    scales=rng.uniform(0.2, 0.4, (num, 3)).astype(np.float32),
+    quats=rng.normal(size=(num, 4)).astype(np.float32),
+    colors=rng.uniform(0, 1, (num, 3)).astype(np.float32),
+  )
 
 
 def test_render_exact_rerenders_an_overflowing_scene(monkeypatch):
@@ -308,12 +387,19 @@ def test_render_exact_rerenders_an_overflowing_scene(monkeypatch):
 def test_render_exact_refuses_transformations_and_impossible_budgets(monkeypatch):
   g = _crowded_scene()
   with pytest.raises(TypeError, match="outside|cannot run under"):
-    jax.jit(lambda g: exact.render_exact(g, W2C[None], INTR[None], height=HEIGHT,
-                                         width=WIDTH).rgb)(g)
+    jax.jit(lambda g: exact.render_exact(g, W2C[None], INTR[None], height=HEIGHT, width=WIDTH).rgb)(
+      g
+    )
   monkeypatch.setattr(exact, "BUDGET_LIMIT", 100)
   with pytest.raises(exact.RenderBudgetError, match="BUDGET_LIMIT"):
-    exact.render_exact(g, W2C[None], INTR[None], height=HEIGHT, width=WIDTH,
-                       config=RenderConfig(max_intersections=64, chunk_size=8, tile_size=8))
+    exact.render_exact(
+      g,
+      W2C[None],
+      INTR[None],
+      height=HEIGHT,
+      width=WIDTH,
+      config=RenderConfig(max_intersections=64, chunk_size=8, tile_size=8),
+    )
 
 
 def test_budget_ladder_sorts_small_scenes_in_a_small_buffer():
@@ -337,6 +423,7 @@ def test_budget_ladder_sorts_small_scenes_in_a_small_buffer():
 
 # ---- precision: every dot of the renderer (and losses / metrics) at full float32 ----------------
 
+
 def _dot_precisions(jaxpr):
   """Precision of every dot_general / conv in a closed jaxpr, sub-jaxprs included."""
   found = []
@@ -344,7 +431,7 @@ def _dot_precisions(jaxpr):
     if eqn.primitive.name in ("dot_general", "conv_general_dilated"):
       found.append(eqn.params["precision"])
     for value in eqn.params.values():
-      for sub in (value if isinstance(value, (tuple, list)) else (value,)):
+      for sub in value if isinstance(value, (tuple, list)) else (value,):
         if isinstance(sub, jax_core.ClosedJaxpr):
           found += _dot_precisions(sub.jaxpr)
         elif isinstance(sub, jax_core.Jaxpr):
@@ -354,6 +441,7 @@ def _dot_precisions(jaxpr):
 
 def test_renderer_losses_and_metrics_pin_full_float32_matmuls():
   from tokengs_jax import losses, metrics
+
   highest = (jax.lax.Precision.HIGHEST, jax.lax.Precision.HIGHEST)
   g = random_scene(0)
   images = jnp.zeros((1, HEIGHT, WIDTH, 3))
@@ -372,10 +460,12 @@ def test_renderer_losses_and_metrics_pin_full_float32_matmuls():
 
 # ---- input validation (trace time, ValueError naming the argument) -------------------------------
 
-@pytest.mark.parametrize("change, match", [
+
+@pytest.mark.parametrize(
+  "change, match",
+  [
     (dict(intrinsics=INTR[None, :3]), "intrinsics must be"),
-    (dict(intrinsics=np.eye(3, dtype=np.float32), world_to_camera=np.stack([W2C] * 3)),
-     "3x3 K"),
+    (dict(intrinsics=np.eye(3, dtype=np.float32), world_to_camera=np.stack([W2C] * 3)), "3x3 K"),
     (dict(world_to_camera=W2C), "view axis"),
     (dict(intrinsics=np.stack([INTR] * 2)), "number of views"),
     (dict(colors=np.zeros((NUM, 4), np.float32)), r"Gaussians.colors must be \[..., N, 3\]"),
@@ -385,12 +475,18 @@ def test_renderer_losses_and_metrics_pin_full_float32_matmuls():
     (dict(width=-3), "width must be a positive int"),
     (dict(height=40.0), "height must be a positive int"),
     (dict(background=np.zeros(4, np.float32)), "background"),
-])
+  ],
+)
 def test_render_refuses_bad_inputs_by_name(change, match):
   g = random_scene(0)
   fields = {name: change.pop(name) for name in FIELDS if name in change}
-  args = dict(gaussians=Gaussians(**{**vars(g), **fields}), world_to_camera=W2C[None],
-              intrinsics=INTR[None], height=HEIGHT, width=WIDTH)
+  args = dict(
+    gaussians=Gaussians(**{**vars(g), **fields}),
+    world_to_camera=W2C[None],
+    intrinsics=INTR[None],
+    height=HEIGHT,
+    width=WIDTH,
+  )
   args.update(change)
   with pytest.raises(ValueError, match=match):
     render(**args)

@@ -22,16 +22,19 @@ NEAR, FAR = 0.025, 125.0
 def scene(means=None, opacities=None, scales=None, quats=None, colors=None, num=NUM):
   """num Gaussians: the given leading ones, then transparent padding (culled by opacity)."""
   base = Gaussians(
-      means=np.tile([[0.0, 0.0, 3.0]], (num, 1)), opacities=np.zeros(num),
-      scales=np.full((num, 3), 0.2), quats=np.tile([[1.0, 0, 0, 0]], (num, 1)),
-      colors=np.tile([[0.9, 0.5, 0.1]], (num, 1)))
+    means=np.tile([[0.0, 0.0, 3.0]], (num, 1)),
+    opacities=np.zeros(num),
+    scales=np.full((num, 3), 0.2),
+    quats=np.tile([[1.0, 0, 0, 0]], (num, 1)),
+    colors=np.tile([[0.9, 0.5, 0.1]], (num, 1)),
+  )
   given = dict(means=means, opacities=opacities, scales=scales, quats=quats, colors=colors)
   fields = {}
   for name in given:
     value = np.array(getattr(base, name), np.float32)
     if given[name] is not None:
       new = np.asarray(given[name], np.float32)
-      value[:len(new)] = new
+      value[: len(new)] = new
     fields[name] = value
   return Gaussians(**fields)
 
@@ -43,10 +46,21 @@ def _loss(out):
 @functools.partial(jax.jit, static_argnames="config")
 def run(g, config=RenderConfig()):
   """Renders and differentiates a [NUM] scene; returns (result, grads)."""
+
   def loss(g):
-    out = render(g, W2C[None], INTR[None], height=H, width=W, background=BACKGROUND, near=NEAR,
-                 far=FAR, config=config)
+    out = render(
+      g,
+      W2C[None],
+      INTR[None],
+      height=H,
+      width=W,
+      background=BACKGROUND,
+      near=NEAR,
+      far=FAR,
+      config=config,
+    )
     return _loss(out), out
+
   (_, out), grads = jax.value_and_grad(loss, has_aux=True)(g)
   return jax.tree.map(lambda x: x[0], out), grads
 
@@ -63,8 +77,16 @@ def assert_background(out):
 
 
 def assert_matches_dense(g, out):
-  rgb, alpha, depth = render_dense(jax.tree.map(jnp.asarray, g), W2C, INTR, height=H, width=W,
-                                   background=BACKGROUND, near=NEAR, far=FAR)
+  rgb, alpha, depth = render_dense(
+    jax.tree.map(jnp.asarray, g),
+    W2C,
+    INTR,
+    height=H,
+    width=W,
+    background=BACKGROUND,
+    near=NEAR,
+    far=FAR,
+  )
   np.testing.assert_allclose(out.rgb, rgb, atol=1e-4)
   np.testing.assert_allclose(out.alpha, alpha, atol=1e-4)
   np.testing.assert_allclose(out.depth, depth, atol=1e-4 * max(1.0, float(np.max(depth))))
@@ -75,8 +97,9 @@ def test_behind_camera_is_culled_by_depth():
   assert_finite(out, grads)
   assert int(out.stats.num_culled_depth) == 1 and int(out.radii[0, 0]) == 0
   assert_background(out)
-  np.testing.assert_allclose(grads.means[0], [1e-3 * INTR[0] / -3.0, 1e-3 * INTR[1] / -3.0, grads.means[0, 2]],
-                             rtol=1e-4)  # means2d still differentiable
+  np.testing.assert_allclose(
+    grads.means[0], [1e-3 * INTR[0] / -3.0, 1e-3 * INTR[1] / -3.0, grads.means[0, 2]], rtol=1e-4
+  )  # means2d still differentiable
 
 
 def test_centre_on_the_camera_plane_is_culled_and_finite():
@@ -87,8 +110,9 @@ def test_centre_on_the_camera_plane_is_culled_and_finite():
 
 
 def test_near_plane_is_inclusive():
-  out, grads = run(scene(means=[[0, 0, NEAR], [0, 0, NEAR * 0.99]], opacities=[0.9, 0.9],
-                         scales=[[1e-3] * 3] * 2))
+  out, grads = run(
+    scene(means=[[0, 0, NEAR], [0, 0, NEAR * 0.99]], opacities=[0.9, 0.9], scales=[[1e-3] * 3] * 2)
+  )
   assert_finite(out, grads)
   assert int(out.radii[0, 0]) > 0 and int(out.radii[1, 0]) == 0
   assert int(out.stats.num_culled_depth) == 1
@@ -140,8 +164,11 @@ def test_scales_across_twelve_decades(scale):
 def test_tiny_gaussian_is_an_eps2d_blob():
   # A point Gaussian centred on a pixel centre renders its opacity there (cov2d = eps2d I).
   u, v = 10.5, 7.5
-  g = scene(means=[[(u - INTR[2]) / INTR[0] * 3, (v - INTR[3]) / INTR[1] * 3, 3.0]], opacities=[0.7],
-            scales=[[1e-8] * 3])
+  g = scene(
+    means=[[(u - INTR[2]) / INTR[0] * 3, (v - INTR[3]) / INTR[1] * 3, 3.0]],
+    opacities=[0.7],
+    scales=[[1e-8] * 3],
+  )
   out, grads = run(g)
   assert_finite(out, grads)
   np.testing.assert_allclose(out.alpha[7, 10, 0], 0.7, rtol=1e-4)
@@ -152,9 +179,12 @@ def test_extreme_anisotropy():
   # Needles (axis ratios 2e7) at oblique angles. Much longer needles seen edge-on make the 2D
   # determinant a float32 cancellation (a c - b^2 of 1e12-sized terms), as in gsplat: finite, but
   # two compilations of the same maths may then disagree by ~1e-2.
-  g = scene(means=[[0, 0, 3.0], [0.2, 0.1, 2.5]], opacities=[0.9, 0.6],
-            scales=[[1e-7, 0.05, 2.0], [2.0, 1e-7, 1e-7]],
-            quats=[[0.9, 0.3, 0.2, 0.1], [0.5, 0.5, -0.5, 0.5]])
+  g = scene(
+    means=[[0, 0, 3.0], [0.2, 0.1, 2.5]],
+    opacities=[0.9, 0.6],
+    scales=[[1e-7, 0.05, 2.0], [2.0, 1e-7, 1e-7]],
+    quats=[[0.9, 0.3, 0.2, 0.1], [0.5, 0.5, -0.5, 0.5]],
+  )
   out, grads = run(g)
   assert_finite(out, grads)
   assert_matches_dense(g, out)
@@ -197,13 +227,19 @@ def test_opacity_one_is_capped():
 
 
 def test_zero_gaussians_render_the_background():
-  empty = Gaussians(means=np.zeros((0, 3), np.float32), opacities=np.zeros((0,), np.float32),
-                    scales=np.zeros((0, 3), np.float32), quats=np.zeros((0, 4), np.float32),
-                    colors=np.zeros((0, 3), np.float32))
+  empty = Gaussians(
+    means=np.zeros((0, 3), np.float32),
+    opacities=np.zeros((0,), np.float32),
+    scales=np.zeros((0, 3), np.float32),
+    quats=np.zeros((0, 4), np.float32),
+    colors=np.zeros((0, 3), np.float32),
+  )
   out = render(empty, W2C[None], INTR[None], height=H, width=W, background=BACKGROUND)
   assert out.means2d.shape == (1, 0, 2)
   assert_background(jax.tree.map(lambda x: x[0], out))
-  grads = jax.grad(lambda g: jnp.sum(render(g, W2C[None], INTR[None], height=H, width=W).rgb))(empty)
+  grads = jax.grad(lambda g: jnp.sum(render(g, W2C[None], INTR[None], height=H, width=W).rgb))(
+    empty
+  )
   assert grads.means.shape == (0, 3)
 
 
@@ -214,16 +250,20 @@ def _crowd(num, centre_px, scale, seed=0):
   u = centre_px[0] + rng.uniform(-0.5, 0.5, num)
   v = centre_px[1] + rng.uniform(-0.5, 0.5, num)
   means = np.stack([(u - INTR[2]) / INTR[0] * z, (v - INTR[3]) / INTR[1] * z, z], -1)
-  return Gaussians(means=means.astype(np.float32), opacities=rng.uniform(0.3, 0.9, num).astype(np.float32),
-                   scales=np.full((num, 3), scale, np.float32),
-                   quats=rng.normal(size=(num, 4)).astype(np.float32),
-                   colors=rng.uniform(0, 1, (num, 3)).astype(np.float32))
+  return Gaussians(
+    means=means.astype(np.float32),
+    opacities=rng.uniform(0.3, 0.9, num).astype(np.float32),
+    scales=np.full((num, 3), scale, np.float32),
+    quats=rng.normal(size=(num, 4)).astype(np.float32),
+    colors=rng.uniform(0, 1, (num, 3)).astype(np.float32),
+  )
 
 
 def _render_and_grad(g, config):
   out = render(g, W2C[None], INTR[None], height=H, width=W, background=BACKGROUND, config=config)
-  grads = jax.grad(lambda g: _loss(render(g, W2C[None], INTR[None], height=H, width=W,
-                                          config=config)))(g)
+  grads = jax.grad(
+    lambda g: _loss(render(g, W2C[None], INTR[None], height=H, width=W, config=config))
+  )(g)
   out = jax.tree.map(lambda x: x[0], out)
   assert_finite(out, grads)
   assert_matches_dense(g, out)
@@ -249,11 +289,15 @@ def test_saturated_tiles_stop_early():
 
 def test_equal_depths_composite_in_index_order():
   at_pixel = [0.5 / INTR[0] * 3.0, 0.5 / INTR[1] * 3.0, 3.0]  # centre of pixel (12, 18)
-  g = scene(means=[at_pixel] * 3, opacities=[0.6, 0.6, 0.6],
-            colors=[[1, 0, 0], [0, 1, 0], [0, 0, 1]], scales=[[1.0] * 3] * 3)
+  g = scene(
+    means=[at_pixel] * 3,
+    opacities=[0.6, 0.6, 0.6],
+    colors=[[1, 0, 0], [0, 1, 0], [0, 0, 1]],
+    scales=[[1.0] * 3] * 3,
+  )
   out, grads = run(g)
   assert_finite(out, grads)
-  np.testing.assert_allclose(out.rgb[12, 18] - 0.4 ** 3 * BACKGROUND, [0.6, 0.24, 0.096], atol=1e-4)
+  np.testing.assert_allclose(out.rgb[12, 18] - 0.4**3 * BACKGROUND, [0.6, 0.24, 0.096], atol=1e-4)
 
 
 def test_budget_overflow_is_reported_and_drops_the_farthest():
@@ -277,15 +321,21 @@ def test_budget_cut_behind_saturated_pixels_is_lossless():
   # far Gaussians' tiles, which is reported as truncation but not as overflow, and changes nothing.
   near = [[0, 0, 2.0 + 0.01 * i] for i in range(5)]
   far = [[0.3 * i - 0.6, 0.1, 5.0 + i] for i in range(5)]
-  g = scene(means=near + far, opacities=[1.0] * 5 + [0.8] * 5, scales=[[3.0] * 3] * 5 + [[0.5] * 3] * 5,
-            num=10)
+  g = scene(
+    means=near + far,
+    opacities=[1.0] * 5 + [0.8] * 5,
+    scales=[[3.0] * 3] * 5 + [[0.5] * 3] * 5,
+    num=10,
+  )
   cut, grads = run(g, config=RenderConfig(max_intersections=32, chunk_size=8))
   full, full_grads = run(g)
   assert_finite(cut, grads)
   assert bool(cut.stats.truncated) and not bool(cut.stats.overflow)
   assert not bool(full.stats.truncated) and int(cut.stats.num_intersections) > 32
   np.testing.assert_array_equal(cut.rgb, full.rgb)
-  np.testing.assert_allclose(grads.means, full_grads.means, atol=1e-6 * np.abs(full_grads.means).max())
+  np.testing.assert_allclose(
+    grads.means, full_grads.means, atol=1e-6 * np.abs(full_grads.means).max()
+  )
 
 
 def test_bfloat16_inputs_compute_in_float32():
@@ -293,8 +343,14 @@ def test_bfloat16_inputs_compute_in_float32():
   g16 = jax.tree.map(lambda x: jnp.asarray(x, jnp.bfloat16), g)
   out = render(g16, W2C[None], INTR[None], height=H, width=W, background=BACKGROUND)
   assert out.rgb.dtype == jnp.float32
-  ref = render(jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), g16), W2C[None], INTR[None],
-               height=H, width=W, background=BACKGROUND)
+  ref = render(
+    jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), g16),
+    W2C[None],
+    INTR[None],
+    height=H,
+    width=W,
+    background=BACKGROUND,
+  )
   np.testing.assert_array_equal(out.rgb, ref.rgb)
   grads = jax.grad(lambda g: jnp.sum(render(g, W2C[None], INTR[None], height=H, width=W).rgb))(g16)
   assert grads.means.dtype == jnp.bfloat16
@@ -303,15 +359,26 @@ def test_bfloat16_inputs_compute_in_float32():
 
 # ---- non-finite values stay local ----------------------------------------------------------------
 
+
 def _four_gaussians():
-  return dict(means=[[0, 0, 2.0], [0.1, 0.1, 3.0], [-0.2, 0.1, 4.0], [0.3, -0.2, 5.0]],
-              opacities=[0.5, 0.6, 0.7, 0.8], scales=[[0.3] * 3] * 4,
-              colors=[[0.9, 0.1, 0.1], [0.1, 0.9, 0.1], [0.1, 0.1, 0.9], [0.5, 0.5, 0.5]])
+  return dict(
+    means=[[0, 0, 2.0], [0.1, 0.1, 3.0], [-0.2, 0.1, 4.0], [0.3, -0.2, 5.0]],
+    opacities=[0.5, 0.6, 0.7, 0.8],
+    scales=[[0.3] * 3] * 4,
+    colors=[[0.9, 0.1, 0.1], [0.1, 0.9, 0.1], [0.1, 0.1, 0.9], [0.5, 0.5, 0.5]],
+  )
 
 
-@pytest.mark.parametrize("field, value", [("colors", np.nan), ("means", np.nan),
-                                          ("scales", np.inf), ("quats", np.nan),
-                                          ("opacities", np.nan)])
+@pytest.mark.parametrize(
+  "field, value",
+  [
+    ("colors", np.nan),
+    ("means", np.nan),
+    ("scales", np.inf),
+    ("quats", np.nan),
+    ("opacities", np.nan),
+  ],
+)
 def test_a_non_finite_gaussian_is_absent_and_its_gradient_zero(field, value):
   # Gaussian 0 is the nearest and covers the middle tiles: were its NaN to leak, whole tiles
   # (forward) or every Gaussian's gradient (backward) would turn NaN.
@@ -329,6 +396,7 @@ def test_a_non_finite_gaussian_is_absent_and_its_gradient_zero(field, value):
   np.testing.assert_allclose(out.rgb, ref.rgb, atol=1e-6)
   np.testing.assert_allclose(out.depth, ref.depth, atol=1e-5)
   for name in ("means", "opacities", "scales", "quats", "colors"):
-    np.testing.assert_allclose(getattr(grads, name)[1:], getattr(ref_grads, name)[1:], rtol=1e-5,
-                               atol=1e-6)
+    np.testing.assert_allclose(
+      getattr(grads, name)[1:], getattr(ref_grads, name)[1:], rtol=1e-5, atol=1e-6
+    )
     np.testing.assert_array_equal(getattr(grads, name)[0], 0.0)

@@ -82,10 +82,17 @@ def test_rotate_cameras_turns_only_non_reference_cameras_about_the_axis():
 
 def test_noisy_draws_one_axis_per_scene_and_view_and_grows_only_the_angle():
   rng = np.random.default_rng(0)
-  examples = [(f"s{i}", {"context_c2w": _random_cameras(3, seed=i)[None],
-                         "context_images": rng.uniform(size=(1, 3, 2, 2, 3)),
-                         "target_c2w": _random_cameras(2, seed=10 + i)[None]})
-              for i in range(2)]
+  examples = [
+    (
+      f"s{i}",
+      {
+        "context_c2w": _random_cameras(3, seed=i)[None],
+        "context_images": rng.uniform(size=(1, 3, 2, 2, 3)),
+        "target_c2w": _random_cameras(2, seed=10 + i)[None],
+      },
+    )
+    for i in range(2)
+  ]
   small = camera_noise.noisy(examples, 2.0, seed=0)
   large = camera_noise.noisy(examples, 5.0, seed=0)
   assert [key for key, _ in large] == ["s0", "s1"]
@@ -99,12 +106,16 @@ def test_noisy_draws_one_axis_per_scene_and_view_and_grows_only_the_angle():
       assert perturbed["context_images"] is batch["context_images"]
       np.testing.assert_array_equal(perturbed["context_c2w"][0, 0], before[0])
       for v in (1, 2):
-        angle, axes[name, position, v] = _relative_rotation(before[v], perturbed["context_c2w"][0, v])
+        angle, axes[name, position, v] = _relative_rotation(
+          before[v], perturbed["context_c2w"][0, v]
+        )
         assert angle == pytest.approx(degrees, abs=1e-3)
   for position in range(2):
     for v in (1, 2):  # the same axis at every angle
       np.testing.assert_allclose(axes["small", position, v], axes["large", position, v], atol=2e-3)
-  assert np.abs(axes["large", 0, 1] - axes["large", 1, 1]).max() > 0.1  # another scene, another axis
+  assert (
+    np.abs(axes["large", 0, 1] - axes["large", 1, 1]).max() > 0.1
+  )  # another scene, another axis
   assert np.abs(axes["large", 0, 1] - axes["large", 0, 2]).max() > 0.1  # another view, another axis
   reseeded = camera_noise.noisy(examples, 5.0, seed=1)[0][1]["context_c2w"]
   assert np.abs(reseeded - large[0][1]["context_c2w"]).max() > 1e-3
@@ -115,16 +126,24 @@ def test_noisy_draws_one_axis_per_scene_and_view_and_grows_only_the_angle():
 
 
 def test_write_table_writes_json_and_markdown(tmp_path):
-  rows = [{"name": "a", "count": 3, "psnr": 21.123456, "extra": 1.0},
-          {"name": "b", "count": 10, "psnr": 0.000123456, "extra": 2.0}]
-  path = write_table(tmp_path / "deep" / "out", "table", "A title", rows, ["name", "psnr", "count"],
-                     notes=["first note", "second note"])
+  rows = [
+    {"name": "a", "count": 3, "psnr": 21.123456, "extra": 1.0},
+    {"name": "b", "count": 10, "psnr": 0.000123456, "extra": 2.0},
+  ]
+  path = write_table(
+    tmp_path / "deep" / "out",
+    "table",
+    "A title",
+    rows,
+    ["name", "psnr", "count"],
+    notes=["first note", "second note"],
+  )
   assert path == tmp_path / "deep" / "out" / "table.md"
   payload = json.loads((tmp_path / "deep" / "out" / "table.json").read_text())
   assert payload == {"title": "A title", "rows": rows, "notes": ["first note", "second note"]}
   lines = path.read_text().splitlines()
   assert lines[0] == "# A title"
-  table = lines[lines.index("| name | psnr | count |"):]
+  table = lines[lines.index("| name | psnr | count |") :]
   assert table[1] == "|---|---|---|"
   assert table[2] == "| a | 21.12 | 3 |"
   assert table[3] == "| b | 0.0001235 | 10 |"
@@ -193,16 +212,21 @@ def test_token_count_resamples_the_trained_table_without_retraining(smoke_model,
       np.testing.assert_array_equal(resampled[:4], table)
       assert 0 < np.abs(resampled[4:] - table).max() < 0.1
     # everything but the token table is the trained model's, not a fresh initialisation
-    same = jax.tree.map(np.array_equal, {k: v for k, v in params.items() if k != "gs_tokens"},
-                        {k: v for k, v in params_k.items() if k != "gs_tokens"})
+    same = jax.tree.map(
+      np.array_equal,
+      {k: v for k, v in params.items() if k != "gs_tokens"},
+      {k: v for k, v in params_k.items() if k != "gs_tokens"},
+    )
     assert all(jax.tree.leaves(same))
   assert not list(tmp_path.iterdir())  # nothing trained, nothing written
 
 
 def test_token_count_retrain_reuses_a_saved_model(smoke_model, tmp_path):
   config, params = smoke_model
-  saved = jax.tree.map(lambda x: np.full_like(x, 0.25), token_count.model_for(
-      token_count.TokenCount(experiment=SMOKE), config, params, 2, tmp_path)[1])
+  saved = jax.tree.map(
+    lambda x: np.full_like(x, 0.25),
+    token_count.model_for(token_count.TokenCount(experiment=SMOKE), config, params, 2, tmp_path)[1],
+  )
   weights.save_params(tmp_path / "tokens_2.msgpack", saved)
   settings = token_count.TokenCount(experiment=SMOKE, retrain=True)
   config_k, loaded = token_count.model_for(settings, config, params, 2, tmp_path)
@@ -223,9 +247,13 @@ def test_token_colours_are_distinct_and_valid():
 def test_per_token_statistics_group_consecutive_gaussians():
   """Gaussian i belongs to token i // per_token."""
   means = np.array([[-3, 0, 0], [-1, 0, 0], [0, 2, 0], [0, -2, 0]], np.float32)
-  gaussians = Gaussians(means=means, opacities=np.array([0.2, 0.4, 1.0, 0.0], np.float32),
-                        scales=np.ones((4, 3), np.float32), quats=np.ones((4, 4), np.float32),
-                        colors=np.ones((4, 3), np.float32))
+  gaussians = Gaussians(
+    means=means,
+    opacities=np.array([0.2, 0.4, 1.0, 0.0], np.float32),
+    scales=np.ones((4, 3), np.float32),
+    quats=np.ones((4, 4), np.float32),
+    colors=np.ones((4, 3), np.float32),
+  )
   stats = token_assignment.per_token_statistics(gaussians, per_token=2)
   # token spreads 1 and 2; scene centroid (-1, 0, 0), mean distance (2 + 0 + 2 sqrt 5) / 4
   scene = (1 + math.sqrt(5)) / 2
@@ -242,13 +270,17 @@ def smoke_study(tmp_path_factory, smoke_model):
   """StudySettings on a generated two-scene test split, with saved fresh weights."""
   root = tmp_path_factory.mktemp("study")
   experiment = dataclasses.replace(
-      SMOKE, synthetic_dir=str(root / "data"), output_dir=str(root / "run"),
-      synthetic=dataclasses.replace(SMOKE.synthetic, num_train=1, num_test=2, workers=1),
-      eval=dataclasses.replace(SMOKE.eval, num_scenes=2))
+    SMOKE,
+    synthetic_dir=str(root / "data"),
+    output_dir=str(root / "run"),
+    synthetic=dataclasses.replace(SMOKE.synthetic, num_train=1, num_test=2, workers=1),
+    eval=dataclasses.replace(SMOKE.eval, num_scenes=2),
+  )
   data.ensure_synthetic(experiment)
   params_path = weights.save_params(root / "params.msgpack", smoke_model[1])
-  return StudySettings(experiment=experiment, params=str(params_path),
-                       output_dir=str(root / "studies"))
+  return StudySettings(
+    experiment=experiment, params=str(params_path), output_dir=str(root / "studies")
+  )
 
 
 def test_trained_tokengs_loads_saved_weights_without_training(smoke_study, smoke_model):
@@ -267,13 +299,17 @@ def test_psnr_of_scores_every_scene_and_times_the_first_twice(smoke_study, smoke
 
   def method(batch):
     calls.append(batch)
-    return Gaussians(means=np.tile([[[0.0, 0.0, 1.0]]], (1, n, 1)).astype(np.float32),
-                     opacities=np.zeros((1, n), np.float32), scales=np.full((1, n, 3), 0.01, np.float32),
-                     quats=np.tile([[[1.0, 0.0, 0.0, 0.0]]], (1, n, 1)).astype(np.float32),
-                     colors=np.ones((1, n, 3), np.float32))
+    return Gaussians(
+      means=np.tile([[[0.0, 0.0, 1.0]]], (1, n, 1)).astype(np.float32),
+      opacities=np.zeros((1, n), np.float32),
+      scales=np.full((1, n, 3), 0.01, np.float32),
+      quats=np.tile([[[1.0, 0.0, 0.0, 0.0]]], (1, n, 1)).astype(np.float32),
+      colors=np.ones((1, n, 3), np.float32),
+    )
 
-  scores, seconds = psnr_of(evaluation.Method(reconstruct=method), examples,
-                            evaluation.Scorer(lpips=False))
+  scores, seconds = psnr_of(
+    evaluation.Method(reconstruct=method), examples, evaluation.Scorer(lpips=False)
+  )
   assert [id(b) for b in calls] == [id(examples[0][1])] * 2 + [id(examples[1][1])]
   assert seconds >= 0 and len(scores) == 2
   for score, (_, batch) in zip(scores, examples):
@@ -284,8 +320,11 @@ def test_psnr_of_scores_every_scene_and_times_the_first_twice(smoke_study, smoke
 def test_token_assignment_main_end_to_end(smoke_study, smoke_model):
   config = smoke_model[0]
   settings = token_assignment.TokenAssignment(
-      experiment=smoke_study.experiment, params=smoke_study.params,
-      output_dir=smoke_study.output_dir, num_scenes=1)
+    experiment=smoke_study.experiment,
+    params=smoke_study.params,
+    output_dir=smoke_study.output_dir,
+    num_scenes=1,
+  )
   rows = token_assignment.main(settings)
   out = pathlib.Path(settings.output_dir) / "token_assignment"
   assert sorted(row["token"] for row in rows) == list(range(config.num_tokens))
@@ -308,7 +347,7 @@ def test_token_assignment_main_end_to_end(smoke_study, smoke_model):
   image = np.asarray(Image.open(pictures[0]))
   assert image.shape[0] == 5 * 128 + 6 * 4 and image.shape[1] > 2 * 128 + 2 * 4
   # the token-colour rows differ from the RGB render row (the palette replaced the colours)
-  render, tokens = image[4 + 2 * 132:4 + 2 * 132 + 128], image[4 + 3 * 132:4 + 3 * 132 + 128]
+  render, tokens = image[4 + 2 * 132 : 4 + 2 * 132 + 128], image[4 + 3 * 132 : 4 + 3 * 132 + 128]
   assert np.abs(render.astype(int) - tokens.astype(int)).max() > 10
 
 

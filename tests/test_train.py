@@ -31,19 +31,24 @@ from tokengs_jax.train import (
 
 def toy_params(seed=0, num_tokens=4):
   k1, k2, k3 = jax.random.split(jax.random.PRNGKey(seed), 3)
-  return {"dense1": {"kernel": jax.random.normal(k1, (3, 16)) * 0.5, "bias": jnp.zeros(16)},
-          "dense2": {"kernel": jax.random.normal(k2, (16, 2)) * 0.5, "bias": jnp.zeros(2)},
-          "gs_tokens": jax.random.normal(k3, (num_tokens, 2)) * 0.1}
+  return {
+    "dense1": {"kernel": jax.random.normal(k1, (3, 16)) * 0.5, "bias": jnp.zeros(16)},
+    "dense2": {"kernel": jax.random.normal(k2, (16, 2)) * 0.5, "bias": jnp.zeros(2)},
+    "gs_tokens": jax.random.normal(k3, (num_tokens, 2)) * 0.1,
+  }
 
 
 def toy_loss(params, batch, key, step, noise=0.01):
   """MLP regression with key-dependent input noise (so the step key matters)."""
   del step
   x = batch["x"] + noise * jax.random.normal(key, batch["x"].shape, batch["x"].dtype)
-  hidden = jnp.tanh(x.astype(params["dense1"]["kernel"].dtype) @ params["dense1"]["kernel"]
-                    + params["dense1"]["bias"])
-  pred = (hidden @ params["dense2"]["kernel"] + params["dense2"]["bias"]
-          + params["gs_tokens"].mean(0))
+  hidden = jnp.tanh(
+    x.astype(params["dense1"]["kernel"].dtype) @ params["dense1"]["kernel"]
+    + params["dense1"]["bias"]
+  )
+  pred = (
+    hidden @ params["dense2"]["kernel"] + params["dense2"]["bias"] + params["gs_tokens"].mean(0)
+  )
   loss = jnp.mean((pred.astype(jnp.float32) - batch["y"]) ** 2)
   return loss, {"mse": loss}
 
@@ -59,8 +64,9 @@ def toy_batch(seed, batch_size=8):
 
 def run_steps(mesh, optim_config, batches, precision=None, loss_fn=toy_loss):
   optimizer = make_optimizer(optim_config)
-  state = jax.jit(lambda p: create_train_state(p, optimizer, 0),
-                  out_shardings=NamedSharding(mesh, P()))(toy_params())
+  state = jax.jit(
+    lambda p: create_train_state(p, optimizer, 0), out_shardings=NamedSharding(mesh, P())
+  )(toy_params())
   step = make_train_step(loss_fn, optimizer, mesh, precision=precision or Precision())
   key = jax.random.PRNGKey(7)
   metrics = []
@@ -71,18 +77,21 @@ def run_steps(mesh, optim_config, batches, precision=None, loss_fn=toy_loss):
 
 
 def test_warmup_cosine_key_steps():
-  config = OptimConfig(learning_rate=4e-4, schedule="warmup_cosine", total_steps=1000,
-                       warmup_steps=100)
+  config = OptimConfig(
+    learning_rate=4e-4, schedule="warmup_cosine", total_steps=1000, warmup_steps=100
+  )
   lr = learning_rate_schedule(config)
-  np.testing.assert_allclose([lr(0), lr(50), lr(100), lr(550), lr(1000)],
-                             [0.0, 2e-4, 4e-4, 2e-4, 0.0], atol=1e-9)
+  np.testing.assert_allclose(
+    [lr(0), lr(50), lr(100), lr(550), lr(1000)], [0.0, 2e-4, 4e-4, 2e-4, 0.0], atol=1e-9
+  )
 
 
 def test_one_cycle_matches_torch_formula():
   """torch OneCycleLR(cos): peak at step pct*T-1, end at T-1, initial peak/25, final /1000."""
   total, warmup, peak = 1000, 100, 4e-4
-  config = OptimConfig(learning_rate=peak, schedule="one_cycle", total_steps=total,
-                       warmup_steps=warmup)
+  config = OptimConfig(
+    learning_rate=peak, schedule="one_cycle", total_steps=total, warmup_steps=warmup
+  )
   lr, b1 = learning_rate_schedule(config), beta1_schedule(config)
   start, end = peak / 25, peak / 25 / 1000
 
@@ -103,20 +112,30 @@ def test_one_cycle_matches_torch_formula():
 def test_weight_decay_mask_and_effect():
   params = toy_params()
   mask = weight_decay_mask(params)
-  assert mask == {"dense1": {"kernel": True, "bias": False},
-                  "dense2": {"kernel": True, "bias": False}, "gs_tokens": False}
+  assert mask == {
+    "dense1": {"kernel": True, "bias": False},
+    "dense2": {"kernel": True, "bias": False},
+    "gs_tokens": False,
+  }
   # prefixes of path components: dynamic tokens and latent queries exempt, latent projections not
-  names = {"gs_tokens_dynamic": jnp.ones((2, 2)), "latents": jnp.ones((2, 2)),
-           "latent_kv_proj": {"kernel": jnp.ones((2, 2))}}
-  assert weight_decay_mask(names) == {"gs_tokens_dynamic": False, "latents": False,
-                                      "latent_kv_proj": {"kernel": True}}
+  names = {
+    "gs_tokens_dynamic": jnp.ones((2, 2)),
+    "latents": jnp.ones((2, 2)),
+    "latent_kv_proj": {"kernel": jnp.ones((2, 2))},
+  }
+  assert weight_decay_mask(names) == {
+    "gs_tokens_dynamic": False,
+    "latents": False,
+    "latent_kv_proj": {"kernel": True},
+  }
   config = OptimConfig(learning_rate=0.1, schedule="constant", weight_decay=0.5)
   optimizer = make_optimizer(config)
   zero_grads = jax.tree.map(jnp.zeros_like, params)
   updates, _ = optimizer.update(zero_grads, optimizer.init(params), params)
   # zero gradient: Adam's direction is 0, only decoupled decay -lr*wd*w remains
-  np.testing.assert_allclose(updates["dense1"]["kernel"], -0.05 * params["dense1"]["kernel"],
-                             rtol=1e-6)
+  np.testing.assert_allclose(
+    updates["dense1"]["kernel"], -0.05 * params["dense1"]["kernel"], rtol=1e-6
+  )
   assert not np.any(updates["gs_tokens"]) and not np.any(updates["dense2"]["bias"])
 
 
@@ -129,8 +148,11 @@ def test_one_vs_four_devices_equal():
   assert state4.params["dense1"]["kernel"].sharding.mesh.shape["data"] == 4
   for m1, m4 in zip(metrics1, metrics4):
     np.testing.assert_allclose(m4["loss"], m1["loss"], rtol=1e-6)
-  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7),
-               jax.device_get(state1.params), jax.device_get(state4.params))
+  jax.tree.map(
+    lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7),
+    jax.device_get(state1.params),
+    jax.device_get(state4.params),
+  )
   assert int(state4.step) == 3
 
 
@@ -144,8 +166,12 @@ def test_loss_receives_the_step_and_the_batch_unchanged():
     return loss, {**aux, "step_seen": step.astype(jnp.float32)}
 
   mesh = make_mesh(devices=jax.devices()[:1])
-  _, metrics = run_steps(mesh, OptimConfig(learning_rate=1e-2, schedule="constant"),
-                         [toy_batch(0), toy_batch(1), toy_batch(2)], loss_fn=loss_fn)
+  _, metrics = run_steps(
+    mesh,
+    OptimConfig(learning_rate=1e-2, schedule="constant"),
+    [toy_batch(0), toy_batch(1), toy_batch(2)],
+    loss_fn=loss_fn,
+  )
   assert [float(m["step_seen"]) for m in metrics] == [0.0, 1.0, 2.0]
   assert seen[0] == ["x", "y"]
 
@@ -157,25 +183,34 @@ def test_accumulation_equals_full_batch():
   mesh = make_mesh(devices=jax.devices()[:1])
   base = {"learning_rate": 1e-2, "schedule": "constant"}
   state_full, _ = run_steps(mesh, OptimConfig(**base), [full], loss_fn=noiseless_loss)
-  state_acc, _ = run_steps(mesh, OptimConfig(**base, accumulation_steps=2), halves,
-                                 loss_fn=noiseless_loss)
-  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7),
-               jax.device_get(state_full.params), jax.device_get(state_acc.params))
+  state_acc, _ = run_steps(
+    mesh, OptimConfig(**base, accumulation_steps=2), halves, loss_fn=noiseless_loss
+  )
+  jax.tree.map(
+    lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7),
+    jax.device_get(state_full.params),
+    jax.device_get(state_acc.params),
+  )
   assert not np.allclose(state_full.params["dense1"]["kernel"], toy_params()["dense1"]["kernel"])
 
 
 def toy_render_loss(params, views):
   """A per-view nonlinear 'render' [B, C, 64] of params and a camera vector, MSE to targets."""
-  rendered = jnp.tanh(jnp.einsum("bvc,cp->bvp", views["camera"], params["dense1"]["kernel"]) @
-                      params["dense2"]["kernel"][:, :1] * jnp.linspace(0, 1, 64))
+  rendered = jnp.tanh(
+    jnp.einsum("bvc,cp->bvp", views["camera"], params["dense1"]["kernel"])
+    @ params["dense2"]["kernel"][:, :1]
+    * jnp.linspace(0, 1, 64)
+  )
   loss = jnp.mean((rendered - views["target"]) ** 2)
   return loss, {"rendered_mean": jnp.mean(rendered)}
 
 
 def test_chunked_views_gradient_equals_one_shot():
   rng = np.random.default_rng(0)
-  views = {"camera": rng.normal(size=(2, 8, 3)).astype(np.float32),
-           "target": rng.normal(size=(2, 8, 64)).astype(np.float32)}
+  views = {
+    "camera": rng.normal(size=(2, 8, 3)).astype(np.float32),
+    "target": rng.normal(size=(2, 8, 64)).astype(np.float32),
+  }
   params = toy_params()
 
   def loss(p, chunk_size):
@@ -184,12 +219,15 @@ def test_chunked_views_gradient_equals_one_shot():
   (one_shot, aux), grad = jax.value_and_grad(loss, has_aux=True)(params, None)
   for chunk_size in (1, 2, 4):
     (chunked, chunked_aux), chunked_grad = jax.jit(
-        jax.value_and_grad(loss, has_aux=True), static_argnums=1)(params, chunk_size)
+      jax.value_and_grad(loss, has_aux=True), static_argnums=1
+    )(params, chunk_size)
     np.testing.assert_allclose(chunked, one_shot, rtol=1e-6)
-    np.testing.assert_allclose(chunked_aux["rendered_mean"], aux["rendered_mean"], rtol=1e-5,
-                               atol=1e-7)
-    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-8),
-                 chunked_grad, grad)
+    np.testing.assert_allclose(
+      chunked_aux["rendered_mean"], aux["rendered_mean"], rtol=1e-5, atol=1e-7
+    )
+    jax.tree.map(
+      lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-8), chunked_grad, grad
+    )
   with pytest.raises(ValueError, match="must divide"):
     loss(params, 3)
 
@@ -204,8 +242,9 @@ def test_chunked_views_peak_memory_is_one_chunks():
     return jnp.mean(field.reshape(*field.shape[:2], 64, 64).mean(-1) - v["target"]) ** 2, {}
 
   def temp_bytes(chunk_size):
-    grad = jax.grad(lambda p: mean_over_view_chunks(lambda v: big_render_loss(p, v), views,
-                                                    chunk_size)[0])
+    grad = jax.grad(
+      lambda p: mean_over_view_chunks(lambda v: big_render_loss(p, v), views, chunk_size)[0]
+    )
     return jax.jit(grad).lower(toy_params()).compile().memory_analysis().temp_size_in_bytes
 
   assert temp_bytes(2) * 4 < temp_bytes(None)
@@ -213,11 +252,16 @@ def test_chunked_views_peak_memory_is_one_chunks():
 
 def test_bf16_compute_keeps_float32_state():
   mesh = make_mesh(devices=jax.devices()[:1])
-  state, metrics = run_steps(mesh, OptimConfig(learning_rate=1e-2, schedule="constant"),
-                             [toy_batch(0)], precision=Precision(jnp.bfloat16))
+  state, metrics = run_steps(
+    mesh,
+    OptimConfig(learning_rate=1e-2, schedule="constant"),
+    [toy_batch(0)],
+    precision=Precision(jnp.bfloat16),
+  )
   assert all(leaf.dtype == jnp.float32 for leaf in jax.tree.leaves(state.params))
-  _, metrics32 = run_steps(mesh, OptimConfig(learning_rate=1e-2, schedule="constant"),
-                                 [toy_batch(0)])
+  _, metrics32 = run_steps(
+    mesh, OptimConfig(learning_rate=1e-2, schedule="constant"), [toy_batch(0)]
+  )
   # bf16 has an 8-bit mantissa: same loss to ~1%, not bit-equal
   np.testing.assert_allclose(metrics[0]["loss"], metrics32[0]["loss"], rtol=2e-2)
   assert metrics[0]["loss"] != metrics32[0]["loss"]
@@ -236,8 +280,10 @@ def test_expand_tokens_statistics():
 
 def test_dynamic_tokens_from_static():
   static = jnp.arange(12.0).reshape(4, 3)
-  np.testing.assert_array_equal(dynamic_tokens_from_static(jax.random.PRNGKey(0), static, 6),
-                                static[np.array([0, 1, 2, 3, 0, 1])])
+  np.testing.assert_array_equal(
+    dynamic_tokens_from_static(jax.random.PRNGKey(0), static, 6),
+    static[np.array([0, 1, 2, 3, 0, 1])],
+  )
   subset = np.asarray(dynamic_tokens_from_static(jax.random.PRNGKey(0), static, 2))
   assert subset.shape == (2, 3) and len({tuple(r) for r in subset}) == 2
   assert all(any((r == s).all() for s in np.asarray(static)) for r in subset)
@@ -251,10 +297,13 @@ def test_transplant_grows_tokens_and_reports():
   np.testing.assert_array_equal(params["gs_tokens"][:4], pretrained["gs_tokens"])
   assert params["gs_tokens"].shape == (16, 2)
   np.testing.assert_array_equal(params["dense2"]["kernel"], fresh["dense2"]["kernel"])
-  assert sorted(report) == ["dense2/kernel: kept fresh (shape (16, 2))",
-                            "gs_tokens: tokens 4 -> 16"]
+  assert sorted(report) == [
+    "dense2/kernel: kept fresh (shape (16, 2))",
+    "gs_tokens: tokens 4 -> 16",
+  ]
   fresh["gs_tokens_dynamic"] = jnp.zeros((6, 2))
   params, report = transplant_params(jax.random.PRNGKey(0), pretrained, fresh)
-  np.testing.assert_array_equal(params["gs_tokens_dynamic"],
-                                pretrained["gs_tokens"][np.array([0, 1, 2, 3, 0, 1])])
+  np.testing.assert_array_equal(
+    params["gs_tokens_dynamic"], pretrained["gs_tokens"][np.array([0, 1, 2, 3, 0, 1])]
+  )
   assert "gs_tokens_dynamic: from static gs_tokens" in report

@@ -50,8 +50,11 @@ def test_chunked_objective_matches_one_shot(tiny):
   for name in ("rgb", "ssim", "visibility", "psnr"):
     np.testing.assert_allclose(chunked_terms[name], terms[name], rtol=1e-5, atol=1e-7)
   scale = max(float(np.max(np.abs(g))) for g in jax.tree.leaves(grads))
-  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-5 * scale),
-               chunked_grads, grads)
+  jax.tree.map(
+    lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-5 * scale),
+    chunked_grads,
+    grads,
+  )
 
 
 @pytest.mark.slow
@@ -65,9 +68,14 @@ def test_tiny_training_loss_falls(tiny):
 
   history = []
   # two scenes on a 2-device data mesh: the real model and renderer under sharding
-  train(tokengs_loss_fn(config), params, batches(),
-        OptimConfig(learning_rate=1e-2, schedule="warmup_cosine", total_steps=30, warmup_steps=3),
-        LoopConfig(total_steps=30, log_every=5), mesh=make_mesh(devices=jax.devices()[:2]),
-        log_fn=lambda step, m: history.append(m))
+  train(
+    tokengs_loss_fn(config),
+    params,
+    batches(),
+    OptimConfig(learning_rate=1e-2, schedule="warmup_cosine", total_steps=30, warmup_steps=3),
+    LoopConfig(total_steps=30, log_every=5),
+    mesh=make_mesh(devices=jax.devices()[:2]),
+    log_fn=lambda step, m: history.append(m),
+  )
   print("loss every 5 steps:", [round(m["loss"], 4) for m in history])
   assert history[-1]["loss"] < 0.8 * history[0]["loss"]

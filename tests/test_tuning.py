@@ -7,14 +7,7 @@ import pytest
 
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.splatting import RenderConfig, larger_budget
-from tokengs_jax.tuning import (
-    TuningConfig,
-    _constrained,
-    _offset,
-    _tune_once,
-    _unconstrained,
-    tune,
-)
+from tokengs_jax.tuning import TuningConfig, _constrained, _offset, _tune_once, _unconstrained, tune
 
 HEIGHT = WIDTH = 32
 
@@ -30,10 +23,13 @@ def scene(num_views=2, seed=0):
 
 def test_gaussian_offsets_round_trip():
   key = jax.random.PRNGKey(0)
-  g = Gaussians(means=jax.random.normal(key, (5, 3)), opacities=jnp.linspace(0.1, 0.9, 5),
-                scales=jnp.linspace(0.01, 0.07, 15).reshape(5, 3),
-                quats=jax.random.normal(key, (5, 4)),
-                colors=jnp.linspace(0.05, 0.95, 15).reshape(5, 3))
+  g = Gaussians(
+    means=jax.random.normal(key, (5, 3)),
+    opacities=jnp.linspace(0.1, 0.9, 5),
+    scales=jnp.linspace(0.01, 0.07, 15).reshape(5, 3),
+    quats=jax.random.normal(key, (5, 4)),
+    colors=jnp.linspace(0.05, 0.95, 15).reshape(5, 3),
+  )
 
   def assert_close(a, b):
     jax.tree.map(lambda x, y: np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6), a, b)
@@ -49,8 +45,12 @@ def test_token_tuning_lowers_loss_and_keeps_params(tiny):
   config, params = tiny
   before = jax.tree.map(np.array, params)
   # three input views (context extension: the preset was trained with two); same Gaussian count
-  result = tune(params, *scene(num_views=3), model_config=config,
-                tuning=TuningConfig(target="tokens", steps=5, learning_rate=1e-2))
+  result = tune(
+    params,
+    *scene(num_views=3),
+    model_config=config,
+    tuning=TuningConfig(target="tokens", steps=5, learning_rate=1e-2),
+  )
   losses = np.asarray(result.losses)
   assert losses.shape == (6,) and losses[-1] < losses[0]
   assert np.all(np.diff(losses) <= 0)
@@ -62,9 +62,12 @@ def test_token_tuning_lowers_loss_and_keeps_params(tiny):
 @pytest.mark.parametrize("target", ["gaussians", "tokens+gaussians"])
 def test_gaussian_and_joint_tuning_lower_loss(tiny, target):
   config, params = tiny
-  result = tune(params, *scene(), model_config=config,
-                tuning=TuningConfig(target=target, steps=4, learning_rate=1e-2,
-                                    gaussian_learning_rate=1e-2))
+  result = tune(
+    params,
+    *scene(),
+    model_config=config,
+    tuning=TuningConfig(target=target, steps=4, learning_rate=1e-2, gaussian_learning_rate=1e-2),
+  )
   losses = np.asarray(result.losses)
   assert losses[-1] < losses[0]
 
@@ -72,13 +75,23 @@ def test_gaussian_and_joint_tuning_lower_loss(tiny, target):
 @pytest.mark.slow
 def test_latent_tuning_lowers_loss():
   from tokengs_jax.model import init_params, preset
+
   # decoder LayerScale 1 (official init: 5e-5) so the decoder's output depends visibly on the
   # latents at initialisation
-  config = preset("tiny", use_latent_bottleneck=True, num_latents=16, latent_cross_attn_depth=1,
-                  dec_init_values=1.0)
+  config = preset(
+    "tiny",
+    use_latent_bottleneck=True,
+    num_latents=16,
+    latent_cross_attn_depth=1,
+    dec_init_values=1.0,
+  )
   params = init_params(jax.random.PRNGKey(0), config)
-  result = tune(params, *scene(), model_config=config,
-                tuning=TuningConfig(target="latents", steps=4, learning_rate=1e-2))
+  result = tune(
+    params,
+    *scene(),
+    model_config=config,
+    tuning=TuningConfig(target="latents", steps=4, learning_rate=1e-2),
+  )
   losses = np.asarray(result.losses)
   assert losses[-1] < losses[0]
 
@@ -86,15 +99,22 @@ def test_latent_tuning_lowers_loss():
 def test_latent_tuning_needs_latent_model(tiny):
   config, params = tiny
   with pytest.raises(ValueError, match="latent-bottleneck"):
-    jax.eval_shape(lambda p: tune(p, *scene(), model_config=config,
-                                  tuning=TuningConfig(target="latents", steps=1)), params)
+    jax.eval_shape(
+      lambda p: tune(
+        p, *scene(), model_config=config, tuning=TuningConfig(target="latents", steps=1)
+      ),
+      params,
+    )
 
 
-@pytest.mark.parametrize("change, error, message", [
+@pytest.mark.parametrize(
+  "change, error, message",
+  [
     ("images", ValueError, r"images must be \[B, V, H, W, 3\]"),
     ("intrinsics", TypeError, "intrinsics must be floating point"),
     ("output_times", ValueError, "output_times needs the input-view times"),
-])
+  ],
+)
 def test_tune_checks_its_inputs_at_trace_time(tiny, change, error, message):
   config, params = tiny
   images, c2w, intrinsics = scene()
@@ -106,15 +126,15 @@ def test_tune_checks_its_inputs_at_trace_time(tiny, change, error, message):
   else:
     extra["output_times"] = jnp.zeros((1, 2))
   with pytest.raises(error, match=message):
-    jax.eval_shape(lambda p: tune(p, images, c2w, intrinsics, model_config=config, **extra),
-                   params)
+    jax.eval_shape(lambda p: tune(p, images, c2w, intrinsics, model_config=config, **extra), params)
 
 
 def test_times_need_a_time_conditioned_model(tiny):
   config, params = tiny
   with pytest.raises(ValueError, match="without time embedding"):
-    jax.eval_shape(lambda p: tune(p, *scene(), model_config=config, times=jnp.zeros((1, 2))),
-                   params)
+    jax.eval_shape(
+      lambda p: tune(p, *scene(), model_config=config, times=jnp.zeros((1, 2))), params
+    )
 
 
 @pytest.mark.slow
@@ -125,8 +145,14 @@ def test_dynamic_tuning_decodes_at_each_views_time():
   batch = dynamic_batch([[0.0, 1.0]], [[0.3, 0.8]])
   context = (batch["context_images"], batch["context_c2w"], batch["context_intrinsics"])
   tuning = TuningConfig(target="tokens", steps=3, learning_rate=1e-2)
-  result = tune(params, *context, model_config=DYNAMIC_CONFIG, tuning=tuning,
-                times=batch["context_times"], output_times=batch["target_times"])
+  result = tune(
+    params,
+    *context,
+    model_config=DYNAMIC_CONFIG,
+    tuning=tuning,
+    times=batch["context_times"],
+    output_times=batch["target_times"],
+  )
   losses = np.asarray(result.losses)
   assert losses[-1] < losses[0]
   # one set of tuned Gaussians per output time: static part shared, dynamic part time-dependent

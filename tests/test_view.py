@@ -21,24 +21,27 @@ from tokengs_jax.train.objective import ObjectiveConfig
 
 def _gaussians(n, seed=0):
   rng = np.random.default_rng(seed)
-  return Gaussians(means=rng.normal(size=(n, 3)).astype(np.float32),
-                   opacities=rng.uniform(0, 1, n).astype(np.float32),
-                   scales=rng.uniform(0.01, 0.3, (n, 3)).astype(np.float32),
-                   quats=rng.normal(size=(n, 4)).astype(np.float32),
-                   colors=rng.uniform(0, 1, (n, 3)).astype(np.float32))
+  return Gaussians(
+    means=rng.normal(size=(n, 3)).astype(np.float32),
+    opacities=rng.uniform(0, 1, n).astype(np.float32),
+    scales=rng.uniform(0.01, 0.3, (n, 3)).astype(np.float32),
+    quats=rng.normal(size=(n, 4)).astype(np.float32),
+    colors=rng.uniform(0, 1, (n, 3)).astype(np.float32),
+  )
 
 
 def test_covariances_are_rotated_squared_scales():
   g = _gaussians(16)
   cov = scenes.covariances(g.scales, g.quats)
   np.testing.assert_allclose(cov, np.swapaxes(cov, -1, -2), atol=1e-7)
-  np.testing.assert_allclose(np.linalg.eigvalsh(cov), np.sort(g.scales ** 2, axis=-1), atol=1e-6)
+  np.testing.assert_allclose(np.linalg.eigvalsh(cov), np.sort(g.scales**2, axis=-1), atol=1e-6)
   # 30 degrees about z (wxyz, any norm): R diag(1, 4, 9) R^T, R = [[c, -s], [s, c]] in xy
   c, s = np.cos(np.pi / 6), np.sin(np.pi / 6)
   quat = 2 * np.float32([[np.cos(np.pi / 12), 0, 0, np.sin(np.pi / 12)]])
   expected = [[c * c + 4 * s * s, -3 * c * s, 0], [-3 * c * s, s * s + 4 * c * c, 0], [0, 0, 9]]
-  np.testing.assert_allclose(scenes.covariances(np.float32([[1, 2, 3]]), quat)[0], expected,
-                             atol=1e-5)
+  np.testing.assert_allclose(
+    scenes.covariances(np.float32([[1, 2, 3]]), quat)[0], expected, atol=1e-5
+  )
 
 
 def test_selection_by_opacity_and_part():
@@ -46,8 +49,14 @@ def test_selection_by_opacity_and_part():
   scene = scenes.ViewScene("s", g, num_static=4)
   assert scenes.selection(scene, 0.0).all()
   assert scenes.selection(scene, 0.5).tolist() == [False, False, True, False, True, True]
-  assert scenes.selection(scene, 0.1, show_dynamic=False).tolist() == [False, True, True, False,
-                                                                       False, False]
+  assert scenes.selection(scene, 0.1, show_dynamic=False).tolist() == [
+    False,
+    True,
+    True,
+    False,
+    False,
+    False,
+  ]
   assert scenes.selection(scene, 0.1, show_static=False).tolist() == [False] * 4 + [True, True]
   assert scenes.opacity_census(g.opacities, (0.05, 0.5)) == [(0.05, 5), (0.5, 3)]
 
@@ -77,12 +86,22 @@ def test_masked_render_equals_the_render_of_the_subset():
   assert all(np.isfinite(x).all() for x in jax.tree.leaves(scenes.masked(g, visible)))
   c2w, intrinsics = np.eye(4, dtype=np.float32), np.float32([20, 20, 8, 8])
   subset = jax.tree.map(lambda x: x[visible], g)
-  np.testing.assert_allclose(scenes.render(scenes.masked(g, visible), c2w, intrinsics, 16, 16),
-                             scenes.render(subset, c2w, intrinsics, 16, 16), atol=1e-5)
+  np.testing.assert_allclose(
+    scenes.render(scenes.masked(g, visible), c2w, intrinsics, 16, 16),
+    scenes.render(subset, c2w, intrinsics, 16, 16),
+    atol=1e-5,
+  )
 
 
-@pytest.mark.parametrize("preset", [re10k.PRESETS["synthetic-tiny"], re10k.PRESETS["paper"],
-                                    kubric.PRESETS["synthetic-tiny"], kubric.PRESETS["paper"]])
+@pytest.mark.parametrize(
+  "preset",
+  [
+    re10k.PRESETS["synthetic-tiny"],
+    re10k.PRESETS["paper"],
+    kubric.PRESETS["synthetic-tiny"],
+    kubric.PRESETS["paper"],
+  ],
+)
 def test_experiment_round_trips_through_metrics_json(preset):
   fields = json.loads(json.dumps(dataclasses.asdict(preset), default=str))
   experiment, task = scenes.experiment_from_fields(fields)
@@ -98,15 +117,20 @@ def results(tmp_path_factory):
   a spread-out head initialisation (the official one starts every Gaussian in one clump)."""
   root = tmp_path_factory.mktemp("view")
   smoke = re10k.PRESETS["smoke"]
-  experiment = dataclasses.replace(smoke, output_dir=str(root / "results"),
-                                   synthetic_dir=str(root / "data"),
-                                   model=smoke.model.replace(clip_head_readout_std=0.3))
+  experiment = dataclasses.replace(
+    smoke,
+    output_dir=str(root / "results"),
+    synthetic_dir=str(root / "data"),
+    model=smoke.model.replace(clip_head_readout_std=0.3),
+  )
   data.ensure_synthetic(experiment)
   out = root / "results"
-  weights.save_params(out / "params.msgpack",
-                      model.init_params(jax.random.key(0), experiment.model))
-  (out / "metrics.json").write_text(json.dumps(
-      {"title": "smoke", "experiment": dataclasses.asdict(experiment)}, default=str))
+  weights.save_params(
+    out / "params.msgpack", model.init_params(jax.random.key(0), experiment.model)
+  )
+  (out / "metrics.json").write_text(
+    json.dumps({"title": "smoke", "experiment": dataclasses.asdict(experiment)}, default=str)
+  )
   return out, experiment
 
 
@@ -143,9 +167,11 @@ def _free_port() -> int:
 def viewer(results):
   from experiments import view
 
-  server, app = view.start(view.ViewSettings(
-      str(results[0]), port=_free_port(), render_size=64, pull_back=0.0,
-      background=(1.0, 1.0, 1.0)))  # the untrained model's grey splats show on white
+  server, app = view.start(
+    view.ViewSettings(
+      str(results[0]), port=_free_port(), render_size=64, pull_back=0.0, background=(1.0, 1.0, 1.0)
+    )
+  )  # the untrained model's grey splats show on white
   yield server, app
   server.stop()
 
@@ -178,8 +204,10 @@ def _screenshot(url, path) -> np.ndarray:
   return np.asarray(Image.open(path).convert("RGB")).astype(np.float32)
 
 
-@pytest.mark.skipif(browser.find_chromium() is None,
-                    reason="needs Chromium: apt-get install -y chromium (docs/notes/viewer.md)")
+@pytest.mark.skipif(
+  browser.find_chromium() is None,
+  reason="needs Chromium: apt-get install -y chromium (docs/notes/viewer.md)",
+)
 def test_viewer_draws_the_splats_in_headless_chromium(viewer, tmp_path):
   """The page needs nothing from the web; with the browser at the target camera, the splats are
   drawn where the Gaussians project (compared with a capture without them)."""
@@ -206,13 +234,15 @@ def test_viewer_draws_the_splats_in_headless_chromium(viewer, tmp_path):
   x, y, z = np.average(local, axis=0, weights=scene.gaussians.opacities)
   fov = vertical_fov(scene.targets.intrinsics[view], scene.targets.images.shape[1])
   focal = 360 / np.tan(fov / 2)  # pixels, in the 720-pixel-high window
-  np.testing.assert_allclose([columns.mean(), rows.mean()],
-                             [480 + focal * x / z, 360 + focal * y / z], atol=10)
+  np.testing.assert_allclose(
+    [columns.mean(), rows.mean()], [480 + focal * x / z, 360 + focal * y / z], atol=10
+  )
 
 
 class _DynamicSource:
   """Two hand-made dynamic scenes (3 static + 3 dynamic Gaussians in front of one camera; the
   second has a Gaussian with a NaN centre)."""
+
   title, keys, time_conditioned = "dynamic", ["a", "b"], True
 
   def default_time(self, index):
@@ -220,11 +250,17 @@ class _DynamicSource:
 
   def scene(self, index, time=None):
     g = _gaussians(6, seed=index)
-    g = dataclasses.replace(g, means=g.means * 0.3 + np.float32([0, 0, 2]),
-                            opacities=np.float32([0.9, 0.2, 0.8, 0.7, 0.05, 0.6]))
+    g = dataclasses.replace(
+      g,
+      means=g.means * 0.3 + np.float32([0, 0, 2]),
+      opacities=np.float32([0.9, 0.2, 0.8, 0.7, 0.05, 0.6]),
+    )
     g.means[4, 0] = np.nan if index == 1 else g.means[4, 0]
-    camera = scenes.Cameras(np.zeros((1, 8, 8, 3), np.float32), np.eye(4, dtype=np.float32)[None],
-                            np.float32([[10, 10, 4, 4]]))
+    camera = scenes.Cameras(
+      np.zeros((1, 8, 8, 3), np.float32),
+      np.eye(4, dtype=np.float32)[None],
+      np.float32([[10, 10, 4, 4]]),
+    )
     return scenes.ViewScene(self.keys[index], g, 3, camera, camera, time)
 
 

@@ -12,26 +12,38 @@ import importlib
 
 # public name -> module that defines it
 _PUBLIC = {
-    "Gaussians": "tokengs_jax.gaussians",
-    "render": "tokengs_jax.splatting",
-    "render_exact": "tokengs_jax.splatting",
-    "RenderConfig": "tokengs_jax.splatting",
-    "RenderResult": "tokengs_jax.splatting",
-    "plucker_rays": "tokengs_jax.camera",
-    "ModelConfig": "tokengs_jax.model",
-    "preset": "tokengs_jax.model",
-    "reconstruct": "tokengs_jax.model",
-    "predict_gaussians": "tokengs_jax.model",
-    "encode": "tokengs_jax.model",
-    "decode": "tokengs_jax.model",
-    "init_params": "tokengs_jax.model",
-    "config_from_official": "tokengs_jax.model",
-    "load_official_checkpoint": "tokengs_jax.model",
-    "tune": "tokengs_jax.tuning",
-    "TuningConfig": "tokengs_jax.tuning",
+  "Gaussians": "tokengs_jax.gaussians",
+  "render": "tokengs_jax.splatting",
+  "render_exact": "tokengs_jax.splatting",
+  "RenderConfig": "tokengs_jax.splatting",
+  "RenderResult": "tokengs_jax.splatting",
+  "plucker_rays": "tokengs_jax.camera",
+  "ModelConfig": "tokengs_jax.model",
+  "preset": "tokengs_jax.model",
+  "reconstruct": "tokengs_jax.model",
+  "predict_gaussians": "tokengs_jax.model",
+  "encode": "tokengs_jax.model",
+  "decode": "tokengs_jax.model",
+  "init_params": "tokengs_jax.model",
+  "config_from_official": "tokengs_jax.model",
+  "load_official_checkpoint": "tokengs_jax.model",
+  "tune": "tokengs_jax.tuning",
+  "TuningConfig": "tokengs_jax.tuning",
 }
-_SUBMODULES = ("camera", "math", "gaussians", "splatting", "model", "losses", "metrics", "data",
-               "train", "tuning", "evaluation", "export")
+_SUBMODULES = (
+  "camera",
+  "math",
+  "gaussians",
+  "splatting",
+  "model",
+  "losses",
+  "metrics",
+  "data",
+  "train",
+  "tuning",
+  "evaluation",
+  "export",
+)
 
 __all__ = sorted(_PUBLIC) + list(_SUBMODULES)
 

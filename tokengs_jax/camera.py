@@ -34,8 +34,12 @@ def intrinsics_matrix(intrinsics: jax.Array) -> jax.Array:
   fx, fy, cx, cy = jnp.moveaxis(intrinsics, -1, 0)
   zero, one = jnp.zeros_like(fx), jnp.ones_like(fx)
   return jnp.stack(
-      [jnp.stack([fx, zero, cx], -1), jnp.stack([zero, fy, cy], -1), jnp.stack([zero, zero, one], -1)],
-      axis=-2,
+    [
+      jnp.stack([fx, zero, cx], -1),
+      jnp.stack([zero, fy, cy], -1),
+      jnp.stack([zero, zero, one], -1),
+    ],
+    axis=-2,
   )
 
 

@@ -98,8 +98,15 @@ def reconstruct(params, batch: dict, config: model.ModelConfig, target_times=Non
   if config.time_embedding:
     times = batch["context_times"]
     target_times = batch["target_times"] if target_times is None else target_times
-  return _reconstruct(params, batch["context_images"], batch["context_c2w"],
-                      batch["context_intrinsics"], times, target_times, config=config)
+  return _reconstruct(
+    params,
+    batch["context_images"],
+    batch["context_c2w"],
+    batch["context_intrinsics"],
+    times,
+    target_times,
+    config=config,
+  )
 
 
 def feed_forward(params, config: model.ModelConfig) -> Method:
@@ -107,20 +114,30 @@ def feed_forward(params, config: model.ModelConfig) -> Method:
   return Method(reconstruct=lambda batch: reconstruct(params, batch, config))
 
 
-def tuned(params, config: model.ModelConfig, settings: tuning.TuningConfig,
-          loss_config=None) -> Method:
+def tuned(
+  params, config: model.ModelConfig, settings: tuning.TuningConfig, loss_config=None
+) -> Method:
   """The network's Gaussians after test-time tuning on the input views (`tuning.tune`).
 
   Dynamic models tune with every input view at its own time and return the Gaussians at every
   target view's time. loss_config: the tuning loss (`losses.LossConfig`; None: the default).
   """
+
   def predict(batch):
     timed = {}
     if config.time_embedding:
       timed = {"times": batch["context_times"], "output_times": batch["target_times"]}
-    return tuning.tune(params, batch["context_images"], batch["context_c2w"],
-                       batch["context_intrinsics"], model_config=config, tuning=settings,
-                       loss_config=loss_config, **timed).gaussians
+    return tuning.tune(
+      params,
+      batch["context_images"],
+      batch["context_c2w"],
+      batch["context_intrinsics"],
+      model_config=config,
+      tuning=settings,
+      loss_config=loss_config,
+      **timed,
+    ).gaussians
+
   return Method(reconstruct=predict)
 
 
@@ -162,9 +179,11 @@ def nearest_view_images(batch: dict) -> np.ndarray:
 
 def baselines() -> dict[str, Method]:
   """The trivial baselines every evaluation scores, weakest first."""
-  return {"mean_colour": Method(images=mean_colour_images),
-          "input_average": Method(images=input_average_images),
-          "nearest_view": Method(images=nearest_view_images)}
+  return {
+    "mean_colour": Method(images=mean_colour_images),
+    "input_average": Method(images=input_average_images),
+    "nearest_view": Method(images=nearest_view_images),
+  }
 
 
 # ----------------------------------------------------------------------------------------------
@@ -180,8 +199,15 @@ class Rendered:
   alpha: np.ndarray
 
 
-def render_targets(gaussians: Gaussians, c2w, intrinsics, *, height: int, width: int,
-                   render_config: splatting.RenderConfig | None = None) -> Rendered:
+def render_targets(
+  gaussians: Gaussians,
+  c2w,
+  intrinsics,
+  *,
+  height: int,
+  width: int,
+  render_config: splatting.RenderConfig | None = None,
+) -> Rendered:
   """Renders cameras as training supervises them (grey background, near / far culling).
 
   The single render of evaluation (scores, grids, fly-throughs, studies): exact by construction
@@ -202,9 +228,16 @@ def render_targets(gaussians: Gaussians, c2w, intrinsics, *, height: int, width:
   if per_view:  # each set seen by its own camera: a batch [B, V] of single-camera renders
     world_to_camera, intrinsics = world_to_camera[..., None, :, :], intrinsics[..., None, :]
   result = splatting.render_exact(
-      gaussians, world_to_camera, intrinsics, height=height, width=width,
-      background=jnp.asarray(_OBJECTIVE.background, jnp.float32), near=_OBJECTIVE.near,
-      far=_OBJECTIVE.far, config=render_config)
+    gaussians,
+    world_to_camera,
+    intrinsics,
+    height=height,
+    width=width,
+    background=jnp.asarray(_OBJECTIVE.background, jnp.float32),
+    near=_OBJECTIVE.near,
+    far=_OBJECTIVE.far,
+    config=render_config,
+  )
   views = [np.asarray(x) for x in (result.rgb, result.depth, result.alpha)]
   if per_view:
     views = [x[..., 0, :, :, :] for x in views]
@@ -285,26 +318,45 @@ def _predict(method: Method, batch: dict, render_config) -> tuple[dict, float]:
   if method.images is not None:
     rgb = np.asarray(method.images(batch))
     return {"rgb": rgb, "depth": None, "alpha": None, "gaussians": None}, (
-        time.perf_counter() - start)
+      time.perf_counter() - start
+    )
   gaussians = jax.block_until_ready(method.reconstruct(batch))
   seconds = time.perf_counter() - start
   height, width = batch["target_images"].shape[-3:-1]
-  rendered = render_targets(gaussians, batch["target_c2w"], batch["target_intrinsics"],
-                            height=height, width=width, render_config=render_config)
-  return {"rgb": rendered.rgb, "depth": rendered.depth, "alpha": rendered.alpha,
-          "gaussians": gaussians}, seconds
+  rendered = render_targets(
+    gaussians,
+    batch["target_c2w"],
+    batch["target_intrinsics"],
+    height=height,
+    width=width,
+    render_config=render_config,
+  )
+  return {
+    "rgb": rendered.rgb,
+    "depth": rendered.depth,
+    "alpha": rendered.alpha,
+    "gaussians": gaussians,
+  }, seconds
 
 
 def _on_host(prediction: dict) -> dict:
   """A batch-of-one prediction kept for pictures: rgb / depth / alpha without the batch axis,
   Gaussians fetched with it ([1] or [1, Vt])."""
-  views = {field: None if prediction[field] is None else prediction[field][0]
-           for field in ("rgb", "depth", "alpha")}
+  views = {
+    field: None if prediction[field] is None else prediction[field][0]
+    for field in ("rgb", "depth", "alpha")
+  }
   return {**views, "gaussians": jax.device_get(prediction["gaussians"])}
 
 
-def evaluate(scenes: Sequence[Scene], methods: Mapping[str, Method], scorer: Scorer, *,
-             render_config: splatting.RenderConfig | None = None, keep: int = 0) -> Evaluation:
+def evaluate(
+  scenes: Sequence[Scene],
+  methods: Mapping[str, Method],
+  scorer: Scorer,
+  *,
+  render_config: splatting.RenderConfig | None = None,
+  keep: int = 0,
+) -> Evaluation:
   """Scores every method on every scene.
 
   Args:
@@ -325,7 +377,9 @@ def evaluate(scenes: Sequence[Scene], methods: Mapping[str, Method], scorer: Sco
       scores[name].seconds += time.perf_counter() - start
       scores[name].predict_seconds.append(predict_seconds)
       scores[name].per_view.append(views)
-      scores[name].per_scene.append({"key": key, **{k: float(np.mean(v)) for k, v in views.items()}})
+      scores[name].per_scene.append(
+        {"key": key, **{k: float(np.mean(v)) for k, v in views.items()}}
+      )
       if position < keep:
         entry[name] = _on_host(prediction)
     if position < keep:
@@ -333,8 +387,9 @@ def evaluate(scenes: Sequence[Scene], methods: Mapping[str, Method], scorer: Sco
   return Evaluation(scores, kept)
 
 
-def evaluate_sets(test_sets: Mapping[str, Sequence[Scene]], methods: Mapping[str, Method],
-                  scorer: Scorer, **kwargs) -> dict[str, Evaluation]:
+def evaluate_sets(
+  test_sets: Mapping[str, Sequence[Scene]], methods: Mapping[str, Method], scorer: Scorer, **kwargs
+) -> dict[str, Evaluation]:
   """`evaluate` on each named test set (same methods, same scorer)."""
   return {name: evaluate(scenes, methods, scorer, **kwargs) for name, scenes in test_sets.items()}
 

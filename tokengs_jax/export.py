@@ -13,8 +13,11 @@ from PIL import Image
 
 # Zeroth-order real spherical harmonic; 3DGS viewers decode colour = 0.5 + SH_C0 * f_dc.
 SH_C0 = 0.28209479177387814
-_PLY_FIELDS = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
-               + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)])
+_PLY_FIELDS = (
+  ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
+  + [f"scale_{i}" for i in range(3)]
+  + [f"rot_{i}" for i in range(4)]
+)
 
 
 def _logit(p: np.ndarray, eps: float = 1e-6) -> np.ndarray:
@@ -34,13 +37,27 @@ def write_ply(path, means, opacities, scales, quats, colors) -> pathlib.Path:
   opacities = np.asarray(opacities, np.float32).reshape(-1, 1)
   norm = np.linalg.norm(quats, axis=-1, keepdims=True)
   quats = np.where(norm > 0, quats / np.maximum(norm, 1e-12), np.array([1, 0, 0, 0], np.float32))
-  table = np.concatenate([
-      means, np.zeros_like(means), (colors - 0.5) / SH_C0, _logit(opacities),
-      np.log(np.maximum(scales, 1e-12)), quats], axis=-1).astype("<f4")
+  table = np.concatenate(
+    [
+      means,
+      np.zeros_like(means),
+      (colors - 0.5) / SH_C0,
+      _logit(opacities),
+      np.log(np.maximum(scales, 1e-12)),
+      quats,
+    ],
+    axis=-1,
+  ).astype("<f4")
   if not np.all(np.isfinite(table)):
     raise ValueError(f"refusing to write non-finite Gaussians to {path}")
-  header = "\n".join(["ply", "format binary_little_endian 1.0", f"element vertex {len(table)}"]
-                     + [f"property float {name}" for name in _PLY_FIELDS] + ["end_header"]) + "\n"
+  header = (
+    "\n".join(
+      ["ply", "format binary_little_endian 1.0", f"element vertex {len(table)}"]
+      + [f"property float {name}" for name in _PLY_FIELDS]
+      + ["end_header"]
+    )
+    + "\n"
+  )
   path = pathlib.Path(path)
   path.parent.mkdir(parents=True, exist_ok=True)
   with open(path, "wb") as f:
@@ -56,17 +73,20 @@ def read_ply(path) -> dict[str, np.ndarray]:
   """
   data = pathlib.Path(path).read_bytes()
   end = data.index(b"end_header\n") + len(b"end_header\n")
-  names = [line.split()[-1] for line in data[:end].decode("ascii").splitlines()
-           if line.startswith("property")]
+  names = [
+    line.split()[-1]
+    for line in data[:end].decode("ascii").splitlines()
+    if line.startswith("property")
+  ]
   table = np.frombuffer(data[end:], dtype="<f4").reshape(-1, len(names))
   col = {name: table[:, i] for i, name in enumerate(names)}
   stack = lambda keys: np.stack([col[k] for k in keys], axis=-1)
   return {
-      "means": stack(["x", "y", "z"]),
-      "opacities": 1.0 / (1.0 + np.exp(-col["opacity"])),
-      "scales": np.exp(stack([f"scale_{i}" for i in range(3)])),
-      "quats": stack([f"rot_{i}" for i in range(4)]),
-      "colors": 0.5 + SH_C0 * stack(["f_dc_0", "f_dc_1", "f_dc_2"]),
+    "means": stack(["x", "y", "z"]),
+    "opacities": 1.0 / (1.0 + np.exp(-col["opacity"])),
+    "scales": np.exp(stack([f"scale_{i}" for i in range(3)])),
+    "quats": stack([f"rot_{i}" for i in range(4)]),
+    "colors": 0.5 + SH_C0 * stack(["f_dc_0", "f_dc_1", "f_dc_2"]),
   }
 
 
@@ -101,11 +121,12 @@ def inverse_depth_range(depths, alphas=None) -> tuple[float, float] | None:
 def depth_ramp(t) -> np.ndarray:
   """The depth colour map: t [...] in [0, 1] (1 = near) -> [..., 3]; readable without matplotlib."""
   t = np.asarray(t, np.float32)
-  return np.stack([t ** 1.5, np.sqrt(t) * 0.9, 0.6 * (1.0 - t) + 0.1], axis=-1)
+  return np.stack([t**1.5, np.sqrt(t) * 0.9, 0.6 * (1.0 - t) + 0.1], axis=-1)
 
 
-def colorize_depth(depth, alpha=None, inverse_range: tuple[float, float] | None = None
-                   ) -> np.ndarray:
+def colorize_depth(
+  depth, alpha=None, inverse_range: tuple[float, float] | None = None
+) -> np.ndarray:
   """Depth [H, W] or [H, W, 1] -> [H, W, 3] in [0, 1], near = bright (`depth_ramp`).
 
   inverse_range: (lo, hi) of 1 / depth mapped to the ends of the ramp (several maps on one scale);
@@ -132,7 +153,7 @@ def image_grid(rows: Sequence[Sequence[np.ndarray]], pad: int = 2) -> np.ndarray
   for row, h in zip(rows, heights):
     x = pad
     for img in row:
-      canvas[y:y + img.shape[0], x:x + img.shape[1]] = img
+      canvas[y : y + img.shape[0], x : x + img.shape[1]] = img
       x += img.shape[1] + pad
     y += h + pad
   return canvas
@@ -156,8 +177,9 @@ def write_mp4(path, frames: Sequence[np.ndarray], fps: int = 24) -> pathlib.Path
 
   path = pathlib.Path(path)
   path.parent.mkdir(parents=True, exist_ok=True)
-  with imageio.get_writer(path, fps=fps, codec="libx264", macro_block_size=1,
-                          pixelformat="yuv420p") as writer:
+  with imageio.get_writer(
+    path, fps=fps, codec="libx264", macro_block_size=1, pixelformat="yuv420p"
+  ) as writer:
     for frame in frames:
       frame = np.asarray(frame)
       frame = frame if frame.dtype == np.uint8 else to_uint8(frame)

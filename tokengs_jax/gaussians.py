@@ -44,7 +44,8 @@ class Gaussians:
   def to_flat(self) -> jax.Array:
     """To the official flat layout.  -> [..., N, 14]."""
     return jnp.concatenate(
-        [self.means, self.opacities[..., None], self.scales, self.quats, self.colors], axis=-1)
+      [self.means, self.opacities[..., None], self.scales, self.quats, self.colors], axis=-1
+    )
 
   def validate(self) -> tuple[int, ...]:
     """Checks the field shapes and dtypes (trace time: shapes only); returns the batch shape [...].
@@ -60,18 +61,20 @@ class Gaussians:
       if not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)):
         raise ValueError(f"Gaussians.{name} must be real numbers, got dtype {dtype}")
       expected = "[..., N" + "".join(f", {d}" for d in tail) + "]"
-      if len(shape) < 1 + len(tail) or shape[len(shape) - len(tail):] != tail:
+      if len(shape) < 1 + len(tail) or shape[len(shape) - len(tail) :] != tail:
         raise ValueError(f"Gaussians.{name} must be {expected}, got shape {shape}")
       field_num = shape[len(shape) - len(tail) - 1]
       if num is not None and field_num != num:
         raise ValueError(f"Gaussians.{name} has N = {field_num}, Gaussians.means has N = {num}")
       num = field_num
-      batches.append(shape[:len(shape) - len(tail) - 1])
+      batches.append(shape[: len(shape) - len(tail) - 1])
     try:
       return jnp.broadcast_shapes(*batches)
     except ValueError:
-      raise ValueError(f"Gaussians fields have batch shapes that do not broadcast: "
-                       f"{dict(zip(_FIELD_TAILS, batches))}") from None
+      raise ValueError(
+        f"Gaussians fields have batch shapes that do not broadcast: "
+        f"{dict(zip(_FIELD_TAILS, batches))}"
+      ) from None
 
   @property
   def num_gaussians(self) -> int:

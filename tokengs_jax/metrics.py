@@ -48,19 +48,19 @@ def _blur_valid(x: jax.Array, taps: np.ndarray) -> jax.Array:
   kernel = jnp.asarray(taps, x.dtype)
   for window in (kernel.reshape(-1, 1, 1, 1), kernel.reshape(1, -1, 1, 1)):
     planes = jax.lax.conv_general_dilated(
-        planes, window, window_strides=(1, 1), padding="VALID",
-        dimension_numbers=("NHWC", "HWIO", "NHWC"), precision=jax.lax.Precision.HIGHEST)
+      planes,
+      window,
+      window_strides=(1, 1),
+      padding="VALID",
+      dimension_numbers=("NHWC", "HWIO", "NHWC"),
+      precision=jax.lax.Precision.HIGHEST,
+    )
   out_h, out_w = planes.shape[1:3]
   return jnp.moveaxis(planes.reshape(*lead, c, out_h, out_w), -3, -1)
 
 
 def ssim_map(
-    x: jax.Array,
-    y: jax.Array,
-    *,
-    zero_pad: bool,
-    sample_covariance: bool,
-    data_range: float = 1.0,
+  x: jax.Array, y: jax.Array, *, zero_pad: bool, sample_covariance: bool, data_range: float = 1.0
 ) -> jax.Array:
   """Per-pixel, per-channel SSIM with an 11-tap Gaussian window (sigma 1.5).
 
@@ -86,7 +86,8 @@ def ssim_map(
   shift_y = jax.lax.stop_gradient(jnp.mean(y, axis=(-3, -2), keepdims=True))
   xc, yc = x - shift_x, y - shift_y
   mu_xc, mu_yc, mom_xx, mom_yy, mom_xy = _blur_valid(
-      jnp.stack([xc, yc, xc * xc, yc * yc, xc * yc]), taps)
+    jnp.stack([xc, yc, xc * xc, yc * yc, xc * yc]), taps
+  )
   mu_x, mu_y = mu_xc + shift_x, mu_yc + shift_y
   window_size = len(taps) ** 2
   cov_scale = window_size / (window_size - 1) if sample_covariance else 1.0

@@ -43,10 +43,10 @@ from tokengs_jax.camera import invert_rigid
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.model.inputs import check_times
 from tokengs_jax.train.objective import (
-    ObjectiveConfig,
-    decode_at_times,
-    supervision_loss,
-    time_conditioned_loss,
+  ObjectiveConfig,
+  decode_at_times,
+  supervision_loss,
+  time_conditioned_loss,
 )
 
 Target = Literal["tokens", "latents", "gaussians", "tokens+gaussians"]
@@ -88,18 +88,28 @@ class TuningResult:
 
 def _unconstrained(g: Gaussians) -> Gaussians:
   """Gaussians -> unconstrained coordinates (inverse of `_constrained`)."""
+
   def logit(x):
     return jax.scipy.special.logit(jnp.clip(x, 1e-6, 1 - 1e-6))
 
-  return Gaussians(means=g.means, opacities=logit(g.opacities),
-                   scales=jnp.log(jnp.maximum(g.scales, 1e-12)), quats=g.quats,
-                   colors=logit(g.colors))
+  return Gaussians(
+    means=g.means,
+    opacities=logit(g.opacities),
+    scales=jnp.log(jnp.maximum(g.scales, 1e-12)),
+    quats=g.quats,
+    colors=logit(g.colors),
+  )
 
 
 def _constrained(u: Gaussians) -> Gaussians:
   """Unconstrained coordinates -> valid Gaussians."""
-  return Gaussians(means=u.means, opacities=jax.nn.sigmoid(u.opacities), scales=jnp.exp(u.scales),
-                   quats=u.quats, colors=jax.nn.sigmoid(u.colors))
+  return Gaussians(
+    means=u.means,
+    opacities=jax.nn.sigmoid(u.opacities),
+    scales=jnp.exp(u.scales),
+    quats=u.quats,
+    colors=jax.nn.sigmoid(u.colors),
+  )
 
 
 def _offset(gaussians: Gaussians, offsets: Gaussians) -> Gaussians:
@@ -107,10 +117,20 @@ def _offset(gaussians: Gaussians, offsets: Gaussians) -> Gaussians:
   return _constrained(jax.tree.map(jnp.add, _unconstrained(gaussians), offsets))
 
 
-def tune(params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array, *, model_config,
-         tuning: TuningConfig = TuningConfig(), loss_config=None, render_config=None,
-         objective: ObjectiveConfig | None = None, times: jax.Array | None = None,
-         output_times: jax.Array | None = None) -> TuningResult:
+def tune(
+  params,
+  images: jax.Array,
+  c2w: jax.Array,
+  intrinsics: jax.Array,
+  *,
+  model_config,
+  tuning: TuningConfig = TuningConfig(),
+  loss_config=None,
+  render_config=None,
+  objective: ObjectiveConfig | None = None,
+  times: jax.Array | None = None,
+  output_times: jax.Array | None = None,
+) -> TuningResult:
   """Reconstructs a scene from its input views and tunes it on them.
 
   Time-conditioned models with `times`: the input views are encoded with their times, and the
@@ -145,26 +165,50 @@ def tune(params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array, *, mo
   render_config = splatting.RenderConfig() if render_config is None else render_config
   while True:
     result, overflowed = _tune_once(
-        params, images, c2w, intrinsics, model_config=model_config, tuning=tuning,
-        loss_config=loss_config, render_config=render_config, objective=objective, times=times,
-        output_times=output_times)
+      params,
+      images,
+      c2w,
+      intrinsics,
+      model_config=model_config,
+      tuning=tuning,
+      loss_config=loss_config,
+      render_config=render_config,
+      objective=objective,
+      times=times,
+      output_times=output_times,
+    )
     if isinstance(overflowed, jax.core.Tracer):
-      raise TypeError("tune re-runs overflowing renders from the host: call it outside "
-                      "jit/vmap/grad")
+      raise TypeError(
+        "tune re-runs overflowing renders from the host: call it outside jit/vmap/grad"
+      )
     if not bool(overflowed):
       return result
-    render_config = splatting.larger_budget(render_config, result.gaussians.num_gaussians,
-                                            images.shape[-3], images.shape[-2])
-    logging.info("tune: a render overflowed its tile budget; tuning again with "
-                 "max_intersections=%d", render_config.max_intersections)
+    render_config = splatting.larger_budget(
+      render_config, result.gaussians.num_gaussians, images.shape[-3], images.shape[-2]
+    )
+    logging.info(
+      "tune: a render overflowed its tile budget; tuning again with max_intersections=%d",
+      render_config.max_intersections,
+    )
 
 
-@functools.partial(jax.jit, static_argnames=("model_config", "tuning", "loss_config",
-                                              "render_config", "objective"))
-def _tune_once(params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array, *, model_config,
-               tuning: TuningConfig = TuningConfig(), loss_config=None, render_config=None,
-               objective: ObjectiveConfig | None = None, times: jax.Array | None = None,
-               output_times: jax.Array | None = None) -> tuple[TuningResult, jax.Array]:
+@functools.partial(
+  jax.jit, static_argnames=("model_config", "tuning", "loss_config", "render_config", "objective")
+)
+def _tune_once(
+  params,
+  images: jax.Array,
+  c2w: jax.Array,
+  intrinsics: jax.Array,
+  *,
+  model_config,
+  tuning: TuningConfig = TuningConfig(),
+  loss_config=None,
+  render_config=None,
+  objective: ObjectiveConfig | None = None,
+  times: jax.Array | None = None,
+  output_times: jax.Array | None = None,
+) -> tuple[TuningResult, jax.Array]:
   """`tune` at one render budget; also returns whether any of its renders overflowed ([] bool)."""
   loss_config = losses.LossConfig() if loss_config is None else loss_config
   objective = ObjectiveConfig() if objective is None else objective
@@ -176,8 +220,9 @@ def _tune_once(params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array,
       raise ValueError("output_times needs the input-view times")
     check_times("output_times", output_times, (images.shape[0], None), "[B, T]")
   # The encoder runs once; stop_gradient keeps the loop from differentiating into it.
-  encoded = jax.lax.stop_gradient(model.encode_views(params, images, c2w, intrinsics,
-                                                     model_config, times=times))
+  encoded = jax.lax.stop_gradient(
+    model.encode_views(params, images, c2w, intrinsics, model_config, times=times)
+  )
   world_to_camera = invert_rigid(c2w)
 
   def decode(tokens=None, latents=None, at_times=None) -> Gaussians:
@@ -191,7 +236,8 @@ def _tune_once(params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array,
   variables, learning_rates = {}, {}
   if target in ("tokens", "tokens+gaussians"):
     variables["tokens"] = model.initial_tokens(params, model_config, images.shape[0]).astype(
-        jnp.float32)
+      jnp.float32
+    )
     learning_rates["tokens"] = tuning.learning_rate
   if target == "latents":
     if encoded.latents is None:
@@ -215,8 +261,7 @@ def _tune_once(params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array,
       base = feed_forward
     else:  # the feed-forward Gaussians at these times (forward only)
       base = jax.lax.stop_gradient(decode(at_times=at_times))
-    offsets = v["offsets"] if at_times is None else jax.tree.map(lambda x: x[:, None],
-                                                                  v["offsets"])
+    offsets = v["offsets"] if at_times is None else jax.tree.map(lambda x: x[:, None], v["offsets"])
     return _offset(base, offsets)
 
   # the dynamic auxiliary term as official TTT: the loss of a fresh model, i.e. its base weight
@@ -226,19 +271,28 @@ def _tune_once(params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array,
   def loss_of(v):
     if timed:
       return time_conditioned_loss(
-          lambda t: gaussians_of(v, t), times, images, world_to_camera, intrinsics, loss_config,
-          render_config, per_view,
-          num_static_gaussians=model_config.num_static_gaussians if with_aux else None)
-    return supervision_loss(gaussians_of(v), images, world_to_camera, intrinsics, loss_config,
-                            render_config, objective)
+        lambda t: gaussians_of(v, t),
+        times,
+        images,
+        world_to_camera,
+        intrinsics,
+        loss_config,
+        render_config,
+        per_view,
+        num_static_gaussians=model_config.num_static_gaussians if with_aux else None,
+      )
+    return supervision_loss(
+      gaussians_of(v), images, world_to_camera, intrinsics, loss_config, render_config, objective
+    )
 
   def loss_and_overflow(v):
     loss, terms = loss_of(v)
     return loss, terms["render_overflow"] > 0
 
   optimizer = optax.multi_transform(
-      {name: optax.adam(rate, b1=tuning.b1, b2=tuning.b2) for name, rate in learning_rates.items()},
-      {name: name for name in variables})
+    {name: optax.adam(rate, b1=tuning.b1, b2=tuning.b2) for name, rate in learning_rates.items()},
+    {name: name for name in variables},
+  )
 
   def step(carry, _):
     v, opt_state = carry
@@ -247,11 +301,14 @@ def _tune_once(params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array,
     return (optax.apply_updates(v, updates), opt_state), (loss, overflowed)
 
   (variables, _), (step_losses, step_overflows) = jax.lax.scan(
-      step, (variables, optimizer.init(variables)), None, length=tuning.steps)
+    step, (variables, optimizer.init(variables)), None, length=tuning.steps
+  )
   final_loss, final_overflow = loss_and_overflow(variables)
   if timed:
     gaussians = gaussians_of(variables, times if output_times is None else output_times)
   else:
     gaussians = gaussians_of(variables)
-  return (TuningResult(gaussians=gaussians, losses=jnp.append(step_losses, final_loss)),
-          jnp.any(step_overflows) | final_overflow)
+  return (
+    TuningResult(gaussians=gaussians, losses=jnp.append(step_losses, final_loss)),
+    jnp.any(step_overflows) | final_overflow,
+  )

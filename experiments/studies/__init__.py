@@ -37,6 +37,7 @@ class StudySettings:
     params: trained TokenGS weights; trained with `experiment` (and saved there) when missing.
     output_dir: where the study's table and plot go.
   """
+
   experiment: Experiment = dataclasses.field(default_factory=Experiment)
   params: str = "outputs/re10k/tiny_synthetic/params.msgpack"
   output_dir: str = "outputs/studies"
@@ -46,8 +47,9 @@ def train(experiment: Experiment, params, loss_fn=None) -> dict:
   """Trains with the experiment's settings (default loss: TokenGS's); returns the weights."""
   task = tasks.Task()
   loss_fn = task.loss_fn(experiment, experiment.model) if loss_fn is None else loss_fn
-  params, history, seconds = training.train_model(experiment, params, loss_fn,
-                                                  iter(task.training_batches(experiment)))
+  params, history, seconds = training.train_model(
+    experiment, params, loss_fn, iter(task.training_batches(experiment))
+  )
   print(f"[study] trained in {seconds:.0f} s, final loss {history[-1]['loss']:.4f}", flush=True)
   return params
 
@@ -66,14 +68,16 @@ def trained_tokengs(settings: StudySettings) -> tuple[model.ModelConfig, dict]:
   return config, params
 
 
-def held_out(experiment: Experiment, views: data.ViewChooser | None = None
-             ) -> list[evaluation.Scene]:
+def held_out(
+  experiment: Experiment, views: data.ViewChooser | None = None
+) -> list[evaluation.Scene]:
   """The experiment's held-out scenes (optionally with chosen views)."""
   return data.evaluation_scenes(experiment, views=views)
 
 
-def psnr_of(method: evaluation.Method, scenes: Sequence[evaluation.Scene],
-            scorer: evaluation.Scorer) -> tuple[list[float], float]:
+def psnr_of(
+  method: evaluation.Method, scenes: Sequence[evaluation.Scene], scorer: evaluation.Scorer
+) -> tuple[list[float], float]:
   """Per-scene PSNR of a method and its mean seconds per scene of reconstruction (+ tuning),
   compilation excluded: the first scene is evaluated once before the timed pass."""
   evaluation.evaluate(scenes[:1], {"method": method}, scorer)
@@ -81,20 +85,30 @@ def psnr_of(method: evaluation.Method, scenes: Sequence[evaluation.Scene],
   return [s["psnr"] for s in scores.per_scene], float(np.mean(scores.predict_seconds))
 
 
-def write_table(out_dir, name: str, title: str, rows: list[dict], columns: Sequence[str],
-                notes: Sequence[str] = ()) -> pathlib.Path:
+def write_table(
+  out_dir,
+  name: str,
+  title: str,
+  rows: list[dict],
+  columns: Sequence[str],
+  notes: Sequence[str] = (),
+) -> pathlib.Path:
   """`<name>.json` (rows + notes) and `<name>.md` (a table) in `out_dir` (process 0 only)."""
   out_dir = pathlib.Path(out_dir)
   lines = [f"# {title}\n", "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
   for row in rows:
-    lines.append("| " + " | ".join(f"{row[c]:.4g}" if isinstance(row[c], float) else str(row[c])
-                                   for c in columns) + " |")
+    lines.append(
+      "| "
+      + " | ".join(f"{row[c]:.4g}" if isinstance(row[c], float) else str(row[c]) for c in columns)
+      + " |"
+    )
   lines += [""] + [f"- {n}" for n in notes]
   path = out_dir / f"{name}.md"
   print("\n".join(lines), flush=True)
   if evaluation.writes_results():
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / f"{name}.json").write_text(json.dumps({"title": title, "rows": rows,
-                                                      "notes": list(notes)}, indent=1))
+    (out_dir / f"{name}.json").write_text(
+      json.dumps({"title": title, "rows": rows, "notes": list(notes)}, indent=1)
+    )
     path.write_text("\n".join(lines) + "\n")
   return path

@@ -20,14 +20,23 @@ import numpy as np
 import tyro
 
 from experiments import pixel_baseline, plot, weights
-from experiments.studies import StudySettings, held_out, psnr_of, train, trained_tokengs, write_table
+from experiments.studies import (
+  StudySettings,
+  held_out,
+  psnr_of,
+  train,
+  trained_tokengs,
+  write_table,
+)
 from tokengs_jax import evaluation
 
 
 @dataclasses.dataclass(frozen=True)
 class CameraNoise(StudySettings):
   angles: tuple[float, ...] = (0.0, 1.0, 2.0, 5.0, 10.0)
-  baseline_params: str | None = None  # trained baseline weights; default <out>/pixel_baseline.msgpack
+  baseline_params: str | None = (
+    None  # trained baseline weights; default <out>/pixel_baseline.msgpack
+  )
 
   def __post_init__(self):
     if 0.0 not in self.angles:
@@ -42,8 +51,9 @@ def rotate_cameras(c2w: np.ndarray, axes: np.ndarray, degrees: float) -> np.ndar
   out = np.array(c2w, np.float64)
   angle = np.deg2rad(degrees)
   for v in range(1, len(out)):
-    k = np.array([[0, -axes[v, 2], axes[v, 1]], [axes[v, 2], 0, -axes[v, 0]],
-                  [-axes[v, 1], axes[v, 0], 0]])
+    k = np.array(
+      [[0, -axes[v, 2], axes[v, 1]], [axes[v, 2], 0, -axes[v, 0]], [-axes[v, 1], axes[v, 0], 0]]
+    )
     rotation = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
     out[v, :3, :3] = out[v, :3, :3] @ rotation
   return out.astype(np.float32)
@@ -55,8 +65,9 @@ def noisy(examples, degrees: float, seed: int):
   for position, (key, batch) in enumerate(examples):
     axes = np.random.default_rng([seed, position]).normal(size=(batch["context_c2w"].shape[1], 3))
     axes /= np.linalg.norm(axes, axis=-1, keepdims=True)
-    result.append((key, {**batch, "context_c2w": rotate_cameras(batch["context_c2w"][0], axes,
-                                                                 degrees)[None]}))
+    result.append(
+      (key, {**batch, "context_c2w": rotate_cameras(batch["context_c2w"][0], axes, degrees)[None]})
+    )
   return result
 
 
@@ -66,8 +77,11 @@ def baseline_params(settings: CameraNoise, config, out: pathlib.Path):
     return weights.load_params(path)
   experiment = dataclasses.replace(settings.experiment, output_dir=str(out / "pixel_baseline"))
   print("[study] training the pixel-aligned baseline with the TokenGS settings", flush=True)
-  params = train(experiment, pixel_baseline.init_params(jax.random.key(experiment.seed), config),
-                 loss_fn=pixel_baseline.loss_fn(config))
+  params = train(
+    experiment,
+    pixel_baseline.init_params(jax.random.key(experiment.seed), config),
+    loss_fn=pixel_baseline.loss_fn(config),
+  )
   weights.save_params(path, params)
   return params
 
@@ -79,11 +93,12 @@ def main(settings: CameraNoise) -> list[dict]:
   examples = held_out(settings.experiment)
   scorer = evaluation.Scorer(lpips=False)
   methods = {
-      "TokenGS": evaluation.feed_forward(params, config),
-      "pixel-aligned (GS-LRM-style)": evaluation.Method(
-          reconstruct=lambda batch: pixel_baseline.jitted_reconstruct(
-              baseline, batch["context_images"], batch["context_c2w"], batch["context_intrinsics"],
-              config)),
+    "TokenGS": evaluation.feed_forward(params, config),
+    "pixel-aligned (GS-LRM-style)": evaluation.Method(
+      reconstruct=lambda batch: pixel_baseline.jitted_reconstruct(
+        baseline, batch["context_images"], batch["context_c2w"], batch["context_intrinsics"], config
+      )
+    ),
   }
   rows, curves = [], {name: ([], []) for name in methods}
   for degrees in settings.angles:
@@ -100,11 +115,26 @@ def main(settings: CameraNoise) -> list[dict]:
     for row in rows:
       row[f"{name} drop"] = row[name] - clean[name]
   columns = ["angle_deg"] + list(methods) + [f"{name} drop" for name in methods]
-  write_table(out, "camera_noise", "PSNR (dB) vs rotation noise on the non-reference input views",
-              rows, columns, notes=[(f"{len(examples)} held-out scenes; models trained "
-                                    f"{settings.experiment.train.steps} steps each, same settings.")])
-  plot.line_plot(out / "camera_noise.png", curves, title="Camera noise robustness",
-                 xlabel="rotation of non-reference input camera (deg)", ylabel="PSNR (dB)")
+  write_table(
+    out,
+    "camera_noise",
+    "PSNR (dB) vs rotation noise on the non-reference input views",
+    rows,
+    columns,
+    notes=[
+      (
+        f"{len(examples)} held-out scenes; models trained "
+        f"{settings.experiment.train.steps} steps each, same settings."
+      )
+    ],
+  )
+  plot.line_plot(
+    out / "camera_noise.png",
+    curves,
+    title="Camera noise robustness",
+    xlabel="rotation of non-reference input camera (deg)",
+    ylabel="PSNR (dB)",
+  )
   return rows
 
 

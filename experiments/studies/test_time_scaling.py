@@ -45,15 +45,19 @@ def shared_targets(view_counts: tuple[int, ...], gap: int, num_targets: int) -> 
   used = set(np.concatenate([context_frames(count, gap) for count in view_counts]).tolist())
   free = np.array([f for f in range(1, gap) if f not in used], np.int64)
   if len(free) < num_targets:
-    raise ValueError(f"a context gap of {gap} frames leaves {len(free)} frames that are not inputs "
-                     f"for {view_counts} views; {num_targets} targets need a larger gap")
+    raise ValueError(
+      f"a context gap of {gap} frames leaves {len(free)} frames that are not inputs "
+      f"for {view_counts} views; {num_targets} targets need a larger gap"
+    )
   return free[np.linspace(0, len(free) - 1, num_targets).round().astype(np.int64)]
 
 
 def spaced_views(num_context: int, gap: int, targets: np.ndarray):
   """(record, position) -> (context, target): `context_frames` and the given target frames."""
+
   def views(record, position):
     return context_frames(num_context, gap), targets
+
   return views
 
 
@@ -67,11 +71,18 @@ def main(settings: TestTimeScaling) -> list[dict]:
   view_curve = ([], [])
   targets = shared_targets(settings.views, e.context_gap, e.num_target_views)
   for count in settings.views:
-    examples = held_out(settings.experiment.with_views(count),
-                        views=spaced_views(count, e.context_gap, targets))
+    examples = held_out(
+      settings.experiment.with_views(count), views=spaced_views(count, e.context_gap, targets)
+    )
     scores, seconds = psnr_of(feed_forward, examples, scorer)
-    rows.append({"axis": "input views", "value": count, "psnr": float(np.mean(scores)),
-                 "seconds_per_scene": seconds})
+    rows.append(
+      {
+        "axis": "input views",
+        "value": count,
+        "psnr": float(np.mean(scores)),
+        "seconds_per_scene": seconds,
+      }
+    )
     view_curve[0].append(count)
     view_curve[1].append(float(np.mean(scores)))
   examples = held_out(settings.experiment, views=spaced_views(2, e.context_gap, targets))
@@ -82,22 +93,55 @@ def main(settings: TestTimeScaling) -> list[dict]:
     for steps in settings.steps:
       tuning = TuningConfig(target=target, steps=steps, learning_rate=settings.learning_rate)
       scores, seconds = psnr_of(evaluation.tuned(params, config, tuning), examples, scorer)
-      rows.append({"axis": f"{target} tuning steps", "value": steps, "psnr": float(np.mean(scores)),
-                   "seconds_per_scene": seconds})
+      rows.append(
+        {
+          "axis": f"{target} tuning steps",
+          "value": steps,
+          "psnr": float(np.mean(scores)),
+          "seconds_per_scene": seconds,
+        }
+      )
       xs.append(steps)
       ys.append(float(np.mean(scores)))
     step_curves[target] = (xs, ys)
-  rows.insert(len(settings.views), {"axis": "no tuning (2 views)", "value": 0,
-                                    "psnr": float(np.mean(base)), "seconds_per_scene": base_seconds})
-  write_table(out, "test_time_scaling", "Test-time scaling (PSNR dB, seconds per scene)", rows,
-              ["axis", "value", "psnr", "seconds_per_scene"],
-              notes=[(f"{len(examples)} held-out scenes, span {e.context_gap} frames, "
-                     f"targets at frames {targets.tolist()} (inputs at no view count); token lr "
-                     f"{settings.learning_rate}.")])
-  plot.line_plot(out / "views.png", {"TokenGS (feed-forward)": view_curve},
-                 title="Context extension", xlabel="input views", ylabel="PSNR (dB)")
-  plot.line_plot(out / "tuning_steps.png", step_curves, title="Test-time tuning",
-                 xlabel="tuning steps", ylabel="PSNR (dB)", dashed=("gaussians",))
+  rows.insert(
+    len(settings.views),
+    {
+      "axis": "no tuning (2 views)",
+      "value": 0,
+      "psnr": float(np.mean(base)),
+      "seconds_per_scene": base_seconds,
+    },
+  )
+  write_table(
+    out,
+    "test_time_scaling",
+    "Test-time scaling (PSNR dB, seconds per scene)",
+    rows,
+    ["axis", "value", "psnr", "seconds_per_scene"],
+    notes=[
+      (
+        f"{len(examples)} held-out scenes, span {e.context_gap} frames, "
+        f"targets at frames {targets.tolist()} (inputs at no view count); token lr "
+        f"{settings.learning_rate}."
+      )
+    ],
+  )
+  plot.line_plot(
+    out / "views.png",
+    {"TokenGS (feed-forward)": view_curve},
+    title="Context extension",
+    xlabel="input views",
+    ylabel="PSNR (dB)",
+  )
+  plot.line_plot(
+    out / "tuning_steps.png",
+    step_curves,
+    title="Test-time tuning",
+    xlabel="tuning steps",
+    ylabel="PSNR (dB)",
+    dashed=("gaussians",),
+  )
   return rows
 
 

@@ -35,8 +35,13 @@ class TokenAssignment(StudySettings):
 
 def token_colours(num_tokens: int) -> np.ndarray:
   """Distinct colours: hues spaced by the golden ratio, alternating value.  -> [T, 3] in [0, 1]."""
-  return np.array([colorsys.hsv_to_rgb((0.618034 * t) % 1.0, 0.85, 0.95 if t % 2 else 0.7)
-                   for t in range(num_tokens)], np.float32)
+  return np.array(
+    [
+      colorsys.hsv_to_rgb((0.618034 * t) % 1.0, 0.85, 0.95 if t % 2 else 0.7)
+      for t in range(num_tokens)
+    ],
+    np.float32,
+  )
 
 
 def per_token_statistics(gaussians: Gaussians, per_token: int) -> dict[str, np.ndarray]:
@@ -54,13 +59,21 @@ def scene_picture(gaussians: Gaussians, coloured: Gaussians, batch: dict) -> np.
   height, width = batch["target_images"].shape[-3:-1]
 
   def render(g, prefix):
-    return list(evaluation.render_targets(g, batch[f"{prefix}_c2w"], batch[f"{prefix}_intrinsics"],
-                                          height=height, width=width).rgb[0])
+    return list(
+      evaluation.render_targets(
+        g, batch[f"{prefix}_c2w"], batch[f"{prefix}_intrinsics"], height=height, width=width
+      ).rgb[0]
+    )
 
-  return pictures.labelled_grid([
-      ("inputs", list(batch["context_images"][0])), ("targets", list(batch["target_images"][0])),
-      ("render", render(gaussians, "target")), ("tokens (targets)", render(coloured, "target")),
-      ("tokens (inputs)", render(coloured, "context"))])
+  return pictures.labelled_grid(
+    [
+      ("inputs", list(batch["context_images"][0])),
+      ("targets", list(batch["target_images"][0])),
+      ("render", render(gaussians, "target")),
+      ("tokens (targets)", render(coloured, "target")),
+      ("tokens (inputs)", render(coloured, "context")),
+    ]
+  )
 
 
 def main(settings: TokenAssignment) -> list[dict]:
@@ -76,22 +89,41 @@ def main(settings: TokenAssignment) -> list[dict]:
     spreads.append(stats["relative_spread"])
     opacities.append(stats["opacity"])
     if position < settings.num_scenes and evaluation.writes_results():
-      export.save_png(out / "scenes" / f"{key}.png",
-                      scene_picture(gaussians, dataclasses.replace(gaussians, colors=palette[None]),
-                                    batch))
+      export.save_png(
+        out / "scenes" / f"{key}.png",
+        scene_picture(gaussians, dataclasses.replace(gaussians, colors=palette[None]), batch),
+      )
   spreads, opacities = np.stack(spreads), np.stack(opacities)  # [S, T]
   mean_spread = spreads.mean(axis=0)
   order = np.argsort(mean_spread)
-  rows = [{"token": int(t), "relative_spread": float(mean_spread[t]),
-           "opacity": float(opacities.mean(axis=0)[t])} for t in order]
-  write_table(out, "token_assignment", "Per-token spatial spread (token Gaussians vs whole scene)",
-              rows, ["token", "relative_spread", "opacity"],
-              notes=[(f"{len(examples)} held-out scenes; relative_spread < 1: a token's Gaussians "
-                     "are more compact than the scene (1 = spread like random Gaussians).")])
-  plot.line_plot(out / "spread.png", {"tokens (sorted)": (np.arange(len(order)),
-                                                          mean_spread[order])},
-                 title="Spatial spread of each token's Gaussians / scene spread",
-                 xlabel="token rank", ylabel="relative spread")
+  rows = [
+    {
+      "token": int(t),
+      "relative_spread": float(mean_spread[t]),
+      "opacity": float(opacities.mean(axis=0)[t]),
+    }
+    for t in order
+  ]
+  write_table(
+    out,
+    "token_assignment",
+    "Per-token spatial spread (token Gaussians vs whole scene)",
+    rows,
+    ["token", "relative_spread", "opacity"],
+    notes=[
+      (
+        f"{len(examples)} held-out scenes; relative_spread < 1: a token's Gaussians "
+        "are more compact than the scene (1 = spread like random Gaussians)."
+      )
+    ],
+  )
+  plot.line_plot(
+    out / "spread.png",
+    {"tokens (sorted)": (np.arange(len(order)), mean_spread[order])},
+    title="Spatial spread of each token's Gaussians / scene spread",
+    xlabel="token rank",
+    ylabel="relative spread",
+  )
   return rows
 
 

@@ -25,7 +25,14 @@ import numpy as np
 import tyro
 
 from experiments import plot, weights
-from experiments.studies import StudySettings, held_out, psnr_of, train, trained_tokengs, write_table
+from experiments.studies import (
+  StudySettings,
+  held_out,
+  psnr_of,
+  train,
+  trained_tokengs,
+  write_table,
+)
 from tokengs_jax import evaluation, model
 from tokengs_jax.tuning import TuningConfig
 
@@ -48,8 +55,9 @@ def model_for(settings: TokenCount, config, params, count: int, out: pathlib.Pat
   path = out / f"tokens_{count}.msgpack"
   if path.exists():
     return config_k, weights.load_params(path)
-  experiment = dataclasses.replace(settings.experiment, model=config_k,
-                                   output_dir=str(out / f"tokens_{count}"))
+  experiment = dataclasses.replace(
+    settings.experiment, model=config_k, output_dir=str(out / f"tokens_{count}")
+  )
   trained = train(experiment, fresh)
   weights.save_params(path, trained)
   return config_k, trained
@@ -67,27 +75,57 @@ def main(settings: TokenCount) -> list[dict]:
   for count in settings.tokens:
     config_k, params_k = model_for(settings, config, params, count, out)
     for steps in settings.tuning_steps:
-      method = (evaluation.feed_forward(params_k, config_k) if steps == 0 else
-                evaluation.tuned(params_k, config_k, TuningConfig(steps=steps, learning_rate=lr)))
+      method = (
+        evaluation.feed_forward(params_k, config_k)
+        if steps == 0
+        else evaluation.tuned(params_k, config_k, TuningConfig(steps=steps, learning_rate=lr))
+      )
       scores, seconds = psnr_of(method, examples, scorer)
       psnr = float(np.mean(scores))
-      rows.append({"tokens": count, "gaussians": config_k.num_gaussians, "tuning_steps": steps,
-                   "psnr": psnr, "seconds_per_scene": seconds})
+      rows.append(
+        {
+          "tokens": count,
+          "gaussians": config_k.num_gaussians,
+          "tuning_steps": steps,
+          "psnr": psnr,
+          "seconds_per_scene": seconds,
+        }
+      )
       name = f"{steps} tuning steps"
       psnr_curves[name][0].append(count)
       psnr_curves[name][1].append(psnr)
       runtime_curves[name][0].append(seconds)
       runtime_curves[name][1].append(psnr)
-  how = (f"one model trained {settings.experiment.train.steps} steps per count" if settings.retrain
-         else f"the {config.num_gs_tokens}-token table resampled (no retraining)")
-  write_table(out, "token_count", "PSNR (dB) and run time vs Gaussian tokens", rows,
-              ["tokens", "gaussians", "tuning_steps", "psnr", "seconds_per_scene"],
-              notes=[(f"{len(examples)} held-out scenes; models: {how}; run time on "
-                     f"{jax.devices()[0].platform}.")])
-  plot.line_plot(out / "psnr_vs_tokens.png", psnr_curves, title="PSNR vs Gaussian tokens",
-                 xlabel="Gaussian tokens", ylabel="PSNR (dB)", log_x=True)
-  plot.line_plot(out / "runtime_vs_psnr.png", runtime_curves, title="Run time vs PSNR",
-                 xlabel="seconds per scene", ylabel="PSNR (dB)")
+  how = (
+    f"one model trained {settings.experiment.train.steps} steps per count"
+    if settings.retrain
+    else f"the {config.num_gs_tokens}-token table resampled (no retraining)"
+  )
+  write_table(
+    out,
+    "token_count",
+    "PSNR (dB) and run time vs Gaussian tokens",
+    rows,
+    ["tokens", "gaussians", "tuning_steps", "psnr", "seconds_per_scene"],
+    notes=[
+      (f"{len(examples)} held-out scenes; models: {how}; run time on {jax.devices()[0].platform}.")
+    ],
+  )
+  plot.line_plot(
+    out / "psnr_vs_tokens.png",
+    psnr_curves,
+    title="PSNR vs Gaussian tokens",
+    xlabel="Gaussian tokens",
+    ylabel="PSNR (dB)",
+    log_x=True,
+  )
+  plot.line_plot(
+    out / "runtime_vs_psnr.png",
+    runtime_curves,
+    title="Run time vs PSNR",
+    xlabel="seconds per scene",
+    ylabel="PSNR (dB)",
+  )
   return rows
 
 

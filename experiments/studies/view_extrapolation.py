@@ -37,8 +37,10 @@ def target_frames(settings: ViewExtrapolation, num_frames: int) -> dict[str, int
   """Label -> frame: the span's midpoint ("inside") and each offset before / after the span."""
   first, last = settings.start, settings.start + settings.gap
   if last >= num_frames:
-    raise ValueError(f"inputs at frames {first} and {last} need {last + 1} frames; the scene has "
-                     f"{num_frames} (lower --start / --gap)")
+    raise ValueError(
+      f"inputs at frames {first} and {last} need {last + 1} frames; the scene has "
+      f"{num_frames} (lower --start / --gap)"
+    )
   frames = {"inside": first + settings.gap // 2}
   for offset in settings.offsets:
     if last + offset < num_frames:
@@ -56,15 +58,18 @@ def main(settings: ViewExtrapolation) -> list[dict]:
   def views(record, position):
     frames = target_frames(settings, len(record["images"]))
     scene_labels[record["key"]] = list(frames)
-    return (np.array([settings.start, settings.start + settings.gap]),
-            np.array(list(frames.values())))
+    return (
+      np.array([settings.start, settings.start + settings.gap]),
+      np.array(list(frames.values())),
+    )
 
   examples = held_out(settings.experiment, views=views)
   methods = {"TokenGS": evaluation.feed_forward(params, config)}
   if settings.with_tuning:
     e = settings.experiment.eval
     methods["TokenGS + token tuning"] = evaluation.tuned(
-        params, config, TuningConfig(steps=e.tuning_steps, learning_rate=e.tuning_learning_rate))
+      params, config, TuningConfig(steps=e.tuning_steps, learning_rate=e.tuning_learning_rate)
+    )
   scored = evaluation.evaluate(examples, methods, evaluation.Scorer(lpips=False)).scores
   labels = list(dict.fromkeys(label for key, _ in examples for label in scene_labels[key]))
   per_label = {name: {label: [] for label in labels} for name in methods}
@@ -76,21 +81,40 @@ def main(settings: ViewExtrapolation) -> list[dict]:
   rows, curves = [], {}
   for label in labels:
     distance = 0 if label == "inside" else int(label[1:])
-    rows.append({"target": label, "frames_outside_span": distance,
-                 "scenes": len(per_label[next(iter(methods))][label]),
-                 **{name: float(np.mean(per_label[name][label])) for name in methods}})
+    rows.append(
+      {
+        "target": label,
+        "frames_outside_span": distance,
+        "scenes": len(per_label[next(iter(methods))][label]),
+        **{name: float(np.mean(per_label[name][label])) for name in methods},
+      }
+    )
   for name in methods:
     by_distance = {}
     for row in rows:
       by_distance.setdefault(row["frames_outside_span"], []).append(row[name])
     xs = sorted(by_distance)
     curves[name] = (xs, [float(np.mean(by_distance[x])) for x in xs])
-  write_table(out, "view_extrapolation", "PSNR (dB) of targets inside vs outside the input span",
-              rows, ["target", "frames_outside_span", "scenes"] + list(methods),
-              notes=[(f"{len(examples)} held-out scenes; inputs at frames {settings.start} and "
-                     f"{settings.start + settings.gap}; '+k' after the last, '-k' before the first.")])
-  plot.line_plot(out / "view_extrapolation.png", curves, title="View extrapolation",
-                 xlabel="frames outside the input span (0 = inside)", ylabel="PSNR (dB)")
+  write_table(
+    out,
+    "view_extrapolation",
+    "PSNR (dB) of targets inside vs outside the input span",
+    rows,
+    ["target", "frames_outside_span", "scenes"] + list(methods),
+    notes=[
+      (
+        f"{len(examples)} held-out scenes; inputs at frames {settings.start} and "
+        f"{settings.start + settings.gap}; '+k' after the last, '-k' before the first."
+      )
+    ],
+  )
+  plot.line_plot(
+    out / "view_extrapolation.png",
+    curves,
+    title="View extrapolation",
+    xlabel="frames outside the input span (0 = inside)",
+    ylabel="PSNR (dB)",
+  )
   return rows
 
 

@@ -76,8 +76,14 @@ class ViewerApp:
       target render beside uses too.
   """
 
-  def __init__(self, source, server, render_size: int = 256, pull_back: float = 0.6,
-               background: tuple[float, float, float] = TRAINING_BACKGROUND):
+  def __init__(
+    self,
+    source,
+    server,
+    render_size: int = 256,
+    pull_back: float = 0.6,
+    background: tuple[float, float, float] = TRAINING_BACKGROUND,
+  ):
     self.source, self.server = source, server
     self.render_size, self.pull_back = render_size, pull_back
     server.scene.set_background_image(np.full((8, 8, 3), background, np.float32), format="png")
@@ -87,28 +93,48 @@ class ViewerApp:
     keys = source.keys
     first = source.scene(0, source.default_time(0))
     gui.add_markdown(f"**{source.title}**")
-    self.scene_index = (gui.add_slider("held-out scene", min=0, max=len(keys) - 1, step=1,
-                                       initial_value=0) if len(keys) > 1 else None)
+    self.scene_index = (
+      gui.add_slider("held-out scene", min=0, max=len(keys) - 1, step=1, initial_value=0)
+      if len(keys) > 1
+      else None
+    )
     self.scene_label = gui.add_markdown("")
-    self.time = (gui.add_slider("time", min=0.0, max=1.0, step=0.01,
-                                initial_value=round(first.time, 2))
-                 if source.time_conditioned else None)
-    self.target_view = (gui.add_slider("target view", min=0, max=len(first.targets.c2w) - 1,
-                                       step=1, initial_value=novel_target(first))
-                        if first.targets is not None else None)
-    self.threshold = gui.add_slider("opacity threshold", min=0.0, max=1.0, step=0.01,
-                                    initial_value=0.0)
+    self.time = (
+      gui.add_slider("time", min=0.0, max=1.0, step=0.01, initial_value=round(first.time, 2))
+      if source.time_conditioned
+      else None
+    )
+    self.target_view = (
+      gui.add_slider(
+        "target view",
+        min=0,
+        max=len(first.targets.c2w) - 1,
+        step=1,
+        initial_value=novel_target(first),
+      )
+      if first.targets is not None
+      else None
+    )
+    self.threshold = gui.add_slider(
+      "opacity threshold", min=0.0, max=1.0, step=0.01, initial_value=0.0
+    )
     self.census = gui.add_markdown("")
     self.show_static = gui.add_checkbox("static Gaussians", True)
-    self.show_dynamic = gui.add_checkbox("dynamic Gaussians", True,
-                                         visible=first.num_static < first.num_gaussians)
+    self.show_dynamic = gui.add_checkbox(
+      "dynamic Gaussians", True, visible=first.num_static < first.num_gaussians
+    )
     self.show_cameras = gui.add_checkbox("cameras", True)
     self.save = gui.add_button("save the shown Gaussians as PLY")
     self.saved = gui.add_markdown("")
-    self.to_target = gui.add_button("view from the target camera",
-                                    visible=first.targets is not None)
-    self.image = gui.add_image(np.zeros((8, 16, 3), np.uint8), label="target | our render",
-                               format="png", visible=first.targets is not None)
+    self.to_target = gui.add_button(
+      "view from the target camera", visible=first.targets is not None
+    )
+    self.image = gui.add_image(
+      np.zeros((8, 16, 3), np.uint8),
+      label="target | our render",
+      format="png",
+      visible=first.targets is not None,
+    )
     self.scores = gui.add_markdown("")
 
     self._on(self.scene_index, lambda: self.show(new_scene=True))
@@ -155,8 +181,10 @@ class ViewerApp:
       if new_scene and self.target_view is not None:
         self.target_view.max = len(scene.targets.c2w) - 1
         self._set_quietly(self.target_view, novel_target(scene))
-      self.scene_label.content = (f"scene `{scene.key}` ({index + 1} of {len(self.source.keys)}), "
-                                  f"{scene.num_gaussians:,} Gaussians")
+      self.scene_label.content = (
+        f"scene `{scene.key}` ({index + 1} of {len(self.source.keys)}), "
+        f"{scene.num_gaussians:,} Gaussians"
+      )
       if scene.inputs is not None:
         self.server.scene.set_up_direction(world_up(scene.inputs.c2w))
       self.show_target()
@@ -166,18 +194,21 @@ class ViewerApp:
     with self._lock:
       scene = self.scene
       if scene.targets is not None:
-        position, look_at, up = overview_pose(self._target_c2w(), scene.gaussians.means,
-                                              self.pull_back)
+        position, look_at, up = overview_pose(
+          self._target_c2w(), scene.gaussians.means, self.pull_back
+        )
         initial = self.server.initial_camera
         initial.position, initial.look_at, initial.up = position, look_at, up
-        initial.fov = vertical_fov(scene.targets.intrinsics[self._target()],
-                                   scene.targets.images.shape[1])
+        initial.fov = vertical_fov(
+          scene.targets.intrinsics[self._target()], scene.targets.images.shape[1]
+        )
       self._draw_cameras()
       self.refresh_selection()
 
   def selection(self) -> np.ndarray:
-    return scenes_lib.selection(self.scene, float(self.threshold.value), self.show_static.value,
-                                self.show_dynamic.value)
+    return scenes_lib.selection(
+      self.scene, float(self.threshold.value), self.show_static.value, self.show_dynamic.value
+    )
 
   def refresh_selection(self) -> None:
     """Splats, counts and the target render for the current threshold and parts."""
@@ -197,8 +228,14 @@ class ViewerApp:
       if scene.time is not None:
         name += f"_time{scene.time:.2f}"
       g = jax.tree.map(lambda x: x[visible], scene.gaussians)
-      path = export.write_ply(self.source.folder / "viewer" / f"{name}.ply", g.means, g.opacities,
-                              g.scales, g.quats, g.colors)
+      path = export.write_ply(
+        self.source.folder / "viewer" / f"{name}.ply",
+        g.means,
+        g.opacities,
+        g.scales,
+        g.quats,
+        g.colors,
+      )
       self.saved.content = f"wrote {int(visible.sum()):,} Gaussians to `{path}`"
       return path
 
@@ -223,9 +260,12 @@ class ViewerApp:
         self.server.scene.remove_by_name(node)
         continue
       self.server.scene.add_gaussian_splats(
-          node, centers=g.means[chosen],
-          covariances=scenes_lib.covariances(g.scales[chosen], g.quats[chosen]),
-          rgbs=np.clip(g.colors[chosen], 0.0, 1.0), opacities=g.opacities[chosen][:, None])
+        node,
+        centers=g.means[chosen],
+        covariances=scenes_lib.covariances(g.scales[chosen], g.quats[chosen]),
+        rgbs=np.clip(g.colors[chosen], 0.0, 1.0),
+        opacities=g.opacities[chosen][:, None],
+      )
 
   def _draw_cameras(self) -> None:
     scene = self.scene
@@ -240,32 +280,52 @@ class ViewerApp:
         rendered = kind == "target" and i == self._target()
         if kind == "target" and not rendered and _is_input(c2w, scene):
           continue  # the input's frustum is already there
-        colour = (_INPUT_COLOUR if kind == "input" else
-                  _TARGET_COLOUR if rendered else _OTHER_TARGET_COLOUR)
+        colour = (
+          _INPUT_COLOUR if kind == "input" else _TARGET_COLOUR if rendered else _OTHER_TARGET_COLOUR
+        )
         self.server.scene.add_camera_frustum(
-            f"/cameras/{kind}_{i}", fov=vertical_fov(intrinsics, height), aspect=width / height,
-            scale=0.15 * max(extent, 1e-3), thickness=2.0, thickness_units="screen", color=colour,
-            image=export.to_uint8(image), format="png", wxyz=_rotation_wxyz(c2w[:3, :3]),
-            position=c2w[:3, 3])
+          f"/cameras/{kind}_{i}",
+          fov=vertical_fov(intrinsics, height),
+          aspect=width / height,
+          scale=0.15 * max(extent, 1e-3),
+          thickness=2.0,
+          thickness_units="screen",
+          color=colour,
+          image=export.to_uint8(image),
+          format="png",
+          wxyz=_rotation_wxyz(c2w[:3, :3]),
+          position=c2w[:3, 3],
+        )
 
   def _write_census(self, visible: np.ndarray) -> None:
     scene = self.scene
     total = scene.num_gaussians
     dynamic = scene.num_static < total
-    lines = [f"**{int(visible.sum()):,} / {total:,}** {READY_TEXT} "
-             f"(opacity ≥ {float(self.threshold.value):.2f}"
-             + (", static / dynamic switches applied)" if dynamic else ")"),
-             "", "| opacity ≥ | Gaussians | share |", "|---|---|---|"]
-    lines += [f"| {t:g} | {n:,} | {100.0 * n / total:.0f} % |"
-              for t, n in scenes_lib.opacity_census(scene.gaussians.opacities)]
+    lines = [
+      f"**{int(visible.sum()):,} / {total:,}** {READY_TEXT} "
+      f"(opacity ≥ {float(self.threshold.value):.2f}"
+      + (", static / dynamic switches applied)" if dynamic else ")"),
+      "",
+      "| opacity ≥ | Gaussians | share |",
+      "|---|---|---|",
+    ]
+    lines += [
+      f"| {t:g} | {n:,} | {100.0 * n / total:.0f} % |"
+      for t, n in scenes_lib.opacity_census(scene.gaussians.opacities)
+    ]
     broken = total - int(scenes_lib.finite(scene.gaussians).sum())
     if broken:
-      lines += ["", f"**non-finite parameters in {broken:,} of {total:,} Gaussians**: never shown "
-                    "or rendered"]
+      lines += [
+        "",
+        f"**non-finite parameters in {broken:,} of {total:,} Gaussians**: never shown or rendered",
+      ]
     if dynamic:
       static = np.arange(total) < scene.num_static
-      lines += ["", f"static {int((visible & static).sum()):,} / {scene.num_static:,}, "
-                    f"dynamic {int((visible & ~static).sum()):,} / {total - scene.num_static:,}"]
+      lines += [
+        "",
+        f"static {int((visible & static).sum()):,} / {scene.num_static:,}, "
+        f"dynamic {int((visible & ~static).sum()):,} / {total - scene.num_static:,}",
+      ]
     self.census.content = "\n".join(lines)
 
   def _draw_render(self, visible: np.ndarray) -> None:
@@ -277,19 +337,26 @@ class ViewerApp:
     height, width = target.shape[:2]
     shown = scenes_lib.masked(scene.gaussians, visible)
     native = scenes_lib.render(shown, c2w, intrinsics, height, width)
-    everything = scenes_lib.render(scenes_lib.masked(scene.gaussians, scenes_lib.finite(
-        scene.gaussians)), c2w, intrinsics, height, width)
+    everything = scenes_lib.render(
+      scenes_lib.masked(scene.gaussians, scenes_lib.finite(scene.gaussians)),
+      c2w,
+      intrinsics,
+      height,
+      width,
+    )
     factor = max(1, self.render_size // max(height, width))
-    large = scenes_lib.render(shown, c2w, scenes_lib.scaled_intrinsics(intrinsics, factor),
-                              height * factor, width * factor)
+    large = scenes_lib.render(
+      shown, c2w, scenes_lib.scaled_intrinsics(intrinsics, factor), height * factor, width * factor
+    )
     gap = np.ones((height * factor, max(2, factor), 3), np.float32)
     upscaled_target = np.repeat(np.repeat(target, factor, axis=0), factor, axis=1)
     self.image.image = export.to_uint8(np.concatenate([upscaled_target, gap, large], axis=1))
     self.scores.content = (
-        f"target view {view} at {width}x{height}: PSNR **{scenes_lib.psnr(native, target):.2f} "
-        f"dB** with the shown Gaussians, {scenes_lib.psnr(everything, target):.2f} dB with all"
-        + (" finite ones" if not scenes_lib.finite(scene.gaussians).all() else "")
-        + (f" (time {scene.time:.2f})" if scene.time is not None else ""))
+      f"target view {view} at {width}x{height}: PSNR **{scenes_lib.psnr(native, target):.2f} "
+      f"dB** with the shown Gaussians, {scenes_lib.psnr(everything, target):.2f} dB with all"
+      + (" finite ones" if not scenes_lib.finite(scene.gaussians).all() else "")
+      + (f" (time {scene.time:.2f})" if scene.time is not None else "")
+    )
 
   # -- the browser's camera --------------------------------------------------------------------
 
@@ -302,5 +369,6 @@ class ViewerApp:
       client.camera.up_direction = up
       client.camera.position = position
       client.camera.look_at = look_at
-      client.camera.fov = vertical_fov(scene.targets.intrinsics[self._target()],
-                                       scene.targets.images.shape[1])
+      client.camera.fov = vertical_fov(
+        scene.targets.intrinsics[self._target()], scene.targets.images.shape[1]
+      )

@@ -24,22 +24,37 @@ import urllib.request
 
 CHROMIUM_NAMES = ("chromium", "chromium-browser", "google-chrome")
 
-_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader",
-          "--enable-unsafe-swiftshader", "--disable-quic", "--no-first-run",
-          "--disable-background-networking", "--disable-component-update", "--disable-sync",
-          "--hide-scrollbars", "--remote-debugging-port=0", "--remote-allow-origins=*",
-          "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE localhost, EXCLUDE 127.0.0.1")
+_FLAGS = (
+  "--headless",
+  "--no-sandbox",
+  "--disable-gpu",
+  "--use-angle=swiftshader",
+  "--enable-unsafe-swiftshader",
+  "--disable-quic",
+  "--no-first-run",
+  "--disable-background-networking",
+  "--disable-component-update",
+  "--disable-sync",
+  "--hide-scrollbars",
+  "--remote-debugging-port=0",
+  "--remote-allow-origins=*",
+  "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE localhost, EXCLUDE 127.0.0.1",
+)
 
 # viser tells a software-WebGL browser so in a notice over the canvas; it is about the machine
 # taking the screenshot, not the viewer, so it is closed before the capture.
-_CLOSE_NOTICES = ("document.querySelectorAll('.mantine-Notifications-root, "
-                  "[class*=\"mantine-Notification-root\"]').forEach(e => e.remove())")
+_CLOSE_NOTICES = (
+  "document.querySelectorAll('.mantine-Notifications-root, "
+  '[class*="mantine-Notification-root"]\').forEach(e => e.remove())'
+)
 
 
 # Waits for a few animation frames: viser renders on demand, and an animation in progress (the
 # splats fade in) asks for the next frame, so a page still changing differs after these.
-_FRAMES = ("new Promise(done => { let left = 5; const step = () => --left ? "
-           "requestAnimationFrame(step) : done(true); requestAnimationFrame(step); })")
+_FRAMES = (
+  "new Promise(done => { let left = 5; const step = () => --left ? "
+  "requestAnimationFrame(step) : done(true); requestAnimationFrame(step); })"
+)
 
 
 def find_chromium() -> str | None:
@@ -92,9 +107,17 @@ def _devtools_port(profile: pathlib.Path, process: subprocess.Popen, log, deadli
   raise TimeoutError("Chromium did not open its DevTools port")
 
 
-def screenshot(url: str, path, *, ready_text: str = "", width: int = 1280, height: int = 800,
-               timeout_s: float = 60.0, settle_s: float = 1.0,
-               chromium: str | None = None) -> pathlib.Path:
+def screenshot(
+  url: str,
+  path,
+  *,
+  ready_text: str = "",
+  width: int = 1280,
+  height: int = 800,
+  timeout_s: float = 60.0,
+  settle_s: float = 1.0,
+  chromium: str | None = None,
+) -> pathlib.Path:
   """Loads `url` in a fresh headless Chromium profile and writes a PNG of the window to `path`.
 
   Captures once the page's text contains `ready_text` and two captures `settle_s` and five
@@ -109,11 +132,22 @@ def screenshot(url: str, path, *, ready_text: str = "", width: int = 1280, heigh
     raise FileNotFoundError("no Chromium found (apt-get install -y chromium, or set $CHROMIUM)")
   deadline = time.monotonic() + timeout_s
   path = pathlib.Path(path)
-  with (tempfile.TemporaryDirectory(prefix="chromium-profile-") as profile,
-        tempfile.TemporaryFile("w+") as log):
+  with (
+    tempfile.TemporaryDirectory(prefix="chromium-profile-") as profile,
+    tempfile.TemporaryFile("w+") as log,
+  ):
     process = subprocess.Popen(
-        [chromium, *_FLAGS, f"--user-data-dir={profile}", f"--window-size={width},{height}",
-         "about:blank"], stdout=subprocess.DEVNULL, stderr=log, text=True)
+      [
+        chromium,
+        *_FLAGS,
+        f"--user-data-dir={profile}",
+        f"--window-size={width},{height}",
+        "about:blank",
+      ],
+      stdout=subprocess.DEVNULL,
+      stderr=log,
+      text=True,
+    )
     try:
       port = _devtools_port(pathlib.Path(profile), process, log, deadline)
       with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10) as reply:
@@ -121,11 +155,17 @@ def screenshot(url: str, path, *, ready_text: str = "", width: int = 1280, heigh
       devtools = _DevTools(page["webSocketDebuggerUrl"])
       try:
         devtools("Page.enable")
-        devtools("Emulation.setDeviceMetricsOverride", width=width, height=height,
-                 deviceScaleFactor=1, mobile=False)
+        devtools(
+          "Emulation.setDeviceMetricsOverride",
+          width=width,
+          height=height,
+          deviceScaleFactor=1,
+          mobile=False,
+        )
         devtools("Page.navigate", url=url)
-        while not devtools.evaluate(f"document.body !== null && "
-                                    f"document.body.innerText.includes({json.dumps(ready_text)})"):
+        while not devtools.evaluate(
+          f"document.body !== null && document.body.innerText.includes({json.dumps(ready_text)})"
+        ):
           if time.monotonic() > deadline:
             raise TimeoutError(f"{url} did not show {ready_text!r} within {timeout_s} s")
           time.sleep(0.2)

@@ -28,6 +28,7 @@ from tokengs_jax.math import quat_to_rotmat
 class Cameras:
   """Views of one scene (numpy).  images: [V, H, W, 3] in [0, 1], c2w: [V, 4, 4] OpenCV,
   intrinsics: [V, 4] (fx, fy, cx, cy) in pixels."""
+
   images: np.ndarray
   c2w: np.ndarray
   intrinsics: np.ndarray
@@ -45,6 +46,7 @@ class ViewScene:
     inputs / targets: the evaluation's input and target views; None for a bare PLY.
     time: the time the dynamic Gaussians were decoded at (None: static model).
   """
+
   key: str
   gaussians: Gaussians
   num_static: int
@@ -69,13 +71,13 @@ def covariances(scales: np.ndarray, quats: np.ndarray) -> np.ndarray:
 
 def finite(gaussians: Gaussians) -> np.ndarray:
   """Gaussians whose every parameter is finite.  -> bool [N]."""
-  fields = [np.asarray(x).reshape(len(gaussians.opacities), -1)
-            for x in jax.tree.leaves(gaussians)]
+  fields = [np.asarray(x).reshape(len(gaussians.opacities), -1) for x in jax.tree.leaves(gaussians)]
   return np.all(np.isfinite(np.concatenate(fields, axis=-1)), axis=-1)
 
 
-def selection(scene: ViewScene, threshold: float, show_static: bool = True,
-              show_dynamic: bool = True) -> np.ndarray:
+def selection(
+  scene: ViewScene, threshold: float, show_static: bool = True, show_dynamic: bool = True
+) -> np.ndarray:
   """Which Gaussians are shown: finite ones with opacity >= threshold, in the parts switched on.
   -> bool [N]."""
   part = np.arange(scene.num_gaussians) < scene.num_static
@@ -83,16 +85,21 @@ def selection(scene: ViewScene, threshold: float, show_static: bool = True,
   return wanted & finite(scene.gaussians) & (np.asarray(scene.gaussians.opacities) >= threshold)
 
 
-def opacity_census(opacities: np.ndarray, thresholds=(0.01, 0.05, 0.1, 0.5)
-                   ) -> list[tuple[float, int]]:
+def opacity_census(
+  opacities: np.ndarray, thresholds=(0.01, 0.05, 0.1, 0.5)
+) -> list[tuple[float, int]]:
   """(threshold, how many Gaussians reach it): how many of the predicted Gaussians matter."""
   opacities = np.asarray(opacities)
   return [(t, int(np.sum(opacities >= t))) for t in thresholds]
 
 
-_HARMLESS = Gaussians(means=np.zeros(3, np.float32), opacities=np.float32(0.0),
-                      scales=np.full(3, 1e-3, np.float32),
-                      quats=np.float32([1.0, 0.0, 0.0, 0.0]), colors=np.zeros(3, np.float32))
+_HARMLESS = Gaussians(
+  means=np.zeros(3, np.float32),
+  opacities=np.float32(0.0),
+  scales=np.full(3, 1e-3, np.float32),
+  quats=np.float32([1.0, 0.0, 0.0, 0.0]),
+  colors=np.zeros(3, np.float32),
+)
 
 
 def masked(gaussians: Gaussians, visible: np.ndarray) -> Gaussians:
@@ -100,11 +107,15 @@ def masked(gaussians: Gaussians, visible: np.ndarray) -> Gaussians:
   render of the subset (a zero-opacity splat adds nothing), and the shapes stay fixed, so one
   compiled renderer serves every threshold. A hidden Gaussian with a non-finite parameter is
   replaced whole by a transparent finite one (NaN would reach the pixels through the sort)."""
-  transparent = dataclasses.replace(gaussians, opacities=np.where(
-      visible, gaussians.opacities, 0.0).astype(np.float32))
+  transparent = dataclasses.replace(
+    gaussians, opacities=np.where(visible, gaussians.opacities, 0.0).astype(np.float32)
+  )
   bad = ~finite(gaussians)
-  return jax.tree.map(lambda x, fill: np.where(bad.reshape((-1,) + (1,) * (x.ndim - 1)), fill, x)
-                      .astype(np.float32), transparent, _HARMLESS)
+  return jax.tree.map(
+    lambda x, fill: np.where(bad.reshape((-1,) + (1,) * (x.ndim - 1)), fill, x).astype(np.float32),
+    transparent,
+    _HARMLESS,
+  )
 
 
 def scaled_intrinsics(intrinsics: np.ndarray, factor: float) -> np.ndarray:
@@ -113,14 +124,19 @@ def scaled_intrinsics(intrinsics: np.ndarray, factor: float) -> np.ndarray:
   return np.asarray(intrinsics, np.float32) * np.float32(factor)
 
 
-def render(gaussians: Gaussians, c2w: np.ndarray, intrinsics: np.ndarray, height: int,
-           width: int) -> np.ndarray:
+def render(
+  gaussians: Gaussians, c2w: np.ndarray, intrinsics: np.ndarray, height: int, width: int
+) -> np.ndarray:
   """One view as the evaluation renders it (`evaluation.render_targets`: exact, the training
   background).  c2w: [4, 4], intrinsics: [4] -> rgb [H, W, 3] numpy."""
   batched = jax.tree.map(lambda x: np.asarray(x)[None], gaussians)
-  return evaluation.render_targets(batched, np.asarray(c2w)[None, None],
-                                   np.asarray(intrinsics)[None, None], height=height,
-                                   width=width).rgb[0, 0]
+  return evaluation.render_targets(
+    batched,
+    np.asarray(c2w)[None, None],
+    np.asarray(intrinsics)[None, None],
+    height=height,
+    width=width,
+  ).rgb[0, 0]
 
 
 def psnr(image: np.ndarray, target: np.ndarray) -> float:
@@ -168,14 +184,21 @@ class ResultsSource:
     num_scenes: held-out scenes offered (0: the run's `eval.num_scenes`).
   """
 
-  def __init__(self, folder, checkpoint=None, data_dir: str | None = None,
-               synthetic_dir: str | None = None, num_scenes: int = 0):
+  def __init__(
+    self,
+    folder,
+    checkpoint=None,
+    data_dir: str | None = None,
+    synthetic_dir: str | None = None,
+    num_scenes: int = 0,
+  ):
     folder = pathlib.Path(folder)
     saved = json.loads((folder / "metrics.json").read_text())
     experiment, task = experiment_from_fields(saved["experiment"])
     changes = {}
-    trained = checkpoint or (folder / "params.msgpack" if (folder / "params.msgpack").exists()
-                             else None)
+    trained = checkpoint or (
+      folder / "params.msgpack" if (folder / "params.msgpack").exists() else None
+    )
     if trained:
       changes.update(checkpoint=str(trained), official_checkpoint=None)
     if data_dir is not None:
@@ -185,7 +208,8 @@ class ResultsSource:
     experiment = dataclasses.replace(experiment, **changes)
     if num_scenes:
       experiment = dataclasses.replace(
-          experiment, eval=dataclasses.replace(experiment.eval, num_scenes=num_scenes))
+        experiment, eval=dataclasses.replace(experiment.eval, num_scenes=num_scenes)
+      )
     task.prepare(experiment)  # regenerates a missing synthetic set (before JAX starts threads)
     self.folder, self.experiment, self.config = folder, experiment, experiment.model
     self.params = weights.initial_params(experiment, finetune=False)
@@ -218,23 +242,29 @@ class ResultsSource:
     target_times = jnp.asarray([time], jnp.float32) if self.time_conditioned else None
     gaussians = evaluation.reconstruct(self.params, batch, self.config, target_times)
     gaussians = jax.tree.map(lambda x: np.asarray(x[0], np.float32), jax.device_get(gaussians))
-    views = lambda prefix: Cameras(np.asarray(batch[f"{prefix}_images"][0], np.float32),
-                                   np.asarray(batch[f"{prefix}_c2w"][0], np.float32),
-                                   np.asarray(batch[f"{prefix}_intrinsics"][0], np.float32))
-    return ViewScene(key, gaussians, self.config.num_static_gaussians, views("context"),
-                     views("target"), time)
+    views = lambda prefix: Cameras(
+      np.asarray(batch[f"{prefix}_images"][0], np.float32),
+      np.asarray(batch[f"{prefix}_c2w"][0], np.float32),
+      np.asarray(batch[f"{prefix}_intrinsics"][0], np.float32),
+    )
+    return ViewScene(
+      key, gaussians, self.config.num_static_gaussians, views("context"), views("target"), time
+    )
 
 
 class PlySource:
   """A bare PLY (e.g. `gaussians.ply` of a results folder): one scene, no cameras, no renders."""
+
   time_conditioned = False
 
   def __init__(self, path):
     path = pathlib.Path(path)
     fields = export.read_ply(path)
-    self._scene = ViewScene(path.stem, Gaussians(**{k: v.astype(np.float32)
-                                                    for k, v in fields.items()}),
-                            num_static=len(fields["opacities"]))
+    self._scene = ViewScene(
+      path.stem,
+      Gaussians(**{k: v.astype(np.float32) for k, v in fields.items()}),
+      num_static=len(fields["opacities"]),
+    )
     self.title = str(path)
     self.folder = path.parent
 
@@ -254,8 +284,9 @@ def open_source(path, **options):
   path = pathlib.Path(path)
   if path.suffix == ".ply":
     if any(options.values()):
-      raise ValueError(f"{sorted(k for k, v in options.items() if v)} apply to results folders, "
-                       "not to a PLY")
+      raise ValueError(
+        f"{sorted(k for k, v in options.items() if v)} apply to results folders, not to a PLY"
+      )
     return PlySource(path)
   if not (path / "metrics.json").exists():
     raise FileNotFoundError(f"{path}: neither a .ply nor a results folder with metrics.json")

@@ -51,8 +51,14 @@ class ChunkedSceneSource:
   `MissingIndexEntryError` for a requested key the index does not list.
   """
 
-  def __init__(self, root: str | os.PathLike, *, keys: Iterable[str] | None = None,
-               skip_bad: bool = False, min_frames: int = 1):
+  def __init__(
+    self,
+    root: str | os.PathLike,
+    *,
+    keys: Iterable[str] | None = None,
+    skip_bad: bool = False,
+    min_frames: int = 1,
+  ):
     self.root = pathlib.Path(root)
     self.skip_bad = skip_bad
     self.rejections = Rejections(f"source {self.root}")
@@ -64,8 +70,10 @@ class ChunkedSceneSource:
       wanted, chunk_paths = [], set()
       for key in keys:
         if key not in index:
-          self._bad("missing_index_entry", MissingIndexEntryError(
-              f"{self.root / 'index.json'}: scene '{key}' has no entry"))
+          self._bad(
+            "missing_index_entry",
+            MissingIndexEntryError(f"{self.root / 'index.json'}: scene '{key}' has no entry"),
+          )
           continue
         try:
           chunk_paths.add(self._inside_root(index[key], f"scene '{key}'"))
@@ -88,20 +96,30 @@ class ChunkedSceneSource:
           rejected.add(scene.scene_key)
           self._bad("bad_scene", scene)
         elif len(scene["images"]) < min_frames:
-          self._bad("too_few_frames", ChunkError(
+          self._bad(
+            "too_few_frames",
+            ChunkError(
               f"{chunk_path} scene '{scene['key']}': {len(scene['images'])} frames, fewer than "
-              f"min_frames {min_frames}"), always_skip=True)
+              f"min_frames {min_frames}"
+            ),
+            always_skip=True,
+          )
         else:
-          by_key[scene["key"]] = SceneEntry(scene["key"], str(chunk_path), position,
-                                            len(scene["images"]))
+          by_key[scene["key"]] = SceneEntry(
+            scene["key"], str(chunk_path), position, len(scene["images"])
+          )
     if wanted is None:
       self.entries = list(by_key.values())
     else:
       self.entries = [by_key[key] for key in wanted if key in by_key]
       for key in wanted:  # a key whose scene or chunk was rejected is counted already
         if key not in by_key and key not in rejected and self.root / index[key] not in unreadable:
-          self._bad("missing_scene", ChunkError(
-              f"{self.root / index[key]}: scene '{key}' listed in index.json is not in its chunk"))
+          self._bad(
+            "missing_scene",
+            ChunkError(
+              f"{self.root / index[key]}: scene '{key}' listed in index.json is not in its chunk"
+            ),
+          )
     self._cache: collections.OrderedDict = collections.OrderedDict()
 
   def _read_index(self) -> dict:
@@ -114,7 +132,9 @@ class ChunkedSceneSource:
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
       raise ChunkError(f"{path}: not valid JSON ({error})") from error
     if not isinstance(index, dict):
-      raise ChunkError(f"{path}: expected a scene key -> chunk file map, found {type(index).__name__}")
+      raise ChunkError(
+        f"{path}: expected a scene key -> chunk file map, found {type(index).__name__}"
+      )
     return index
 
   def _inside_root(self, name, what: str) -> pathlib.Path:
@@ -123,8 +143,10 @@ class ChunkedSceneSource:
       raise ChunkError(f"{self.root / 'index.json'}: {what} has entry {name!r}, not a file name")
     path = self.root / name
     if not path.resolve().is_relative_to(self.root.resolve()):
-      raise ChunkError(f"{self.root / 'index.json'}: {what} -> '{name}' resolves to "
-                       f"{path.resolve()}, outside the data root {self.root.resolve()}")
+      raise ChunkError(
+        f"{self.root / 'index.json'}: {what} -> '{name}' resolves to "
+        f"{path.resolve()}, outside the data root {self.root.resolve()}"
+      )
     return path
 
   def _bad(self, reason: str, error: Exception, *, always_skip: bool = False) -> None:
@@ -145,8 +167,13 @@ class ChunkedSceneSource:
     scenes = self._chunk(entry.chunk)
     scene = scenes[entry.position] if entry.position < len(scenes) else None
     if not isinstance(scene, dict) or scene["key"] != entry.key:  # the file changed since the scan
-      raise scene if isinstance(scene, ChunkError) else ChunkError(
-          f"{entry.chunk}: scene '{entry.key}' is no longer at position {entry.position}")
+      raise (
+        scene
+        if isinstance(scene, ChunkError)
+        else ChunkError(
+          f"{entry.chunk}: scene '{entry.key}' is no longer at position {entry.position}"
+        )
+      )
     return {**scene, "source": entry.chunk}
 
   def _chunk(self, path: str) -> list:

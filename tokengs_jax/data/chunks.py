@@ -35,38 +35,38 @@ from PIL import Image
 from tokengs_jax.data.transforms import rigid_inverse
 
 __all__ = [
-    "ChunkError",
-    "UnsafeChunkError",
-    "check_regular_file",
-    "open_zip",
-    "read_member",
-    "scan_chunk",
-    "load_tensor_archive",
-    "save_tensor_archive",
-    "LazyTensor",
-    "read_chunk",
-    "write_chunk",
-    "decode_jpeg",
-    "encode_jpeg",
-    "jpeg_size",
-    "cameras_to_poses",
-    "poses_to_cameras",
+  "ChunkError",
+  "UnsafeChunkError",
+  "check_regular_file",
+  "open_zip",
+  "read_member",
+  "scan_chunk",
+  "load_tensor_archive",
+  "save_tensor_archive",
+  "LazyTensor",
+  "read_chunk",
+  "write_chunk",
+  "decode_jpeg",
+  "encode_jpeg",
+  "jpeg_size",
+  "cameras_to_poses",
+  "poses_to_cameras",
 ]
 
 CAMERA_ROW_LENGTH = 18
 
 # torch typed-storage class name <-> numpy dtype (the names torch.save writes into the pickle)
 _STORAGE_DTYPES = {
-    "DoubleStorage": np.dtype(np.float64),
-    "FloatStorage": np.dtype(np.float32),
-    "HalfStorage": np.dtype(np.float16),
-    "BFloat16Storage": np.dtype(ml_dtypes.bfloat16),
-    "LongStorage": np.dtype(np.int64),
-    "IntStorage": np.dtype(np.int32),
-    "ShortStorage": np.dtype(np.int16),
-    "CharStorage": np.dtype(np.int8),
-    "ByteStorage": np.dtype(np.uint8),
-    "BoolStorage": np.dtype(np.bool_),
+  "DoubleStorage": np.dtype(np.float64),
+  "FloatStorage": np.dtype(np.float32),
+  "HalfStorage": np.dtype(np.float16),
+  "BFloat16Storage": np.dtype(ml_dtypes.bfloat16),
+  "LongStorage": np.dtype(np.int64),
+  "IntStorage": np.dtype(np.int32),
+  "ShortStorage": np.dtype(np.int16),
+  "CharStorage": np.dtype(np.int8),
+  "ByteStorage": np.dtype(np.uint8),
+  "BoolStorage": np.dtype(np.bool_),
 }
 _STORAGE_NAMES = {dtype: name for name, dtype in _STORAGE_DTYPES.items()}
 _ALIGNMENT = 64  # torch aligns every record's payload to 64 bytes (enables mmap loading)
@@ -100,8 +100,10 @@ def check_regular_file(path: str | os.PathLike, *, where: str = "") -> None:
   except OSError as error:
     raise ChunkError(f"{where or path}: cannot open ({error.strerror or error})") from error
   if not stat.S_ISREG(mode):
-    raise ChunkError(f"{where or path}: not a regular file (a data file may not be a device, FIFO, "
-                     "socket or directory)")
+    raise ChunkError(
+      f"{where or path}: not a regular file (a data file may not be a device, FIFO, "
+      "socket or directory)"
+    )
 
 
 def open_zip(path: str | os.PathLike) -> zipfile.ZipFile:
@@ -109,13 +111,28 @@ def open_zip(path: str | os.PathLike) -> zipfile.ZipFile:
   check_regular_file(path)
   try:
     return zipfile.ZipFile(path)
-  except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, ValueError, struct.error,
-          OverflowError) as error:  # what zipfile raises on a malformed central directory
-    raise ChunkError(f"{path}: not a readable zip archive ({type(error).__name__}: {error})") from error
+  except (
+    zipfile.BadZipFile,
+    zipfile.LargeZipFile,
+    OSError,
+    EOFError,
+    ValueError,
+    struct.error,
+    OverflowError,
+  ) as error:  # what zipfile raises on a malformed central directory
+    raise ChunkError(
+      f"{path}: not a readable zip archive ({type(error).__name__}: {error})"
+    ) from error
 
 
-def read_member(archive: zipfile.ZipFile, name: str, *, where: str,
-                expected_bytes: int | None = None, max_bytes: int = MAX_INFLATED_RECORD_BYTES) -> bytes:
+def read_member(
+  archive: zipfile.ZipFile,
+  name: str,
+  *,
+  where: str,
+  expected_bytes: int | None = None,
+  max_bytes: int = MAX_INFLATED_RECORD_BYTES,
+) -> bytes:
   """One member of an open archive, its size checked before it is read.
 
   Args:
@@ -132,16 +149,27 @@ def read_member(archive: zipfile.ZipFile, name: str, *, where: str,
   except KeyError:
     raise ChunkError(f"{where}: record '{name}' is missing") from None
   if expected_bytes is not None and info.file_size != expected_bytes:
-    raise ChunkError(f"{where}: record '{name}' declares {info.file_size} bytes, expected "
-                     f"{expected_bytes}")
+    raise ChunkError(
+      f"{where}: record '{name}' declares {info.file_size} bytes, expected {expected_bytes}"
+    )
   if info.compress_type != zipfile.ZIP_STORED and info.file_size > max_bytes:
-    raise ChunkError(f"{where}: compressed record '{name}' would inflate to {info.file_size} bytes "
-                     f"(limit {max_bytes})")
+    raise ChunkError(
+      f"{where}: compressed record '{name}' would inflate to {info.file_size} bytes "
+      f"(limit {max_bytes})"
+    )
   try:
     data = archive.read(info)
-  except (zipfile.BadZipFile, OSError, EOFError, zlib.error, NotImplementedError,
-          RuntimeError) as error:  # RuntimeError: zipfile's "encrypted, password required"
-    raise ChunkError(f"{where}: cannot read record '{name}' ({type(error).__name__}: {error})") from error
+  except (
+    zipfile.BadZipFile,
+    OSError,
+    EOFError,
+    zlib.error,
+    NotImplementedError,
+    RuntimeError,
+  ) as error:  # RuntimeError: zipfile's "encrypted, password required"
+    raise ChunkError(
+      f"{where}: cannot read record '{name}' ({type(error).__name__}: {error})"
+    ) from error
   if len(data) != info.file_size:
     raise ChunkError(f"{where}: record '{name}' holds {len(data)} bytes, declares {info.file_size}")
   return data
@@ -153,12 +181,14 @@ class _StorageType:
 
   Shared by every read, so immutable (and the unpickler refuses BUILD, which would set state).
   """
+
   dtype: np.dtype
 
 
 @dataclasses.dataclass(frozen=True)
 class _StorageRecord:
   """A storage not read yet (lazy loading): where its bytes are and what they hold."""
+
   path: str
   record: str
   dtype: np.dtype
@@ -167,8 +197,9 @@ class _StorageRecord:
 
   def read(self, archive: zipfile.ZipFile) -> np.ndarray:
     dtype = self.dtype.newbyteorder("<" if self.byteorder == "little" else ">")
-    raw = read_member(archive, self.record, where=self.path,
-                      expected_bytes=self.numel * dtype.itemsize)
+    raw = read_member(
+      archive, self.record, where=self.path, expected_bytes=self.numel * dtype.itemsize
+    )
     return np.frombuffer(raw, dtype).astype(self.dtype, copy=False)
 
 
@@ -180,9 +211,15 @@ def _check_geometry(numel: int, offset, size, stride) -> None:
   """Rejects a size/stride/offset that would read outside a storage of `numel` elements, or that
   would make a view with more elements than its storage (a stride-0 view could ask for any
   amount of memory)."""
-  if not (isinstance(size, tuple) and isinstance(stride, tuple) and _is_index(offset)
-          and all(map(_is_index, size + stride))):
-    raise pickle.UnpicklingError(f"bad tensor geometry offset={offset!r} size={size!r} stride={stride!r}")
+  if not (
+    isinstance(size, tuple)
+    and isinstance(stride, tuple)
+    and _is_index(offset)
+    and all(map(_is_index, size + stride))
+  ):
+    raise pickle.UnpicklingError(
+      f"bad tensor geometry offset={offset!r} size={size!r} stride={stride!r}"
+    )
   if len(size) != len(stride):
     raise pickle.UnpicklingError(f"tensor size {size} and stride {stride} differ in rank")
   if all(size):
@@ -190,14 +227,17 @@ def _check_geometry(numel: int, offset, size, stride) -> None:
     if last >= numel:
       raise pickle.UnpicklingError(f"tensor reaches element {last} of a storage of {numel}")
     if math.prod(size) > numel:
-      raise pickle.UnpicklingError(f"tensor of {math.prod(size)} elements views a storage of {numel}")
+      raise pickle.UnpicklingError(
+        f"tensor of {math.prod(size)} elements views a storage of {numel}"
+      )
 
 
 def _view(storage: np.ndarray, offset: int, size: tuple, stride: tuple) -> np.ndarray:
   if not all(size):
     return np.zeros(size, storage.dtype)
   view = np.lib.stride_tricks.as_strided(
-      storage[offset:], shape=size, strides=[s * storage.itemsize for s in stride])
+    storage[offset:], shape=size, strides=[s * storage.itemsize for s in stride]
+  )
   return np.array(view)  # own the memory: the storage buffer may be shared by other tensors
 
 
@@ -208,6 +248,7 @@ class LazyTensor:
   Picklable (it holds the file path, not an open file), so it can travel to input workers.
   `load()` raises `ChunkError` naming the file for anything wrong with the bytes.
   """
+
   storage: _StorageRecord
   offset: int
   shape: tuple
@@ -238,8 +279,9 @@ def _open_archive(path: str) -> zipfile.ZipFile:
   return _ARCHIVES[key]
 
 
-def _rebuild_tensor(storage, storage_offset, size, stride, requires_grad=False,
-                    backward_hooks=None, metadata=None):
+def _rebuild_tensor(
+  storage, storage_offset, size, stride, requires_grad=False, backward_hooks=None, metadata=None
+):
   """numpy version of `torch._utils._rebuild_tensor_v2`; bounds-checked so a forged size/stride
   cannot read outside its storage."""
   del requires_grad, backward_hooks, metadata  # autograd state has no numpy meaning
@@ -255,18 +297,37 @@ def _rebuild_tensor(storage, storage_offset, size, stride, requires_grad=False,
 # Opcodes a tensor pickle never needs: BUILD sets state on an object (on one of our shared globals
 # it would change them for the whole process), the others instantiate or look up objects outside
 # `find_class`'s control. PERSID is the text form; torch writes BINPERSID.
-_REFUSED_OPCODES = {op[0]: name for op, name in [
-    (pickle.BUILD, "BUILD"), (pickle.INST, "INST"), (pickle.OBJ, "OBJ"), (pickle.NEWOBJ, "NEWOBJ"),
-    (pickle.NEWOBJ_EX, "NEWOBJ_EX"), (pickle.EXT1, "EXT1"), (pickle.EXT2, "EXT2"),
-    (pickle.EXT4, "EXT4"), (pickle.PERSID, "PERSID")]}
+_REFUSED_OPCODES = {
+  op[0]: name
+  for op, name in [
+    (pickle.BUILD, "BUILD"),
+    (pickle.INST, "INST"),
+    (pickle.OBJ, "OBJ"),
+    (pickle.NEWOBJ, "NEWOBJ"),
+    (pickle.NEWOBJ_EX, "NEWOBJ_EX"),
+    (pickle.EXT1, "EXT1"),
+    (pickle.EXT2, "EXT2"),
+    (pickle.EXT4, "EXT4"),
+    (pickle.PERSID, "PERSID"),
+  ]
+}
 # What the pure-Python pickle machine raises when the opcode stream itself is malformed (stack
 # underflow, truncated argument, wrong container type for an opcode).
-_MALFORMED_STREAM = (IndexError, KeyError, TypeError, AttributeError, ValueError, struct.error,
-                     EOFError, OverflowError)
+_MALFORMED_STREAM = (
+  IndexError,
+  KeyError,
+  TypeError,
+  AttributeError,
+  ValueError,
+  struct.error,
+  EOFError,
+  OverflowError,
+)
 
 
 def _guarded(handler):
   """An opcode handler whose malformed-stream failures become `UnpicklingError`."""
+
   def run(unpickler):
     try:
       handler(unpickler)
@@ -274,13 +335,17 @@ def _guarded(handler):
       raise
     except _MALFORMED_STREAM as error:
       raise pickle.UnpicklingError(f"malformed pickle ({type(error).__name__}: {error})") from error
+
   return run
 
 
 def _refused(code: int):
   def refuse(unpickler):
-    raise UnsafeChunkError(f"{unpickler.path}: refusing pickle opcode "
-                           f"{_REFUSED_OPCODES.get(code, hex(code))}: a chunk only rebuilds tensors")
+    raise UnsafeChunkError(
+      f"{unpickler.path}: refusing pickle opcode "
+      f"{_REFUSED_OPCODES.get(code, hex(code))}: a chunk only rebuilds tensors"
+    )
+
   return refuse
 
 
@@ -296,7 +361,9 @@ def _load_reduce(unpickler):
   elif func is _rebuild_tensor and 4 <= len(args) <= 7:
     stack[-1] = _rebuild_tensor(*args)
   else:
-    raise UnsafeChunkError(f"{unpickler.path}: refusing to call {func!r} with {len(args)} arguments")
+    raise UnsafeChunkError(
+      f"{unpickler.path}: refusing to call {func!r} with {len(args)} arguments"
+    )
 
 
 def _load_binpersid(unpickler):
@@ -314,18 +381,24 @@ class _TensorUnpickler(pickle._Unpickler):  # noqa: SLF001 - the Python one lets
   """
 
   _GLOBALS = {
-      ("torch._utils", "_rebuild_tensor_v2"): _rebuild_tensor,
-      ("collections", "OrderedDict"): collections.OrderedDict,
-      **{("torch", name): _StorageType(dtype) for name, dtype in _STORAGE_DTYPES.items()},
+    ("torch._utils", "_rebuild_tensor_v2"): _rebuild_tensor,
+    ("collections", "OrderedDict"): collections.OrderedDict,
+    **{("torch", name): _StorageType(dtype) for name, dtype in _STORAGE_DTYPES.items()},
   }
   dispatch = {code: _refused(code) for code in range(256)}
-  dispatch.update({code: _guarded(handler) for code, handler in pickle._Unpickler.dispatch.items()
-                   if code not in _REFUSED_OPCODES})
+  dispatch.update(
+    {
+      code: _guarded(handler)
+      for code, handler in pickle._Unpickler.dispatch.items()
+      if code not in _REFUSED_OPCODES
+    }
+  )
   dispatch[pickle.REDUCE[0]] = _load_reduce
   dispatch[pickle.BINPERSID[0]] = _load_binpersid
 
-  def __init__(self, data: bytes, archive: zipfile.ZipFile, prefix: str, path: str,
-               byteorder: str, lazy: bool):
+  def __init__(
+    self, data: bytes, archive: zipfile.ZipFile, prefix: str, path: str, byteorder: str, lazy: bool
+  ):
     super().__init__(io.BytesIO(data))
     self._archive = archive
     self._prefix = prefix
@@ -345,18 +418,25 @@ class _TensorUnpickler(pickle._Unpickler):  # noqa: SLF001 - the Python one lets
       return self._GLOBALS[(module, name)]
     except (KeyError, TypeError):
       raise UnsafeChunkError(
-          f"{self.path}: refusing to load global '{module}.{name}': a chunk may only contain "
-          "tensors, storages and plain containers") from None
+        f"{self.path}: refusing to load global '{module}.{name}': a chunk may only contain "
+        "tensors, storages and plain containers"
+      ) from None
 
   def persistent_load(self, pid):
-    if not (isinstance(pid, tuple) and len(pid) == 5 and pid[0] == "storage"
-            and isinstance(pid[1], _StorageType) and isinstance(pid[2], str)
-            and _is_index(pid[4])):
+    if not (
+      isinstance(pid, tuple)
+      and len(pid) == 5
+      and pid[0] == "storage"
+      and isinstance(pid[1], _StorageType)
+      and isinstance(pid[2], str)
+      and _is_index(pid[4])
+    ):
       raise UnsafeChunkError(f"{self.path}: unexpected persistent id {pid!r}")
     _, storage_type, key, _location, numel = pid
     if key not in self._storages:
-      record = _StorageRecord(self.path, f"{self._prefix}data/{key}", storage_type.dtype, numel,
-                              self._byteorder)
+      record = _StorageRecord(
+        self.path, f"{self._prefix}data/{key}", storage_type.dtype, numel, self._byteorder
+      )
       self._storages[key] = record if self._lazy else record.read(self._archive)
     return self._storages[key]
 
@@ -385,8 +465,10 @@ def load_tensor_archive(path: str | os.PathLike, *, lazy: bool = False) -> Any:
       if byteorder not in ("little", "big"):
         raise ChunkError(f"{path}: unknown byteorder record {byteorder!r}")
     if archive.getinfo(pickles[0]).file_size > MAX_PICKLE_BYTES:
-      raise ChunkError(f"{path}: a pickle of {archive.getinfo(pickles[0]).file_size} bytes exceeds "
-                       f"{MAX_PICKLE_BYTES}")
+      raise ChunkError(
+        f"{path}: a pickle of {archive.getinfo(pickles[0]).file_size} bytes exceeds "
+        f"{MAX_PICKLE_BYTES}"
+      )
     data = read_member(archive, pickles[0], where=path)
     try:
       return _TensorUnpickler(data, archive, prefix, path, byteorder, lazy).load()
@@ -506,9 +588,12 @@ def save_tensor_archive(path: str | os.PathLike, obj) -> None:
   writer = _PickleWriter()
   data_pkl = writer.dump(obj)
   stem = path.stem
-  records = [(f"{stem}/data.pkl", data_pkl), (f"{stem}/.format_version", b"1"),
-             (f"{stem}/.storage_alignment", str(_ALIGNMENT).encode()),
-             (f"{stem}/byteorder", b"little")]
+  records = [
+    (f"{stem}/data.pkl", data_pkl),
+    (f"{stem}/.format_version", b"1"),
+    (f"{stem}/.storage_alignment", str(_ALIGNMENT).encode()),
+    (f"{stem}/byteorder", b"little"),
+  ]
   records += [(f"{stem}/data/{i}", data) for i, data in enumerate(writer.storages)]
   # torch stores a random 40-digit id; a content hash keeps our files deterministic
   serial = str(int.from_bytes(hashlib.sha256(data_pkl).digest()[:16], "little")).zfill(40)[:40]
@@ -547,7 +632,9 @@ def encode_jpeg(image: np.ndarray, quality: int = 95) -> bytes:
   """uint8 [H, W, 3] -> JPEG bytes (4:4:4, no chroma subsampling: small synthetic images keep
   their colour edges)."""
   buffer = io.BytesIO()
-  Image.fromarray(np.asarray(image, np.uint8), "RGB").save(buffer, format="JPEG", quality=quality, subsampling=0)
+  Image.fromarray(np.asarray(image, np.uint8), "RGB").save(
+    buffer, format="JPEG", quality=quality, subsampling=0
+  )
   return buffer.getvalue()
 
 
@@ -566,14 +653,18 @@ def cameras_to_poses(cameras: np.ndarray, height: int, width: int, *, where: str
   """
   cameras = np.asarray(cameras)
   if cameras.ndim != 2 or cameras.shape[1] != CAMERA_ROW_LENGTH:
-    raise ChunkError(f"{where}: cameras must be [F, {CAMERA_ROW_LENGTH}], got {list(cameras.shape)}")
+    raise ChunkError(
+      f"{where}: cameras must be [F, {CAMERA_ROW_LENGTH}], got {list(cameras.shape)}"
+    )
   if not np.isfinite(cameras).all():
     bad = sorted(set(np.nonzero(~np.isfinite(cameras))[0].tolist()))
     raise ChunkError(f"{where}: NaN/inf in the cameras of frames {bad}")
   focal = cameras[:, :2]
   if (focal <= 0).any():
     bad = sorted(set(np.nonzero(focal <= 0)[0].tolist()))
-    raise ChunkError(f"{where}: non-positive focal length (fx/W, fy/H) in the cameras of frames {bad}")
+    raise ChunkError(
+      f"{where}: non-positive focal length (fx/W, fy/H) in the cameras of frames {bad}"
+    )
   w2c = np.zeros((cameras.shape[0], 4, 4), np.float64)
   w2c[:, :3, :] = cameras[:, 6:].reshape(-1, 3, 4)
   w2c[:, 3, 3] = 1.0
@@ -581,7 +672,9 @@ def cameras_to_poses(cameras: np.ndarray, height: int, width: int, *, where: str
   return rigid_inverse(w2c).astype(np.float32), intrinsics.astype(np.float32)
 
 
-def poses_to_cameras(c2w: np.ndarray, intrinsics: np.ndarray, height: int, width: int) -> np.ndarray:
+def poses_to_cameras(
+  c2w: np.ndarray, intrinsics: np.ndarray, height: int, width: int
+) -> np.ndarray:
   """Inverse of `cameras_to_poses`: -> cameras [F, 18] float32."""
   frames = c2w.shape[0]
   cameras = np.zeros((frames, CAMERA_ROW_LENGTH), np.float64)
@@ -606,8 +699,9 @@ def _scene_from_record(record, path: str, position: int, images_mode: str) -> di
   if not isinstance(frames, (list, tuple)) or not frames:
     raise ChunkError(f"{where}: 'images' must be a non-empty list of JPEG byte tensors")
   frames = list(frames)
-  if not all(isinstance(frame, (LazyTensor, np.ndarray)) and frame.dtype == np.uint8
-             for frame in frames):
+  if not all(
+    isinstance(frame, (LazyTensor, np.ndarray)) and frame.dtype == np.uint8 for frame in frames
+  ):
     raise ChunkError(f"{where}: 'images' must hold uint8 tensors of JPEG bytes")
   if not isinstance(record["cameras"], (LazyTensor, np.ndarray)):
     raise ChunkError(f"{where}: 'cameras' must be a tensor")
@@ -618,8 +712,11 @@ def _scene_from_record(record, path: str, position: int, images_mode: str) -> di
   if len(frames) != c2w.shape[0]:
     raise ChunkError(f"{where}: {len(frames)} images but {c2w.shape[0]} camera rows")
   timestamps = _loaded(record.get("timestamps", np.arange(len(frames))))
-  if not (isinstance(timestamps, np.ndarray) and timestamps.shape == (len(frames),)
-          and np.issubdtype(timestamps.dtype, np.integer)):
+  if not (
+    isinstance(timestamps, np.ndarray)
+    and timestamps.shape == (len(frames),)
+    and np.issubdtype(timestamps.dtype, np.integer)
+  ):
     raise ChunkError(f"{where}: 'timestamps' must be an integer tensor [{len(frames)}]")
   timestamps = timestamps.astype(np.int64)
   if images_mode == "decode":
@@ -628,12 +725,21 @@ def _scene_from_record(record, path: str, position: int, images_mode: str) -> di
     if len(shapes) != 1:
       raise ChunkError(f"{where}: frames differ in size {sorted(shapes)}")
     frames = np.stack(decoded)
-  return {"key": key, "url": str(record.get("url", "")), "timestamps": timestamps, "c2w": c2w,
-          "intrinsics": intrinsics, "images": frames, "height": int(height), "width": int(width)}
+  return {
+    "key": key,
+    "url": str(record.get("url", "")),
+    "timestamps": timestamps,
+    "c2w": c2w,
+    "intrinsics": intrinsics,
+    "images": frames,
+    "height": int(height),
+    "width": int(width),
+  }
 
 
-def scan_chunk(path: str | os.PathLike, *,
-               images: Literal["decode", "bytes", "lazy"] = "lazy") -> list[dict | ChunkError]:
+def scan_chunk(
+  path: str | os.PathLike, *, images: Literal["decode", "bytes", "lazy"] = "lazy"
+) -> list[dict | ChunkError]:
   """Reads a pixelSplat-format chunk scene by scene: one bad scene costs only that scene.
 
   Returns, in file order, each scene (as `read_chunk`) or the `ChunkError` saying why that scene
@@ -655,8 +761,9 @@ def scan_chunk(path: str | os.PathLike, *,
   return scenes
 
 
-def read_chunk(path: str | os.PathLike, *,
-               images: Literal["decode", "bytes", "lazy"] = "decode") -> list[dict]:
+def read_chunk(
+  path: str | os.PathLike, *, images: Literal["decode", "bytes", "lazy"] = "decode"
+) -> list[dict]:
   """Reads a pixelSplat-format chunk into scenes.
 
   Returns a list of dicts with `key` str, `url` str, `timestamps` int64 [F], `c2w` [F, 4, 4]
@@ -679,13 +786,16 @@ def _scene_to_record(scene: Mapping, jpeg_quality: int) -> dict:
   intrinsics = np.asarray(scene["intrinsics"], np.float64)
   frames = c2w.shape[0]
   if c2w.shape != (frames, 4, 4) or intrinsics.shape != (frames, 4):
-    raise ValueError(f"scene '{key}': c2w must be [F, 4, 4] and intrinsics [F, 4], got "
-                     f"{list(c2w.shape)} and {list(intrinsics.shape)}")
+    raise ValueError(
+      f"scene '{key}': c2w must be [F, 4, 4] and intrinsics [F, 4], got "
+      f"{list(c2w.shape)} and {list(intrinsics.shape)}"
+    )
   images = scene["images"]
   if isinstance(images, np.ndarray):
     if images.dtype != np.uint8 or images.ndim != 4 or images.shape[-1] != 3:
-      raise ValueError(f"scene '{key}': images must be uint8 [F, H, W, 3], got {images.dtype} "
-                       f"{list(images.shape)}")
+      raise ValueError(
+        f"scene '{key}': images must be uint8 [F, H, W, 3], got {images.dtype} {list(images.shape)}"
+      )
     encoded = [encode_jpeg(image, jpeg_quality) for image in images]
   else:
     encoded = [_as_bytes(data) for data in images]
@@ -694,15 +804,17 @@ def _scene_to_record(scene: Mapping, jpeg_quality: int) -> dict:
   height, width = jpeg_size(encoded[0], where=f"scene '{key}' frame 0")
   timestamps = np.asarray(scene.get("timestamps", np.arange(frames)), np.int64)
   return {
-      "url": str(scene.get("url", "")),
-      "timestamps": timestamps,
-      "cameras": poses_to_cameras(c2w, intrinsics, height, width),
-      "images": [np.frombuffer(data, np.uint8) for data in encoded],
-      "key": str(key),
+    "url": str(scene.get("url", "")),
+    "timestamps": timestamps,
+    "cameras": poses_to_cameras(c2w, intrinsics, height, width),
+    "images": [np.frombuffer(data, np.uint8) for data in encoded],
+    "key": str(key),
   }
 
 
-def write_chunk(path: str | os.PathLike, scenes: Iterable[Mapping], *, jpeg_quality: int = 95) -> None:
+def write_chunk(
+  path: str | os.PathLike, scenes: Iterable[Mapping], *, jpeg_quality: int = 95
+) -> None:
   """Writes scenes as a pixelSplat-format chunk that `torch.load` and `read_chunk` both read.
 
   Each scene: `key` str, optional `url` str, optional `timestamps` int64 [F] (default 0..F-1),

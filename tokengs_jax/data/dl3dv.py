@@ -40,19 +40,20 @@ from tokengs_jax.data.rejections import Rejections
 from tokengs_jax.data.sampler import MissingIndexEntryError
 
 __all__ = [
-    "DL3DVError",
-    "DL3DVSceneSource",
-    "list_dl3dv_scenes",
-    "nerfstudio_to_opencv_c2w",
-    "opencv_to_nerfstudio_c2w",
-    "read_dl3dv_cameras",
+  "DL3DVError",
+  "DL3DVSceneSource",
+  "list_dl3dv_scenes",
+  "nerfstudio_to_opencv_c2w",
+  "opencv_to_nerfstudio_c2w",
+  "read_dl3dv_cameras",
 ]
 
 DEFAULT_IMAGE_FOLDER = "images_4"
 _BENCHMARK_PREFIX = "gaussian_splat"
 # nerfstudio world -> COLMAP world (official `load_cameras` row operations): x <- y, y <- x, z <- -z.
 _WORLD_NERFSTUDIO_TO_COLMAP = np.array(
-    [[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+  [[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+)
 # OpenGL camera axes (x right, y up, -z forward) -> OpenCV (x right, y down, z forward).
 _CAMERA_GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -83,7 +84,9 @@ class _SceneFiles:
   def __init__(self, path: pathlib.Path):
     self.path = path
     self.key = path.stem if path.suffix == ".zip" else path.name
-    nested = f"{_BENCHMARK_PREFIX}/transforms.json"  # the benchmark nests the scene one level deeper
+    nested = (
+      f"{_BENCHMARK_PREFIX}/transforms.json"  # the benchmark nests the scene one level deeper
+    )
     if path.suffix == ".zip":
       is_nested = f"{self.key}/{nested}" in _open_archive(str(path)).namelist()
     else:
@@ -92,7 +95,9 @@ class _SceneFiles:
 
   def where(self, name: str) -> str:
     inner = f"{self.prefix}{name}"
-    return f"{self.path}:{self.key}/{inner}" if self.path.suffix == ".zip" else str(self.path / inner)
+    return (
+      f"{self.path}:{self.key}/{inner}" if self.path.suffix == ".zip" else str(self.path / inner)
+    )
 
   def read(self, name: str) -> bytes:
     try:
@@ -134,8 +139,9 @@ def _scene_files(path: pathlib.Path) -> _SceneFiles:
     raise DL3DVError(f"{path}: not a readable scene zip ({error})") from error
 
 
-def read_dl3dv_cameras(transforms: dict, where: str
-                       ) -> tuple[np.ndarray, np.ndarray, tuple[float, float], list[str]]:
+def read_dl3dv_cameras(
+  transforms: dict, where: str
+) -> tuple[np.ndarray, np.ndarray, tuple[float, float], list[str]]:
   """Cameras of a parsed `transforms.json`; `where` (file and scene) is named in errors.
 
   Returns:
@@ -143,7 +149,9 @@ def read_dl3dv_cameras(transforms: dict, where: str
     capture, capture size (h, w), image file base names [F]).
   """
   try:
-    fx, fy, cx, cy, width, height = (float(transforms[k]) for k in ("fl_x", "fl_y", "cx", "cy", "w", "h"))
+    fx, fy, cx, cy, width, height = (
+      float(transforms[k]) for k in ("fl_x", "fl_y", "cx", "cy", "w", "h")
+    )
   except KeyError as error:
     raise DL3DVError(f"{where}: no '{error.args[0]}' (needs fl_x, fl_y, cx, cy, w, h)") from error
   except (TypeError, ValueError) as error:
@@ -157,10 +165,14 @@ def read_dl3dv_cameras(transforms: dict, where: str
       matrix = np.asarray(frame["transform_matrix"], np.float64)
       names.append(str(frame["file_path"]).split("/")[-1])  # base name, as official
     except (KeyError, TypeError, ValueError) as error:
-      raise DL3DVError(f"{where}: frame {number} needs 'transform_matrix' and 'file_path' "
-                       f"({type(error).__name__}: {error})") from error
+      raise DL3DVError(
+        f"{where}: frame {number} needs 'transform_matrix' and 'file_path' "
+        f"({type(error).__name__}: {error})"
+      ) from error
     if matrix.shape != (4, 4):
-      raise DL3DVError(f"{where}: frame {number} transform_matrix is {list(matrix.shape)}, not [4, 4]")
+      raise DL3DVError(
+        f"{where}: frame {number} transform_matrix is {list(matrix.shape)}, not [4, 4]"
+      )
     matrices.append(matrix)
   matrices = np.stack(matrices)
   if not np.isfinite(matrices).all():
@@ -174,7 +186,9 @@ def read_dl3dv_cameras(transforms: dict, where: str
 
 
 def _is_scene_dir(path: pathlib.Path) -> bool:
-  return (path / "transforms.json").is_file() or (path / _BENCHMARK_PREFIX / "transforms.json").is_file()
+  return (path / "transforms.json").is_file() or (
+    path / _BENCHMARK_PREFIX / "transforms.json"
+  ).is_file()
 
 
 def _scenes_in(directory: pathlib.Path) -> tuple[list[pathlib.Path], list[pathlib.Path]]:
@@ -188,7 +202,9 @@ def _scenes_in(directory: pathlib.Path) -> tuple[list[pathlib.Path], list[pathli
   return scenes, others
 
 
-def list_dl3dv_scenes(root: str | os.PathLike, subsets: Sequence[str] | None = None) -> list[pathlib.Path]:
+def list_dl3dv_scenes(
+  root: str | os.PathLike, subsets: Sequence[str] | None = None
+) -> list[pathlib.Path]:
   """Scene zips / directories under `root`.
 
   subsets: read `<root>/<subset>` for each, in order (official training: `1K` ... `11K`);
@@ -226,9 +242,16 @@ class DL3DVSceneSource:
       pipeline's `skip_bad` drops those.
   """
 
-  def __init__(self, root: str | os.PathLike, *, subsets: Sequence[str] | None = None,
-               image_folder: str = DEFAULT_IMAGE_FOLDER, resolution: tuple[int, int] | None = None,
-               keys: Iterable[str] | None = None, skip_bad: bool = False):
+  def __init__(
+    self,
+    root: str | os.PathLike,
+    *,
+    subsets: Sequence[str] | None = None,
+    image_folder: str = DEFAULT_IMAGE_FOLDER,
+    resolution: tuple[int, int] | None = None,
+    keys: Iterable[str] | None = None,
+    skip_bad: bool = False,
+  ):
     self.root = pathlib.Path(root)
     self.image_folder, self.resolution = image_folder, resolution
     self.rejections = Rejections(f"source {self.root}")
@@ -282,9 +305,15 @@ class DL3DVSceneSource:
     height, width = self.resolution or self._image_size(images, files)
     # as official: every intrinsic scaled by the stored/capture size ratio of its axis
     scale = np.array([width / raw_width, height / raw_height] * 2)
-    return {"key": files.key, "source": str(path), "c2w": c2w,
-            "intrinsics": (intrinsics * scale).astype(np.float32),
-            "height": int(height), "width": int(width), "images": images}
+    return {
+      "key": files.key,
+      "source": str(path),
+      "c2w": c2w,
+      "intrinsics": (intrinsics * scale).astype(np.float32),
+      "height": int(height),
+      "width": int(width),
+      "images": images,
+    }
 
   def _image_size(self, images: _SceneImages, files: _SceneFiles) -> tuple[int, int]:
     """(H, W) from the first image's header (PIL reads no pixels for `.size`)."""
@@ -293,7 +322,9 @@ class DL3DVSceneSource:
       with Image.open(io.BytesIO(images[0])) as image:
         width, height = image.size
     except (OSError, SyntaxError, ValueError) as error:
-      raise DL3DVError(f"{files.where(name)}: not an image ({error}; scene '{files.key}')") from error
+      raise DL3DVError(
+        f"{files.where(name)}: not an image ({error}; scene '{files.key}')"
+      ) from error
     return height, width
 
   def __getstate__(self):  # workers rebuild their own cache

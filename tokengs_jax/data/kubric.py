@@ -136,8 +136,10 @@ def intrinsics_from_metadata(
   """
   values = np.array([focal_length, sensor_width, height, width], np.float64)
   if not (np.isfinite(values).all() and (values > 0).all()):
-    raise KubricError(f"focal_length {focal_length}, sensor_width {sensor_width} and resolution "
-                      f"{[height, width]} must be finite and positive")
+    raise KubricError(
+      f"focal_length {focal_length}, sensor_width {sensor_width} and resolution "
+      f"{[height, width]} must be finite and positive"
+    )
   return np.array(
     [
       focal_length * width / sensor_width,
@@ -181,6 +183,7 @@ class KubricView:
     height, width: the metadata's resolution.
     members: member name (without "./") -> (byte offset, size).
   """
+
   path: str
   c2w: np.ndarray
   intrinsics: np.ndarray
@@ -214,8 +217,9 @@ def parse_kubric_view(tar_path: str | os.PathLike) -> KubricView:
   try:
     check_regular_file(path)
     with tarfile.open(path, "r") as tar:
-      members = {m.name.removeprefix("./"): (m.offset_data, m.size) for m in tar.getmembers()
-                 if m.isreg()}
+      members = {
+        m.name.removeprefix("./"): (m.offset_data, m.size) for m in tar.getmembers() if m.isreg()
+      }
   except (ChunkError, tarfile.TarError, OSError, EOFError) as error:
     raise KubricError(f"{path}: not a readable tar ({error})") from error
   view = KubricView(path, np.zeros((0, 4, 4), np.float32), np.zeros(4, np.float32), 0, 0, members)
@@ -266,7 +270,9 @@ def read_kubric_view(
   view = parse_kubric_view(tar_path)
   frames = np.arange(view.num_frames) if frames is None else np.asarray(frames, np.int64)
   if frames.size and (frames.min() < 0 or frames.max() >= view.num_frames):
-    raise KubricError(f"{view.path}: frames {frames.tolist()} outside the {view.num_frames} in the file")
+    raise KubricError(
+      f"{view.path}: frames {frames.tolist()} outside the {view.num_frames} in the file"
+    )
   shape = (view.height, view.width)
   result = {
     "c2w": view.c2w[frames],
@@ -290,13 +296,17 @@ def _decode(view: KubricView, name: str, shape: tuple[int, int]) -> np.ndarray:
   depth (TIFF, read with PIL as official); its size must be the metadata's resolution."""
   try:
     with Image.open(io.BytesIO(view.read(name))) as image:
-      pixels = np.asarray(image.convert("RGB")) if name.endswith(".png") else np.asarray(image, np.float32)
+      pixels = (
+        np.asarray(image.convert("RGB")) if name.endswith(".png") else np.asarray(image, np.float32)
+      )
   except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as error:
     raise KubricError(f"{view.path}: corrupt {name} ({error})") from error
   pixels = pixels[..., 0] if name.endswith(".tiff") and pixels.ndim == 3 else pixels
   if pixels.shape[:2] != shape:
-    raise KubricError(f"{view.path}: {name} is {list(pixels.shape[:2])}, metadata.json resolution "
-                      f"is {list(shape)} (the intrinsics would be wrong)")
+    raise KubricError(
+      f"{view.path}: {name} is {list(pixels.shape[:2])}, metadata.json resolution "
+      f"is {list(shape)} (the intrinsics would be wrong)"
+    )
   return pixels
 
 
@@ -408,12 +418,18 @@ class KubricSceneSource:
     scenes: ...or use exactly these scene directories (e.g. a train/held-out split of a listing).
   """
 
-  def __init__(self, root: str | os.PathLike | None = None, subsets: Sequence[str] = DEFAULT_SUBSETS,
-               *, scenes: Sequence[str | os.PathLike] | None = None):
+  def __init__(
+    self,
+    root: str | os.PathLike | None = None,
+    subsets: Sequence[str] = DEFAULT_SUBSETS,
+    *,
+    scenes: Sequence[str | os.PathLike] | None = None,
+  ):
     if (root is None) == (scenes is None):
       raise ValueError("give either root (with subsets) or scenes")
-    self.scenes = ([pathlib.Path(s) for s in scenes] if scenes is not None
-                   else list_kubric_scenes(root, subsets))
+    self.scenes = (
+      [pathlib.Path(s) for s in scenes] if scenes is not None else list_kubric_scenes(root, subsets)
+    )
     self._cache: collections.OrderedDict = collections.OrderedDict()
 
   def __len__(self) -> int:
@@ -444,15 +460,18 @@ class KubricSceneSource:
       raise KubricError(f"{scene_dir}: no output_*.tar camera files")
     views = [parse_kubric_view(scene_dir / f"output_{c:03d}.tar") for c in range(count)]
     first = views[0]
-    if any((v.num_frames, v.height, v.width) != (first.num_frames, first.height, first.width)
-           for v in views):
+    if any(
+      (v.num_frames, v.height, v.width) != (first.num_frames, first.height, first.width)
+      for v in views
+    ):
       raise KubricError(f"{scene_dir}: cameras differ in frame count or resolution")
     return {
       "key": scene_dir.name,
       "source": str(scene_dir),
       "c2w": np.concatenate([v.c2w for v in views]),
-      "intrinsics": np.tile(np.stack([v.intrinsics for v in views])[:, None],
-                            (1, first.num_frames, 1)).reshape(-1, 4),
+      "intrinsics": np.tile(
+        np.stack([v.intrinsics for v in views])[:, None], (1, first.num_frames, 1)
+      ).reshape(-1, 4),
       "height": first.height,
       "width": first.width,
       "images": _TarFrames(views, first.num_frames, "rgba_{:05d}.png"),

@@ -43,8 +43,16 @@ from tokengs_jax.data.transforms import (
   translation_scale,
 )
 
-__all__ = ["ExampleConfig", "DATASET_PRESETS", "TRANSLATION_SCALES", "make_example", "field_of_view",
-           "InputPipeline", "BadExampleError", "NoUsableExamplesError"]
+__all__ = [
+  "ExampleConfig",
+  "DATASET_PRESETS",
+  "TRANSLATION_SCALES",
+  "make_example",
+  "field_of_view",
+  "InputPipeline",
+  "BadExampleError",
+  "NoUsableExamplesError",
+]
 
 # Paper, training details: camera translations scaled so that mean depths are roughly 1. The
 # synthetic RE10K-like rooms have a median depth of ~3.8 m (measured, BUILD_NOTES.md), so RE10K's
@@ -89,6 +97,7 @@ class ExampleConfig:
   `config/dataset/re10k.yaml`). They are off in `DATASET_PRESETS`: the official TokenGS pipeline
   normalises cameras itself and is not known to filter (not checked against its code).
   """
+
   image_shape: tuple[int, int] = (256, 256)
   sampler: BoundedSamplerConfig = SAMPLER_PRESETS["depthsplat_re10k"]
   translation_scale: float = TRANSLATION_SCALES["re10k"]
@@ -101,15 +110,20 @@ class ExampleConfig:
 
 
 DATASET_PRESETS = {
-    "re10k": ExampleConfig((256, 256), SAMPLER_PRESETS["depthsplat_re10k"], TRANSLATION_SCALES["re10k"]),
-    "dl3dv": ExampleConfig((256, 448), SAMPLER_PRESETS["tokengs_dl3dv"], TRANSLATION_SCALES["dl3dv"]),
-    # the embedded default (`tokengs_jax.data.synthetic`, generated at 64x64 by default)
-    "synthetic": ExampleConfig((64, 64), SAMPLER_PRESETS["synthetic"], TRANSLATION_SCALES["synthetic"]),
-    # official `finetune_dl3dv_kubric_dyn` + registry: 256x256, mean_cam, pointmap scale 1.0.
-    # Pass `kubric_view_selector(4, 4, 3, 23)` as `select_views`: the bounded sampler, here only
-    # a record of the official view counts and gaps, would mix cameras. Needs the records' `depths`.
-    "kubric": ExampleConfig((256, 256), BoundedSamplerConfig(4, 4, 3, 23, 0, 0, 3, 23), 1.0,
-                            "mean_cam", "pointmap"),
+  "re10k": ExampleConfig(
+    (256, 256), SAMPLER_PRESETS["depthsplat_re10k"], TRANSLATION_SCALES["re10k"]
+  ),
+  "dl3dv": ExampleConfig((256, 448), SAMPLER_PRESETS["tokengs_dl3dv"], TRANSLATION_SCALES["dl3dv"]),
+  # the embedded default (`tokengs_jax.data.synthetic`, generated at 64x64 by default)
+  "synthetic": ExampleConfig(
+    (64, 64), SAMPLER_PRESETS["synthetic"], TRANSLATION_SCALES["synthetic"]
+  ),
+  # official `finetune_dl3dv_kubric_dyn` + registry: 256x256, mean_cam, pointmap scale 1.0.
+  # Pass `kubric_view_selector(4, 4, 3, 23)` as `select_views`: the bounded sampler, here only
+  # a record of the official view counts and gaps, would mix cameras. Needs the records' `depths`.
+  "kubric": ExampleConfig(
+    (256, 256), BoundedSamplerConfig(4, 4, 3, 23, 0, 0, 3, 23), 1.0, "mean_cam", "pointmap"
+  ),
 }
 
 # Errors that mean "this scene cannot make an example" (raised, or skipped with `skip_bad`).
@@ -129,8 +143,10 @@ def _frame(record: dict, index: int) -> np.ndarray:
     frame = frame.load()
   if isinstance(frame, np.ndarray) and frame.ndim != 1:  # decoded pixels, not encoded bytes
     if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[-1] != 3:
-      raise BadExampleError(f"{_where(record)} frame {index}: decoded frames must be uint8 "
-                            f"[H, W, 3] RGB, got {frame.dtype} {list(frame.shape)}")
+      raise BadExampleError(
+        f"{_where(record)} frame {index}: decoded frames must be uint8 "
+        f"[H, W, 3] RGB, got {frame.dtype} {list(frame.shape)}"
+      )
     return frame
   return decode_jpeg(frame, where=f"{_where(record)} frame {index}")
 
@@ -138,8 +154,9 @@ def _frame(record: dict, index: int) -> np.ndarray:
 def _depth(record: dict, index: int) -> np.ndarray:
   """Depth map `index` of a record as float32 [H, W] (TIFF bytes read with PIL, as official)."""
   if "depths" not in record:
-    raise BadExampleError(f"{_where(record)}: scale_method 'pointmap' needs depth maps, and the "
-                          "record has no 'depths'")
+    raise BadExampleError(
+      f"{_where(record)}: scale_method 'pointmap' needs depth maps, and the record has no 'depths'"
+    )
   depth = record["depths"][index]
   if isinstance(depth, LazyTensor):
     depth = depth.load()
@@ -148,11 +165,15 @@ def _depth(record: dict, index: int) -> np.ndarray:
       with Image.open(io.BytesIO(bytes(depth))) as image:
         depth = np.asarray(image, np.float32)
     except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as error:
-      raise BadExampleError(f"{_where(record)} depth {index}: corrupt depth image ({error})") from error
+      raise BadExampleError(
+        f"{_where(record)} depth {index}: corrupt depth image ({error})"
+      ) from error
   depth = depth[..., 0] if depth.ndim == 3 else depth
   if depth.shape != (record["height"], record["width"]):
-    raise BadExampleError(f"{_where(record)} depth {index}: {depth.shape}, frames are "
-                          f"{(record['height'], record['width'])}")
+    raise BadExampleError(
+      f"{_where(record)} depth {index}: {depth.shape}, frames are "
+      f"{(record['height'], record['width'])}"
+    )
   return depth.astype(np.float32)
 
 
@@ -175,7 +196,9 @@ def field_of_view(intrinsics: np.ndarray, height: int, width: int) -> np.ndarray
   return np.degrees(np.arccos(np.clip(cosines, -1.0, 1.0)))
 
 
-def _check_filters(record: dict, config: ExampleConfig, context: np.ndarray, height: int, width: int):
+def _check_filters(
+  record: dict, config: ExampleConfig, context: np.ndarray, height: int, width: int
+):
   """pixelSplat/MVSplat's RE10K example filters (see `ExampleConfig`); raises `BadExampleError`."""
   where = _where(record)
   if config.max_fov_degrees is not None:
@@ -186,20 +209,30 @@ def _check_filters(record: dict, config: ExampleConfig, context: np.ndarray, hei
       wide = fov > config.max_fov_degrees
     if wide.any():
       frame, axis = np.argwhere(wide)[0]
-      raise BadExampleError(f"{where}: {('horizontal', 'vertical')[axis]} field of view "
-                            f"{fov[frame, axis]:.4f} deg of frame {frame} exceeds max_fov_degrees "
-                            f"{config.max_fov_degrees}")
+      raise BadExampleError(
+        f"{where}: {('horizontal', 'vertical')[axis]} field of view "
+        f"{fov[frame, axis]:.4f} deg of frame {frame} exceeds max_fov_degrees "
+        f"{config.max_fov_degrees}"
+      )
   if config.min_context_baseline is not None and len(context) == 2:
     # Raw record cameras: pixelSplat measures before it rescales the world.
     centres = np.asarray(record["c2w"], np.float64)[context, :3, 3]
     baseline = float(np.linalg.norm(centres[0] - centres[1]))
     if baseline < config.min_context_baseline:
-      raise BadExampleError(f"{where}: context baseline {baseline:.6g} (frames {context.tolist()}) is "
-                            f"below min_context_baseline {config.min_context_baseline}")
+      raise BadExampleError(
+        f"{where}: context baseline {baseline:.6g} (frames {context.tolist()}) is "
+        f"below min_context_baseline {config.min_context_baseline}"
+      )
 
 
-def make_example(record: dict, config: ExampleConfig, rng: np.random.Generator, *, step: int = 0,
-                 views: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
+def make_example(
+  record: dict,
+  config: ExampleConfig,
+  rng: np.random.Generator,
+  *,
+  step: int = 0,
+  views: tuple[np.ndarray, np.ndarray] | None = None,
+) -> dict:
   """One example (no batch axis) from a scene record; keys as the batch without the leading `B`.
 
   views: fixed (context [Vc], target [Vt]) frame indices; default: the bounded sampler.
@@ -209,8 +242,9 @@ def make_example(record: dict, config: ExampleConfig, rng: np.random.Generator, 
   c2w_all = np.asarray(record["c2w"])
   try:
     if views is None:
-      views = sample_bounded(config.sampler, c2w_all.shape[0], rng, step=step,
-                             deterministic=config.deterministic)
+      views = sample_bounded(
+        config.sampler, c2w_all.shape[0], rng, step=step, deterministic=config.deterministic
+      )
     context, target = views
     frames = np.concatenate([context, target])
     c2w = c2w_all[frames]
@@ -218,24 +252,35 @@ def make_example(record: dict, config: ExampleConfig, rng: np.random.Generator, 
     if not (np.isfinite(c2w).all() and np.isfinite(intrinsics).all()):
       raise BadExampleError(f"{where}: NaN/inf in the cameras of frames {frames.tolist()}")
     if intrinsics.shape != (len(frames), 4) or (intrinsics[:, :2] <= 0).any():
-      raise BadExampleError(f"{where}: intrinsics of frames {frames.tolist()} must be [V, 4] "
-                            f"(fx, fy, cx, cy) pixels with fx, fy > 0, got {intrinsics.tolist()}")
+      raise BadExampleError(
+        f"{where}: intrinsics of frames {frames.tolist()} must be [V, 4] "
+        f"(fx, fy, cx, cy) pixels with fx, fy > 0, got {intrinsics.tolist()}"
+      )
     images = np.stack([_frame(record, int(i)) for i in frames])
-    depths = (np.stack([_depth(record, int(i)) for i in context])
-              if config.scale_method == "pointmap" else None)
+    depths = (
+      np.stack([_depth(record, int(i)) for i in context])
+      if config.scale_method == "pointmap"
+      else None
+    )
   except _DATA_ERRORS as error:
     raise BadExampleError(f"{where}: {error}") from error
-  if images.shape[1:3] != (record.get("height", images.shape[1]), record.get("width", images.shape[2])):
-    raise BadExampleError(f"{where}: frames are {images.shape[1:3]}, cameras are for "
-                          f"{(record['height'], record['width'])}")
+  if images.shape[1:3] != (
+    record.get("height", images.shape[1]),
+    record.get("width", images.shape[2]),
+  ):
+    raise BadExampleError(
+      f"{where}: frames are {images.shape[1:3]}, cameras are for "
+      f"{(record['height'], record['width'])}"
+    )
   _check_filters(record, config, np.asarray(context), images.shape[1], images.shape[2])
   raw_intrinsics = intrinsics
   images, intrinsics = resize_and_center_crop(images, intrinsics, config.image_shape)
   num_context = len(context)
   c2w = normalize_cameras(c2w, num_context, config.normalization)
   if config.scale_method == "pointmap":  # official: stored-resolution depth, normalised cameras
-    scale = config.translation_scale / pointmap_scale(depths, c2w[:num_context],
-                                                      raw_intrinsics[:num_context])
+    scale = config.translation_scale / pointmap_scale(
+      depths, c2w[:num_context], raw_intrinsics[:num_context]
+    )
   else:
     scale = translation_scale(c2w, num_context, config.translation_scale, config.scale_method)
   if config.random_flip and not config.deterministic and rng.random() < 0.5:
@@ -243,10 +288,12 @@ def make_example(record: dict, config: ExampleConfig, rng: np.random.Generator, 
   c2w[:, :3, 3] *= scale
   images = images.astype(np.float32) / 255.0
   example = {
-      "context_images": images[:num_context], "context_c2w": c2w[:num_context],
-      "context_intrinsics": intrinsics[:num_context],
-      "target_images": images[num_context:], "target_c2w": c2w[num_context:],
-      "target_intrinsics": intrinsics[num_context:],
+    "context_images": images[:num_context],
+    "context_c2w": c2w[:num_context],
+    "context_intrinsics": intrinsics[:num_context],
+    "target_images": images[num_context:],
+    "target_c2w": c2w[num_context:],
+    "target_intrinsics": intrinsics[num_context:],
   }
   if "times" in record:
     times = normalize_times(np.asarray(record["times"], np.float64)[frames])
@@ -265,7 +312,11 @@ class _BuildExample:
 
   def __init__(self, source, config, seed, batch_size, evaluation_index, select_views, skip_bad):
     self.source, self.config, self.seed, self.batch_size = source, config, seed, batch_size
-    self.evaluation_index, self.select_views, self.skip_bad = evaluation_index, select_views, skip_bad
+    self.evaluation_index, self.select_views, self.skip_bad = (
+      evaluation_index,
+      select_views,
+      skip_bad,
+    )
 
   def __call__(self, position: int, scene_index: int):
     rng = np.random.default_rng([self.seed, position])  # same example for the same position
@@ -309,13 +360,27 @@ class InputPipeline:
   position exactly. `rejection_summary()` reports what the source and the pipeline rejected.
   """
 
-  def __init__(self, source: Sequence[dict], config: ExampleConfig, *, batch_size: int, seed: int = 0,
-               shuffle: bool = True, num_epochs: int | None = None, shard_index: int | None = None,
-               shard_count: int | None = None, num_workers: int = 0, evaluation_index: dict | None = None,
-               select_views: ViewSelector | None = None, skip_bad: bool = False, drop_remainder: bool = True,
-               max_consecutive_bad: int = 256):
+  def __init__(
+    self,
+    source: Sequence[dict],
+    config: ExampleConfig,
+    *,
+    batch_size: int,
+    seed: int = 0,
+    shuffle: bool = True,
+    num_epochs: int | None = None,
+    shard_index: int | None = None,
+    shard_count: int | None = None,
+    num_workers: int = 0,
+    evaluation_index: dict | None = None,
+    select_views: ViewSelector | None = None,
+    skip_bad: bool = False,
+    drop_remainder: bool = True,
+    max_consecutive_bad: int = 256,
+  ):
     if shard_index is None or shard_count is None:
       import jax  # only for the process topology
+
       shard_index, shard_count = jax.process_index(), jax.process_count()
     self.source = source
     self.rejections = Rejections("pipeline")
@@ -324,15 +389,19 @@ class InputPipeline:
     scenes = grain.MapDataset.range(len(source))[shard_index::shard_count]
     if len(scenes) == 0:
       raise NoUsableExamplesError(
-          f"no scenes for shard {shard_index} of {shard_count}: the source has {len(source)}"
-          + (f" ({self.rejection_summary()})" if _source_rejections(source) else ""))
+        f"no scenes for shard {shard_index} of {shard_count}: the source has {len(source)}"
+        + (f" ({self.rejection_summary()})" if _source_rejections(source) else "")
+      )
     if shuffle:
       scenes = scenes.shuffle(seed=seed)
     scenes = scenes.repeat(num_epochs)
-    build = _BuildExample(source, config, seed, batch_size, evaluation_index, select_views, skip_bad)
+    build = _BuildExample(
+      source, config, seed, batch_size, evaluation_index, select_views, skip_bad
+    )
     examples = scenes.map_with_index(build).to_iter_dataset()
     if num_workers > 0:
       from absl import flags  # grain's worker pool reads absl flags; outside absl.app use defaults
+
       if not flags.FLAGS.is_parsed():
         flags.FLAGS.mark_as_parsed()
       examples = examples.mp_prefetch(grain.MultiprocessingOptions(num_workers=num_workers))
@@ -346,8 +415,9 @@ class InputPipeline:
     self._consecutive_bad += 1
     if self._consecutive_bad >= self.max_consecutive_bad:
       raise NoUsableExamplesError(
-          f"the last {self._consecutive_bad} examples were all rejected (max_consecutive_bad); "
-          f"nothing to train on.\n{self.rejection_summary()}")
+        f"the last {self._consecutive_bad} examples were all rejected (max_consecutive_bad); "
+        f"nothing to train on.\n{self.rejection_summary()}"
+      )
     return False
 
   def rejection_summary(self) -> str:

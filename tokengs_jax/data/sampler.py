@@ -19,17 +19,17 @@ from collections.abc import Iterable, Mapping
 import numpy as np
 
 __all__ = [
-    "BoundedSamplerConfig",
-    "SAMPLER_PRESETS",
-    "NotEnoughFramesError",
-    "MissingIndexEntryError",
-    "context_gap_bounds",
-    "sample_bounded",
-    "load_evaluation_index",
-    "evaluation_views",
-    "EvaluationIndexError",
-    "EvaluationIndexReport",
-    "validate_evaluation_index",
+  "BoundedSamplerConfig",
+  "SAMPLER_PRESETS",
+  "NotEnoughFramesError",
+  "MissingIndexEntryError",
+  "context_gap_bounds",
+  "sample_bounded",
+  "load_evaluation_index",
+  "evaluation_views",
+  "EvaluationIndexError",
+  "EvaluationIndexReport",
+  "validate_evaluation_index",
 ]
 
 
@@ -56,6 +56,7 @@ class BoundedSamplerConfig:
     warm_up_steps: steps over which the gap bounds move linearly from the initial values.
     initial_min_context_gap / initial_max_context_gap: the gap bounds at step 0.
   """
+
   num_context_views: int = 2
   num_target_views: int = 4
   min_context_gap: int = 45
@@ -68,20 +69,20 @@ class BoundedSamplerConfig:
 
 # Published numbers (see BUILD_NOTES.md for the exact source of each).
 SAMPLER_PRESETS = {
-    # pixelSplat config/dataset/view_sampler_dataset_specific_config/bounded_re10k.yaml
-    "pixelsplat_re10k": BoundedSamplerConfig(2, 4, 45, 192, 0, 150_000, 25, 45),
-    # MVSplat trains RE10K with pixelSplat's bounded sampler and the same numbers
-    "mvsplat_re10k": BoundedSamplerConfig(2, 4, 45, 192, 0, 150_000, 25, 45),
-    # DepthSplat bounded_re10k.yaml
-    "depthsplat_re10k": BoundedSamplerConfig(2, 4, 45, 135, 0, 30_000, 25, 45),
-    # DepthSplat boundedv2_dl3dv.yaml (context_gap_warm_up_steps 10000)
-    "depthsplat_dl3dv": BoundedSamplerConfig(2, 4, 20, 50, 0, 10_000, 15, 30),
-    # official TokenGS registry "dl3dv" (min_gap 10, max_gap 40; num_views 8 = 4 context + 4 target)
-    "tokengs_dl3dv": BoundedSamplerConfig(4, 4, 10, 40, 0, 0, 10, 40),
-    # ours, for the 32-frame synthetic RE10K-like walks (tokengs_jax.data.synthetic, 3-8 cm per
-    # frame, median depth ~3.8 m): gaps 8-24 give context baselines of ~0.11-0.34 x the median
-    # depth (measured, BUILD_NOTES.md); the warm-up starts at 4-12. Fits 32 frames (max gap 31).
-    "synthetic": BoundedSamplerConfig(2, 4, 8, 24, 0, 5_000, 4, 12),
+  # pixelSplat config/dataset/view_sampler_dataset_specific_config/bounded_re10k.yaml
+  "pixelsplat_re10k": BoundedSamplerConfig(2, 4, 45, 192, 0, 150_000, 25, 45),
+  # MVSplat trains RE10K with pixelSplat's bounded sampler and the same numbers
+  "mvsplat_re10k": BoundedSamplerConfig(2, 4, 45, 192, 0, 150_000, 25, 45),
+  # DepthSplat bounded_re10k.yaml
+  "depthsplat_re10k": BoundedSamplerConfig(2, 4, 45, 135, 0, 30_000, 25, 45),
+  # DepthSplat boundedv2_dl3dv.yaml (context_gap_warm_up_steps 10000)
+  "depthsplat_dl3dv": BoundedSamplerConfig(2, 4, 20, 50, 0, 10_000, 15, 30),
+  # official TokenGS registry "dl3dv" (min_gap 10, max_gap 40; num_views 8 = 4 context + 4 target)
+  "tokengs_dl3dv": BoundedSamplerConfig(4, 4, 10, 40, 0, 0, 10, 40),
+  # ours, for the 32-frame synthetic RE10K-like walks (tokengs_jax.data.synthetic, 3-8 cm per
+  # frame, median depth ~3.8 m): gaps 8-24 give context baselines of ~0.11-0.34 x the median
+  # depth (measured, BUILD_NOTES.md); the warm-up starts at 4-12. Fits 32 frames (max gap 31).
+  "synthetic": BoundedSamplerConfig(2, 4, 8, 24, 0, 5_000, 4, 12),
 }
 
 
@@ -94,12 +95,20 @@ def context_gap_bounds(config: BoundedSamplerConfig, step: int) -> tuple[int, in
   def schedule(initial, final):
     return min(initial + int((final - initial) * fraction), final)
 
-  return (schedule(config.initial_min_context_gap, config.min_context_gap),
-          schedule(config.initial_max_context_gap, config.max_context_gap))
+  return (
+    schedule(config.initial_min_context_gap, config.min_context_gap),
+    schedule(config.initial_max_context_gap, config.max_context_gap),
+  )
 
 
-def sample_bounded(config: BoundedSamplerConfig, num_frames: int, rng: np.random.Generator, *,
-                   step: int = 0, deterministic: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def sample_bounded(
+  config: BoundedSamplerConfig,
+  num_frames: int,
+  rng: np.random.Generator,
+  *,
+  step: int = 0,
+  deterministic: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
   """Draws context and target frame indices for a scene of `num_frames` frames.
 
   Training (`deterministic=False`): gap uniform in the warmed-up [min, max] (max clipped to
@@ -121,14 +130,18 @@ def sample_bounded(config: BoundedSamplerConfig, num_frames: int, rng: np.random
   min_gap = max(min_gap, 2 * config.min_target_distance, config.num_context_views - 1)
   if max_gap < min_gap:
     raise NotEnoughFramesError(
-        f"{num_frames} frames cannot hold a context gap of at least {min_gap}")
+      f"{num_frames} frames cannot hold a context gap of at least {min_gap}"
+    )
   gap = max_gap if deterministic else int(rng.integers(min_gap, max_gap + 1))
   first = 0 if deterministic else int(rng.integers(0, num_frames - gap))
   last = first + gap
   inner = np.arange(first + 1, last)
   if deterministic:
-    middle = inner[np.linspace(0, len(inner) - 1, config.num_context_views - 2).round().astype(int)] \
-        if config.num_context_views > 2 else inner[:0]
+    middle = (
+      inner[np.linspace(0, len(inner) - 1, config.num_context_views - 2).round().astype(int)]
+      if config.num_context_views > 2
+      else inner[:0]
+    )
   else:
     middle = np.sort(rng.choice(inner, config.num_context_views - 2, replace=False))
   context = np.concatenate([[first], middle, [last]]).astype(np.int64)
@@ -144,8 +157,9 @@ def sample_bounded(config: BoundedSamplerConfig, num_frames: int, rng: np.random
 _LIST_CONTEXT_KEY = "fold_8_kmeans_{}_input"
 
 
-def load_evaluation_index(path: str | os.PathLike, *, num_context: int | None = None
-                          ) -> dict[str, tuple[tuple[int, ...], tuple[int, ...] | None]]:
+def load_evaluation_index(
+  path: str | os.PathLike, *, num_context: int | None = None
+) -> dict[str, tuple[tuple[int, ...], tuple[int, ...] | None]]:
   """Reads an evaluation index JSON: fixed context/target frames per scene.
 
   Two formats:
@@ -170,12 +184,16 @@ def load_evaluation_index(path: str | os.PathLike, *, num_context: int | None = 
     return _read_keyed_index(path, raw)
   if isinstance(raw, list):
     return _read_list_index(path, raw, num_context)
-  raise ValueError(f"{path}: an evaluation index is a key -> entry map or a list of scene entries, "
-                   f"found {type(raw).__name__}")
+  raise ValueError(
+    f"{path}: an evaluation index is a key -> entry map or a list of scene entries, "
+    f"found {type(raw).__name__}"
+  )
 
 
 def _frame_list(path, key: str, field: str, value) -> tuple[int, ...]:
-  if not (isinstance(value, list) and all(isinstance(i, int) and not isinstance(i, bool) for i in value)):
+  if not (
+    isinstance(value, list) and all(isinstance(i, int) and not isinstance(i, bool) for i in value)
+  ):
     raise ValueError(f"{path}: entry for scene '{key}' needs '{field}' as a list of frame numbers")
   return tuple(value)
 
@@ -187,15 +205,19 @@ def _read_keyed_index(path, raw: dict) -> dict:
       continue
     if not isinstance(entry, dict):
       raise ValueError(f"{path}: entry for scene '{key}' needs 'context' and 'target' lists")
-    index[key] = (_frame_list(path, key, "context", entry.get("context")),
-                  _frame_list(path, key, "target", entry.get("target")))
+    index[key] = (
+      _frame_list(path, key, "context", entry.get("context")),
+      _frame_list(path, key, "target", entry.get("target")),
+    )
   return index
 
 
 def _read_list_index(path, raw: list, num_context: int | None) -> dict:
   if num_context is None:
-    raise ValueError(f"{path}: a list-format (Long-LRM) index needs num_context to pick "
-                     f"'{_LIST_CONTEXT_KEY.format('N')}'")
+    raise ValueError(
+      f"{path}: a list-format (Long-LRM) index needs num_context to pick "
+      f"'{_LIST_CONTEXT_KEY.format('N')}'"
+    )
   field = _LIST_CONTEXT_KEY.format(num_context)
   index = {}
   for position, entry in enumerate(raw):
@@ -205,8 +227,10 @@ def _read_list_index(path, raw: list, num_context: int | None) -> dict:
       raise ValueError(f"{path}: list entry {position} needs a 'scene_name' string")
     key = entry["scene_name"]
     if field not in entry:
-      raise ValueError(f"{path}: entry for scene '{key}' has no '{field}' "
-                       f"(has {sorted(k for k in entry if k != 'scene_name')})")
+      raise ValueError(
+        f"{path}: entry for scene '{key}' has no '{field}' "
+        f"(has {sorted(k for k in entry if k != 'scene_name')})"
+      )
     index[key] = (_frame_list(path, key, field, entry[field]), None)
   return index
 
@@ -225,7 +249,8 @@ def evaluation_views(index: dict, key: str, num_frames: int) -> tuple[np.ndarray
   if frames.size and (frames.min() < 0 or frames.max() >= num_frames):
     bad = int(frames.max()) if frames.max() >= num_frames else int(frames.min())
     raise NotEnoughFramesError(
-        f"evaluation index asks for frame {bad} of a {num_frames}-frame scene")
+      f"evaluation index asks for frame {bad} of a {num_frames}-frame scene"
+    )
   return context, target
 
 
@@ -242,14 +267,18 @@ class EvaluationIndexReport:
     missing: index keys with no scene in the data, in index order.
     unindexed: number of available scenes the index does not name.
   """
+
   matched: tuple[str, ...]
   missing: tuple[str, ...]
   unindexed: int
 
   def as_dict(self) -> dict:
     """For metrics.json: what the scores cover and what was left out."""
-    return {"requested": len(self.matched) + len(self.missing), "evaluated": len(self.matched),
-            "missing": list(self.missing)}
+    return {
+      "requested": len(self.matched) + len(self.missing),
+      "evaluated": len(self.matched),
+      "missing": list(self.missing),
+    }
 
   def summary(self) -> str:
     text = f"evaluation index: {len(self.matched)} of {len(self.matched) + len(self.missing)} scenes found"
@@ -264,9 +293,13 @@ def _listing(keys, limit: int = 20) -> str:
   return shown + (f", ... ({len(keys) - limit} more)" if len(keys) > limit else "")
 
 
-def validate_evaluation_index(index: Mapping, available: Iterable[str] | Mapping[str, int], *,
-                              where: str = "evaluation index", allow_missing: bool = True
-                              ) -> EvaluationIndexReport:
+def validate_evaluation_index(
+  index: Mapping,
+  available: Iterable[str] | Mapping[str, int],
+  *,
+  where: str = "evaluation index",
+  allow_missing: bool = True,
+) -> EvaluationIndexReport:
   """Checks an evaluation index against the data before any work is done.
 
   Args:
@@ -293,8 +326,9 @@ def validate_evaluation_index(index: Mapping, available: Iterable[str] | Mapping
   report = EvaluationIndexReport(matched, missing, len(present - set(index)))
   if not matched:
     raise EvaluationIndexError(
-        f"{where}: none of its {len(index)} scenes is in the data ({len(present)} scenes). "
-        f"Index keys: {_listing(index, 5)}; data keys: {_listing(sorted(present), 5)}")
+      f"{where}: none of its {len(index)} scenes is in the data ({len(present)} scenes). "
+      f"Index keys: {_listing(index, 5)}; data keys: {_listing(sorted(present), 5)}"
+    )
   if missing and not allow_missing:
     raise EvaluationIndexError(f"{where}: {report.summary()}")
   if frames is not None:
@@ -305,8 +339,10 @@ def validate_evaluation_index(index: Mapping, available: Iterable[str] | Mapping
       except NotEnoughFramesError as error:
         bad.append(f"'{key}': {error}")
     if bad:
-      raise EvaluationIndexError(f"{where}: {len(bad)} entries ask for frames their scene does not "
-                                 f"have: {'; '.join(bad[:10])}")
+      raise EvaluationIndexError(
+        f"{where}: {len(bad)} entries ask for frames their scene does not "
+        f"have: {'; '.join(bad[:10])}"
+      )
   if missing:
     logging.getLogger("tokengs_jax.data").warning("%s: %s", where, report.summary())
   return report

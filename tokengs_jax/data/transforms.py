@@ -13,12 +13,12 @@ import numpy as np
 from PIL import Image
 
 __all__ = [
-    "rigid_inverse",
-    "resize_and_center_crop",
-    "flip_horizontal",
-    "normalize_cameras",
-    "translation_scale",
-    "normalize_times",
+  "rigid_inverse",
+  "resize_and_center_crop",
+  "flip_horizontal",
+  "normalize_cameras",
+  "translation_scale",
+  "normalize_times",
 ]
 
 _REFLECT_X = np.diag([-1.0, 1.0, 1.0, 1.0])
@@ -41,8 +41,9 @@ def rigid_inverse(pose: np.ndarray) -> np.ndarray:
   return inverse
 
 
-def resize_and_center_crop(images: np.ndarray, intrinsics: np.ndarray,
-                           shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+def resize_and_center_crop(
+  images: np.ndarray, intrinsics: np.ndarray, shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
   """pixelSplat's crop shim: scale so the image covers `shape`, then crop the centre.
 
   The scale is the larger of h_out/H and w_out/W; the scaled size is rounded, and the intrinsics
@@ -56,13 +57,18 @@ def resize_and_center_crop(images: np.ndarray, intrinsics: np.ndarray,
   scale = max(h_out / height, w_out / width)
   h_scaled, w_scaled = max(h_out, round(height * scale)), max(w_out, round(width * scale))
   if (h_scaled, w_scaled) != (height, width):
-    images = np.stack([
+    images = np.stack(
+      [
         np.asarray(Image.fromarray(image).resize((w_scaled, h_scaled), Image.LANCZOS))
-        for image in images])
+        for image in images
+      ]
+    )
   row, col = (h_scaled - h_out) // 2, (w_scaled - w_out) // 2
-  images = images[:, row:row + h_out, col:col + w_out]
+  images = images[:, row : row + h_out, col : col + w_out]
   factor_x, factor_y = w_scaled / width, h_scaled / height
-  intrinsics = np.asarray(intrinsics, np.float64) * np.array([factor_x, factor_y, factor_x, factor_y])
+  intrinsics = np.asarray(intrinsics, np.float64) * np.array(
+    [factor_x, factor_y, factor_x, factor_y]
+  )
   intrinsics = intrinsics - np.array([0.0, 0.0, col, row])
   return np.ascontiguousarray(images), intrinsics.astype(np.float32)
 
@@ -101,8 +107,9 @@ def _mean_camera(c2w: np.ndarray) -> np.ndarray:
   return mean
 
 
-def normalize_cameras(c2w: np.ndarray, num_context: int,
-                      method: Literal["first_cam", "mean_cam"] = "first_cam") -> np.ndarray:
+def normalize_cameras(
+  c2w: np.ndarray, num_context: int, method: Literal["first_cam", "mean_cam"] = "first_cam"
+) -> np.ndarray:
   """Expresses all cameras relative to a reference built from the first `num_context` views.
 
   `first_cam`: the first context camera becomes the identity; `mean_cam`: the average context
@@ -120,8 +127,12 @@ def normalize_cameras(c2w: np.ndarray, num_context: int,
   return (rigid_inverse(reference) @ c2w).astype(np.float32)
 
 
-def translation_scale(c2w: np.ndarray, num_context: int, base_scale: float,
-                      method: Literal["constant", "distance", "bound"] = "constant") -> float:
+def translation_scale(
+  c2w: np.ndarray,
+  num_context: int,
+  base_scale: float,
+  method: Literal["constant", "distance", "bound"] = "constant",
+) -> float:
   """Factor for the camera translations, as official `camera_scale_method`.
 
   `constant`: `base_scale` (RE10K 0.25, DL3DV 0.15, Kubric 0.1, making mean depth about 1);

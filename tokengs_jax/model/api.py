@@ -81,8 +81,10 @@ def normalize_images(images: jax.Array) -> jax.Array:
   float values outside [0, 1] (e.g. 0..255 floats, which would silently saturate the encoder).
   """
   if np.ndim(images) == 0 or np.shape(images)[-1] != 3:
-    raise ValueError(f"images: expected RGB [..., 3], got shape {list(np.shape(images))}"
-                     + (" (grayscale: repeat it to 3 channels)" if np.shape(images)[-1:] == (1,) else ""))
+    raise ValueError(
+      f"images: expected RGB [..., 3], got shape {list(np.shape(images))}"
+      + (" (grayscale: repeat it to 3 channels)" if np.shape(images)[-1:] == (1,) else "")
+    )
   dtype = jnp.result_type(images)
   if dtype == jnp.uint8:
     images = jnp.asarray(images).astype(jnp.float32) / 255.0
@@ -92,8 +94,10 @@ def normalize_images(images: jax.Array) -> jax.Array:
     values = np.asarray(images)  # numpy: jnp.min here would be staged inside an outer jit
     low, high = float(values.min()), float(values.max())
     if low < -_RANGE_SLACK or high > 1.0 + _RANGE_SLACK:
-      raise ValueError(f"images: expected float values in [0, 1], got [{low:.4g}, {high:.4g}]"
-                       + (" (0..255 values: divide by 255 or pass uint8)" if high > 2.0 else ""))
+      raise ValueError(
+        f"images: expected float values in [0, 1], got [{low:.4g}, {high:.4g}]"
+        + (" (0..255 values: divide by 255 or pass uint8)" if high > 2.0 else "")
+      )
   images = jnp.asarray(images)
   mean = jnp.asarray(IMAGE_MEAN, images.dtype)
   std = jnp.asarray(IMAGE_STD, images.dtype)
@@ -103,8 +107,13 @@ def normalize_images(images: jax.Array) -> jax.Array:
 _RANGE_SLACK = 1e-3  # resampled or low-precision images may overshoot [0, 1] by a hair
 
 
-def encode(params: Params, images: jax.Array, plucker: jax.Array, config: ModelConfig,
-           times: jax.Array | None = None) -> EncoderOutput:
+def encode(
+  params: Params,
+  images: jax.Array,
+  plucker: jax.Array,
+  config: ModelConfig,
+  times: jax.Array | None = None,
+) -> EncoderOutput:
   """Encoder: normalised images + Plücker rays -> shared keys/values.
 
   Args:
@@ -117,8 +126,7 @@ def encode(params: Params, images: jax.Array, plucker: jax.Array, config: ModelC
   Returns:
     EncoderOutput (keys/values [B, heads, V * H * W / p², head_dim]; latents if any).
   """
-  return TokenGS(config).apply({"params": params}, images, plucker, times,
-                               method=TokenGS.encode)
+  return TokenGS(config).apply({"params": params}, images, plucker, times, method=TokenGS.encode)
 
 
 def kv_from_latents(params: Params, latents: jax.Array, config: ModelConfig) -> EncoderOutput:
@@ -131,15 +139,26 @@ def initial_tokens(params: Params, config: ModelConfig, batch_size: int) -> jax.
   return TokenGS(config).apply({"params": params}, batch_size, method=TokenGS.initial_tokens)
 
 
-def decode_tokens(params: Params, encoded: EncoderOutput, config: ModelConfig,
-                  tokens: jax.Array | None = None, times: jax.Array | None = None) -> jax.Array:
+def decode_tokens(
+  params: Params,
+  encoded: EncoderOutput,
+  config: ModelConfig,
+  tokens: jax.Array | None = None,
+  times: jax.Array | None = None,
+) -> jax.Array:
   """Gaussian tokens after the last decoder block, [B, T, C] (the head's input)."""
-  return TokenGS(config).apply({"params": params}, encoded, tokens, times,
-                               method=TokenGS.decode_tokens)
+  return TokenGS(config).apply(
+    {"params": params}, encoded, tokens, times, method=TokenGS.decode_tokens
+  )
 
 
-def decode(params: Params, encoded: EncoderOutput, config: ModelConfig,
-           tokens: jax.Array | None = None, times: jax.Array | None = None) -> jax.Array:
+def decode(
+  params: Params,
+  encoded: EncoderOutput,
+  config: ModelConfig,
+  tokens: jax.Array | None = None,
+  times: jax.Array | None = None,
+) -> jax.Array:
   """Decoder + head: cached encoder output -> flat Gaussians.
 
   Args:
@@ -155,13 +174,17 @@ def decode(params: Params, encoded: EncoderOutput, config: ModelConfig,
     [xyz 3, opacity 1, scale 3, quat 4, rgb 3]; static Gaussians first, then dynamic ones
     (`config.num_static_gaussians` splits them).
   """
-  return TokenGS(config).apply({"params": params}, encoded, tokens, times,
-                               method=TokenGS.decode)
+  return TokenGS(config).apply({"params": params}, encoded, tokens, times, method=TokenGS.decode)
 
 
-def predict_gaussians(params: Params, images: jax.Array, plucker: jax.Array,
-                      config: ModelConfig, times: jax.Array | None = None,
-                      target_times: jax.Array | None = None) -> jax.Array:
+def predict_gaussians(
+  params: Params,
+  images: jax.Array,
+  plucker: jax.Array,
+  config: ModelConfig,
+  times: jax.Array | None = None,
+  target_times: jax.Array | None = None,
+) -> jax.Array:
   """The network alone: normalised images [B, V, H, W, 3] + Plücker [B, V, H, W, 6] -> [B, N, 14].
 
   N = config.num_gaussians whatever V, H and W are. `times` [B, V] and `target_times` [B] are for
@@ -170,8 +193,14 @@ def predict_gaussians(params: Params, images: jax.Array, plucker: jax.Array,
   return TokenGS(config).apply({"params": params}, images, plucker, times, target_times)
 
 
-def encode_views(params: Params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array,
-                 config: ModelConfig, times: jax.Array | None = None) -> EncoderOutput:
+def encode_views(
+  params: Params,
+  images: jax.Array,
+  c2w: jax.Array,
+  intrinsics: jax.Array,
+  config: ModelConfig,
+  times: jax.Array | None = None,
+) -> EncoderOutput:
   """Images in [0, 1] and cameras -> encoder output (normalisation + Plücker rays + encoder).
 
   The one prelude every caller that starts from views uses (`reconstruct`, training, tuning).
@@ -195,9 +224,16 @@ def encode_views(params: Params, images: jax.Array, c2w: jax.Array, intrinsics: 
   return encode(params, normalize_images(images), plucker, config, times)
 
 
-def reconstruct(params: Params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array, *,
-                config: ModelConfig, times: jax.Array | None = None,
-                target_times: jax.Array | None = None) -> Gaussians:
+def reconstruct(
+  params: Params,
+  images: jax.Array,
+  c2w: jax.Array,
+  intrinsics: jax.Array,
+  *,
+  config: ModelConfig,
+  times: jax.Array | None = None,
+  target_times: jax.Array | None = None,
+) -> Gaussians:
   """Images in [0, 1] and cameras -> Gaussians (`encode_views` + `decode`).
 
   Args:

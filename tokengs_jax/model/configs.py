@@ -92,16 +92,21 @@ class ModelConfig:
 
   def __post_init__(self):
     if self.enc_embed_dim % self.enc_num_heads:
-      raise ValueError(f"enc_embed_dim={self.enc_embed_dim} is not divisible by "
-                       f"enc_num_heads={self.enc_num_heads}")
+      raise ValueError(
+        f"enc_embed_dim={self.enc_embed_dim} is not divisible by enc_num_heads={self.enc_num_heads}"
+      )
     if self.use_multiscale_encoder:
       bad = [i for i in self.multiscale_encoder_layers if not 0 <= i < self.enc_depth]
       if bad or not self.multiscale_encoder_layers:
-        raise ValueError(f"multiscale_encoder_layers={self.multiscale_encoder_layers} must be "
-                         f"non-empty indices into enc_depth={self.enc_depth} blocks")
+        raise ValueError(
+          f"multiscale_encoder_layers={self.multiscale_encoder_layers} must be "
+          f"non-empty indices into enc_depth={self.enc_depth} blocks"
+        )
       if list(self.multiscale_encoder_layers) != sorted(set(self.multiscale_encoder_layers)):
-        raise ValueError("multiscale_encoder_layers must be strictly increasing (the official "
-                         "model concatenates them in block order)")
+        raise ValueError(
+          "multiscale_encoder_layers must be strictly increasing (the official "
+          "model concatenates them in block order)"
+        )
     if self.dtype not in ("float32", "bfloat16"):
       raise ValueError(f"dtype must be 'float32' or 'bfloat16', got {self.dtype!r}")
 
@@ -116,13 +121,12 @@ class ModelConfig:
   @property
   def decoder_layer_scale(self) -> float | None:
     """Decoder LayerScale init (None: no LayerScale), by the official rule."""
-    value = (self.dec_init_values if self.dec_init_values is not None
-             else 5e-3 * self.gs_token_std)
+    value = self.dec_init_values if self.dec_init_values is not None else 5e-3 * self.gs_token_std
     return value or None
 
   @property
   def gaussians_per_token(self) -> int:
-    return self.dec_patch_size ** 2
+    return self.dec_patch_size**2
 
   @property
   def num_tokens(self) -> int:
@@ -163,11 +167,20 @@ class ModelConfig:
 
 # The 2026.6 latent-bottleneck release architecture (official `_LATENT_D12_ARCH`).
 _LATENT_D12 = {
-    "enc_depth": 12, "dec_depth": 1, "dec_patch_size": 8, "clip_head_readout_std": 0.002,
-    "clip_head_z_init": 0.1, "dec_init_values": 0.01, "gaussian_z_offset": 0.0,
-    "opacity_bias": 2.0, "gs_token_std": 0.02, "use_multiscale_encoder": True,
-    "multiscale_encoder_layers": (5, 7, 9, 11), "use_latent_bottleneck": True,
-    "num_latents": 4096, "latent_cross_attn_depth": 12,
+  "enc_depth": 12,
+  "dec_depth": 1,
+  "dec_patch_size": 8,
+  "clip_head_readout_std": 0.002,
+  "clip_head_z_init": 0.1,
+  "dec_init_values": 0.01,
+  "gaussian_z_offset": 0.0,
+  "opacity_bias": 2.0,
+  "gs_token_std": 0.02,
+  "use_multiscale_encoder": True,
+  "multiscale_encoder_layers": (5, 7, 9, 11),
+  "use_latent_bottleneck": True,
+  "num_latents": 4096,
+  "latent_cross_attn_depth": 12,
 }
 
 
@@ -175,27 +188,45 @@ def _build_presets() -> dict[str, ModelConfig]:
   base = ModelConfig()  # official Options defaults: 3 enc / 12 dec, C=1024, 16 heads
   # Paper, RE10K: 6 encoder / 24 decoder layers, C=1024, 256x256, 2 views; 1024 tokens for the
   # base model, 4096 after finetuning.
-  re10k = base.replace(enc_depth=6, dec_depth=24, num_gs_tokens=1024, image_size=(256, 256),
-                       num_input_views=2)
+  re10k = base.replace(
+    enc_depth=6, dec_depth=24, num_gs_tokens=1024, image_size=(256, 256), num_input_views=2
+  )
   presets = {
-      "tiny": ModelConfig(
-          patch_size=8, dec_patch_size=8, enc_depth=2, dec_depth=2, enc_embed_dim=128,
-          enc_num_heads=4, num_gs_tokens=32, image_size=(64, 64), num_input_views=2),
-      "re10k": re10k,
-      "re10k_4096": re10k.replace(num_gs_tokens=4096),
+    "tiny": ModelConfig(
+      patch_size=8,
+      dec_patch_size=8,
+      enc_depth=2,
+      dec_depth=2,
+      enc_embed_dim=128,
+      enc_num_heads=4,
+      num_gs_tokens=32,
+      image_size=(64, 64),
+      num_input_views=2,
+    ),
+    "re10k": re10k,
+    "re10k_4096": re10k.replace(num_gs_tokens=4096),
   }
   # Official DL3DV eval/finetune presets: 3 / 12 layers, 4096 tokens, 448x256.
   for views in (2, 4, 6):
     presets[f"dl3dv_{views}view"] = base.replace(
-        num_gs_tokens=4096, image_size=(256, 448), num_input_views=views)
+      num_gs_tokens=4096, image_size=(256, 448), num_input_views=views
+    )
     presets[f"dl3dv_latent_{views}view"] = base.replace(
-        num_gs_tokens=4096, image_size=(256, 448), num_input_views=views, **_LATENT_D12)
+      num_gs_tokens=4096, image_size=(256, 448), num_input_views=views, **_LATENT_D12
+    )
   # Official `finetune_dl3dv_kubric_dyn`: latent architecture + 256 dynamic tokens, time.
   presets["kubric_dyn"] = base.replace(
-      num_gs_tokens=1024, num_dynamic_gs_tokens=256, time_embedding=True, time_embedding_dim=2,
-      image_size=(256, 256), num_input_views=4, **_LATENT_D12)
+    num_gs_tokens=1024,
+    num_dynamic_gs_tokens=256,
+    time_embedding=True,
+    time_embedding_dim=2,
+    image_size=(256, 256),
+    num_input_views=4,
+    **_LATENT_D12,
+  )
   presets["kubric_static"] = presets["kubric_dyn"].replace(
-      num_dynamic_gs_tokens=0, time_embedding=False)
+    num_dynamic_gs_tokens=0, time_embedding=False
+  )
   return presets
 
 
@@ -218,11 +249,28 @@ def preset(name: str, **overrides) -> ModelConfig:
 # Official option names copied as they are; everything else in options.json (data, losses,
 # schedules, logging) is not architecture and is ignored.
 _SAME_NAME = (
-    "patch_size", "enc_depth", "dec_depth", "enc_embed_dim", "enc_num_heads", "mlp_ratio",
-    "num_gs_tokens", "num_dynamic_gs_tokens", "gs_token_std", "dec_init_values",
-    "clip_head_readout_std", "clip_head_z_init", "gaussian_scale_cap", "opacity_bias",
-    "gaussian_z_offset", "time_embedding", "time_embedding_dim", "use_multiscale_encoder",
-    "use_latent_bottleneck", "num_latents", "latent_cross_attn_depth", "num_input_views",
+  "patch_size",
+  "enc_depth",
+  "dec_depth",
+  "enc_embed_dim",
+  "enc_num_heads",
+  "mlp_ratio",
+  "num_gs_tokens",
+  "num_dynamic_gs_tokens",
+  "gs_token_std",
+  "dec_init_values",
+  "clip_head_readout_std",
+  "clip_head_z_init",
+  "gaussian_scale_cap",
+  "opacity_bias",
+  "gaussian_z_offset",
+  "time_embedding",
+  "time_embedding_dim",
+  "use_multiscale_encoder",
+  "use_latent_bottleneck",
+  "num_latents",
+  "latent_cross_attn_depth",
+  "num_input_views",
 )
 _NULLABLE = ("dec_init_values", "clip_head_z_init")  # None is a meaningful value for these
 
@@ -246,14 +294,18 @@ def config_from_official(options: dict[str, Any], **overrides) -> ModelConfig:
   patch = int(options.get("patch_size", ModelConfig.patch_size))
   fields["dec_patch_size"] = int(options.get("dec_patch_size") or patch)
   if "multiscale_encoder_layers" in options:
-    fields["multiscale_encoder_layers"] = tuple(int(i) for i in options["multiscale_encoder_layers"])
+    fields["multiscale_encoder_layers"] = tuple(
+      int(i) for i in options["multiscale_encoder_layers"]
+    )
   if "img_size" in options:
     size = options["img_size"]
-    fields["image_size"] = (int(size), int(size)) if isinstance(size, int) else tuple(
-        int(s) for s in size)
+    fields["image_size"] = (
+      (int(size), int(size)) if isinstance(size, int) else tuple(int(s) for s in size)
+    )
   token_dim = options.get("token_dim", fields.get("enc_embed_dim", ModelConfig.enc_embed_dim))
   if token_dim != fields.get("enc_embed_dim", ModelConfig.enc_embed_dim):
-    raise ValueError(f"token_dim={token_dim} != enc_embed_dim; the official network needs them "
-                     "equal")
+    raise ValueError(
+      f"token_dim={token_dim} != enc_embed_dim; the official network needs them equal"
+    )
   fields.update(overrides)
   return ModelConfig(**fields)

@@ -30,6 +30,7 @@ class CrossAttention(nn.Module):
   The keys/values are shared by every block (projected and key-normed once by the encoder), so a
   block only owns its query and output projections.
   """
+
   num_heads: int
   dtype: jax.typing.DTypeLike
 
@@ -45,6 +46,7 @@ class CrossAttention(nn.Module):
 
 class _NormedSelfAttention(nn.Module):
   """norm -> self-attention (official `DecoderBlock.SelfAttnBlock`)."""
+
   num_heads: int
   dtype: jax.typing.DTypeLike
 
@@ -56,6 +58,7 @@ class _NormedSelfAttention(nn.Module):
 
 class _NormedMlp(nn.Module):
   """norm -> MLP (official `DecoderBlock.MlpBlock`)."""
+
   hidden_dim: int
   dtype: jax.typing.DTypeLike
 
@@ -73,14 +76,16 @@ class DecoderBlock(nn.Module):
     layer_scale: LayerScale init value; None removes the LayerScales (official Identity).
     dtype: compute dtype.
   """
+
   num_heads: int
   mlp_hidden_dim: int
   layer_scale: float | None
   dtype: jax.typing.DTypeLike
 
   @nn.compact
-  def __call__(self, tokens: jax.Array, keys: jax.Array, values: jax.Array,
-               mask: jax.Array | None = None) -> jax.Array:
+  def __call__(
+    self, tokens: jax.Array, keys: jax.Array, values: jax.Array, mask: jax.Array | None = None
+  ) -> jax.Array:
     """tokens: [B, T, C]; keys, values: [B, heads, N, d]; mask: bool [T, T] -> [B, T, C]."""
     c = tokens.shape[-1]
     cross = CrossAttention(self.num_heads, self.dtype, name="gs_cross_attn")(tokens, keys, values)

@@ -12,6 +12,7 @@ from tokengs_jax.model.layers import LayerScale, Mlp, SelfAttention, layer_norm
 
 class EncoderBlock(nn.Module):
   """Pre-norm ViT block: x + ls1(attn(norm1(x))), then x + ls2(mlp(norm2(x)))."""
+
   config: ModelConfig
 
   @nn.compact

@@ -50,6 +50,7 @@ def activate(raw: jax.Array, config: ModelConfig) -> jax.Array:
 
 class GaussianHead(nn.Module):
   """Linear `deconv` [C -> 14 p²] (official name), reshaped to p² Gaussians per token."""
+
   config: ModelConfig
 
   def _bias_init(self, key, shape, dtype=jnp.float32):
@@ -64,10 +65,13 @@ class GaussianHead(nn.Module):
     """tokens: [B, T, C] -> raw channels [B, T * p², 14] (Gaussian index = token * p² + k)."""
     cfg = self.config
     raw = nn.Dense(
-        RAW_CHANNELS * cfg.gaussians_per_token, dtype=cfg.compute_dtype,
-        param_dtype=jnp.float32,
-        # torch trunc_normal_(std) truncates at +-2 absolute, i.e. never at these stds.
-        kernel_init=nn.initializers.normal(cfg.clip_head_readout_std),
-        bias_init=self._bias_init, name="deconv")(tokens)
+      RAW_CHANNELS * cfg.gaussians_per_token,
+      dtype=cfg.compute_dtype,
+      param_dtype=jnp.float32,
+      # torch trunc_normal_(std) truncates at +-2 absolute, i.e. never at these stds.
+      kernel_init=nn.initializers.normal(cfg.clip_head_readout_std),
+      bias_init=self._bias_init,
+      name="deconv",
+    )(tokens)
     b, t, _ = raw.shape
     return raw.reshape(b, t * cfg.gaussians_per_token, RAW_CHANNELS)

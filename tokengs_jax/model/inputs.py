@@ -30,8 +30,9 @@ def _check_floating(name: str, array) -> None:
 def check_times(name: str, times, expected: tuple[int | None, ...], layout: str) -> None:
   """times: float of shape `expected` (None: any size on that axis); `layout` names the axes."""
   shape = np.shape(times)
-  if len(shape) != len(expected) or any(e is not None and n != e
-                                        for n, e in zip(shape, expected, strict=True)):
+  if len(shape) != len(expected) or any(
+    e is not None and n != e for n, e in zip(shape, expected, strict=True)
+  ):
     raise _shape_error(name, f"{layout} = {expected}", times)
   _check_floating(name, times)
 
@@ -63,8 +64,9 @@ def check_views(images, c2w, intrinsics, config: ModelConfig, times=None) -> Non
     raise _shape_error("c2w", f"[B, V, 4, 4] = {(batch, views, 4, 4)}", c2w)
   _check_floating("c2w", c2w)
   if np.shape(intrinsics) != (batch, views, 4):
-    raise _shape_error("intrinsics", f"[B, V, 4] = {(batch, views, 4)} (fx, fy, cx, cy)",
-                       intrinsics)
+    raise _shape_error(
+      "intrinsics", f"[B, V, 4] = {(batch, views, 4)} (fx, fy, cx, cy)", intrinsics
+    )
   _check_floating("intrinsics", intrinsics)
   if not isinstance(intrinsics, jax.core.Tracer):
     focal = np.asarray(intrinsics)[..., :2]

@@ -25,15 +25,27 @@ torch_default_kernel_init = nn.initializers.variance_scaling(1.0 / 3.0, "fan_in"
 
 def layer_norm(dtype, name: str | None = None) -> nn.LayerNorm:
   """LayerNorm with torch's eps (1e-5, Flax defaults to 1e-6) and the two-pass variance."""
-  return nn.LayerNorm(epsilon=LAYER_NORM_EPS, use_fast_variance=False, dtype=dtype,
-                      param_dtype=jnp.float32, name=name)
+  return nn.LayerNorm(
+    epsilon=LAYER_NORM_EPS, use_fast_variance=False, dtype=dtype, param_dtype=jnp.float32, name=name
+  )
 
 
-def dense(features: int, dtype, name: str | None = None, use_bias: bool = True,
-          kernel_init=torch_default_kernel_init) -> nn.Dense:
+def dense(
+  features: int,
+  dtype,
+  name: str | None = None,
+  use_bias: bool = True,
+  kernel_init=torch_default_kernel_init,
+) -> nn.Dense:
   """Linear layer with float32 parameters computing in `dtype`."""
-  return nn.Dense(features, use_bias=use_bias, dtype=dtype, param_dtype=jnp.float32,
-                  kernel_init=kernel_init, name=name)
+  return nn.Dense(
+    features,
+    use_bias=use_bias,
+    dtype=dtype,
+    param_dtype=jnp.float32,
+    kernel_init=kernel_init,
+    name=name,
+  )
 
 
 def split_heads(x: jax.Array, num_heads: int) -> jax.Array:
@@ -61,8 +73,9 @@ def _largest_divisor_at_most(n: int, cap: int) -> int:
   return max(g for g in range(1, cap + 1) if n % g == 0)
 
 
-def attention_tiling(batch_heads: int, num_queries: int, num_keys: int,
-                     tile: int = ATTENTION_TILE) -> tuple[int, int, int]:
+def attention_tiling(
+  batch_heads: int, num_queries: int, num_keys: int, tile: int = ATTENTION_TILE
+) -> tuple[int, int, int]:
   """How `attend` splits the work: (heads per step, query rows per step, row steps).
 
   Whole heads are grouped while one head's logits fit in a tile; otherwise one head at a time,
@@ -107,7 +120,7 @@ def _tiled_attention(queries, keys, values, mask, tile):
 def _tiled_attention_fwd(queries, keys, values, mask, tile):
   b, h, num_queries, head_dim = queries.shape
   heads_per_step, rows, row_steps = attention_tiling(b * h, num_queries, keys.shape[2], tile)
-  scale = head_dim ** -0.5
+  scale = head_dim**-0.5
   # Padded query rows attend everywhere so that their (discarded) softmax stays finite.
   mask_chunks = None if mask is None else _to_row_chunks(mask, row_steps, rows, True)
 
@@ -125,11 +138,13 @@ def _tiled_attention_fwd(queries, keys, values, mask, tile):
       return None, (out, row_max + jnp.log(row_sum))
 
     _, (out, log_sum_exp) = jax.lax.scan(
-        row_chunk, None, (_to_row_chunks(group_queries, row_steps, rows), mask_chunks))
+      row_chunk, None, (_to_row_chunks(group_queries, row_steps, rows), mask_chunks)
+    )
     return None, (_from_row_chunks(out, num_queries), _from_row_chunks(log_sum_exp, num_queries))
 
-  _, (out, log_sum_exp) = jax.lax.scan(head_group, None, tuple(
-      _head_groups(x, heads_per_step) for x in (queries, keys, values)))
+  _, (out, log_sum_exp) = jax.lax.scan(
+    head_group, None, tuple(_head_groups(x, heads_per_step) for x in (queries, keys, values))
+  )
   out = out.reshape(queries.shape)
   return out, (queries, keys, values, mask, out, log_sum_exp)
 
@@ -140,10 +155,11 @@ def _tiled_attention_bwd(tile, residuals, out_grad):
   queries, keys, values, mask, out, log_sum_exp = residuals
   b, h, num_queries, head_dim = queries.shape
   heads_per_step, rows, row_steps = attention_tiling(b * h, num_queries, keys.shape[2], tile)
-  scale = head_dim ** -0.5
+  scale = head_dim**-0.5
   # d softmax: dlogits = p * (dp - sum_k p dp) and sum_k p dp = sum_d out * dout.
-  out_dot_grad = jnp.sum(out.astype(jnp.float32) * out_grad.astype(jnp.float32), axis=-1,
-                         keepdims=True)
+  out_dot_grad = jnp.sum(
+    out.astype(jnp.float32) * out_grad.astype(jnp.float32), axis=-1, keepdims=True
+  )
   mask_chunks = None if mask is None else _to_row_chunks(mask, row_steps, rows, True)
 
   def head_group(_, group):
@@ -153,37 +169,64 @@ def _tiled_attention_bwd(tile, residuals, out_grad):
       keys_grad, values_grad = carry
       chunk_queries, chunk_out_grad, chunk_out_dot, chunk_lse, chunk_mask = chunk
       probs = jnp.exp(_masked_logits(chunk_queries, group_keys, chunk_mask, scale) - chunk_lse)
-      values_grad += jnp.einsum("gqk,gqd->gkd", probs.astype(chunk_out_grad.dtype),
-                                chunk_out_grad, preferred_element_type=jnp.float32)
-      probs_grad = jnp.einsum("gqd,gkd->gqk", chunk_out_grad, group_values,
-                              preferred_element_type=jnp.float32)
+      values_grad += jnp.einsum(
+        "gqk,gqd->gkd",
+        probs.astype(chunk_out_grad.dtype),
+        chunk_out_grad,
+        preferred_element_type=jnp.float32,
+      )
+      probs_grad = jnp.einsum(
+        "gqd,gkd->gqk", chunk_out_grad, group_values, preferred_element_type=jnp.float32
+      )
       logits_grad = (probs * (probs_grad - chunk_out_dot) * scale).astype(chunk_queries.dtype)
-      queries_grad = jnp.einsum("gqk,gkd->gqd", logits_grad, group_keys,
-                                preferred_element_type=jnp.float32)
-      keys_grad += jnp.einsum("gqk,gqd->gkd", logits_grad, chunk_queries,
-                              preferred_element_type=jnp.float32)
+      queries_grad = jnp.einsum(
+        "gqk,gkd->gqd", logits_grad, group_keys, preferred_element_type=jnp.float32
+      )
+      keys_grad += jnp.einsum(
+        "gqk,gqd->gkd", logits_grad, chunk_queries, preferred_element_type=jnp.float32
+      )
       return (keys_grad, values_grad), queries_grad.astype(chunk_queries.dtype)
 
     zeros = jnp.zeros(group_keys.shape, jnp.float32)
-    chunks = tuple(_to_row_chunks(x, row_steps, rows)
-                   for x in (group_queries, group_out_grad, group_out_dot, group_lse))
+    chunks = tuple(
+      _to_row_chunks(x, row_steps, rows)
+      for x in (group_queries, group_out_grad, group_out_dot, group_lse)
+    )
     (keys_grad, values_grad), queries_grad = jax.lax.scan(
-        row_chunk, (zeros, zeros), (*chunks, mask_chunks))
-    return None, (_from_row_chunks(queries_grad, num_queries), keys_grad.astype(group_keys.dtype),
-                  values_grad.astype(group_values.dtype))
+      row_chunk, (zeros, zeros), (*chunks, mask_chunks)
+    )
+    return None, (
+      _from_row_chunks(queries_grad, num_queries),
+      keys_grad.astype(group_keys.dtype),
+      values_grad.astype(group_values.dtype),
+    )
 
-  _, (queries_grad, keys_grad, values_grad) = jax.lax.scan(head_group, None, tuple(
+  _, (queries_grad, keys_grad, values_grad) = jax.lax.scan(
+    head_group,
+    None,
+    tuple(
       _head_groups(x, heads_per_step)
-      for x in (queries, keys, values, out_grad, out_dot_grad, log_sum_exp)))
-  return (queries_grad.reshape(queries.shape), keys_grad.reshape(keys.shape),
-          values_grad.reshape(values.shape), None)
+      for x in (queries, keys, values, out_grad, out_dot_grad, log_sum_exp)
+    ),
+  )
+  return (
+    queries_grad.reshape(queries.shape),
+    keys_grad.reshape(keys.shape),
+    values_grad.reshape(values.shape),
+    None,
+  )
 
 
 _tiled_attention.defvjp(_tiled_attention_fwd, _tiled_attention_bwd)
 
 
-def attend(queries: jax.Array, keys: jax.Array, values: jax.Array,
-           mask: jax.Array | None = None, tile: int = ATTENTION_TILE) -> jax.Array:
+def attend(
+  queries: jax.Array,
+  keys: jax.Array,
+  values: jax.Array,
+  mask: jax.Array | None = None,
+  tile: int = ATTENTION_TILE,
+) -> jax.Array:
   """Scaled dot-product attention (torch SDPA semantics: scale 1/sqrt(d)), tiled.
 
   Logits and softmax are computed in float32 whatever the input dtype, one tile of at most
@@ -207,13 +250,13 @@ def attend(queries: jax.Array, keys: jax.Array, values: jax.Array,
 
 class LayerScale(nn.Module):
   """Per-channel residual scale gamma (LayerScale, Touvron et al.)."""
+
   dim: int
   init_value: float
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
-    gamma = self.param("gamma", nn.initializers.constant(self.init_value), (self.dim,),
-                       jnp.float32)
+    gamma = self.param("gamma", nn.initializers.constant(self.init_value), (self.dim,), jnp.float32)
     return x * gamma.astype(x.dtype)
 
 
@@ -226,6 +269,7 @@ def maybe_layer_scale(dim: int, init_value: float | None, name: str):
 
 class Mlp(nn.Module):
   """fc1 -> exact (erf) GELU -> fc2, as torch nn.GELU()."""
+
   hidden_dim: int
   dtype: jnp.dtype = jnp.float32
 
@@ -241,6 +285,7 @@ class SelfAttention(nn.Module):
 
   Parameters as the official `Attention` (qkv, q_norm, k_norm, proj).
   """
+
   num_heads: int
   dtype: jnp.dtype = jnp.float32
 
@@ -265,6 +310,7 @@ class PatchEmbed(nn.Module):
   faster on CPU. Patch vectors are flattened in (row, col, channel) order; `official.py` permutes
   the conv weight [out, in, p, p] into that order.
   """
+
   embed_dim: int
   patch_size: int
   use_norm: bool = True
@@ -281,8 +327,9 @@ class PatchEmbed(nn.Module):
     patches = images.reshape(*batch, h // p, p, w // p, p, cin)
     patches = jnp.swapaxes(patches, -4, -3).reshape(*batch, (h // p) * (w // p), p * p * cin)
     init = nn.initializers.zeros if self.zero_init else torch_default_kernel_init
-    tokens = nn.Dense(self.embed_dim, dtype=self.dtype, param_dtype=jnp.float32,
-                      kernel_init=init, name="proj")(patches)
+    tokens = nn.Dense(
+      self.embed_dim, dtype=self.dtype, param_dtype=jnp.float32, kernel_init=init, name="proj"
+    )(patches)
     if self.use_norm:
       tokens = layer_norm(self.dtype, "norm")(tokens)
     return tokens

@@ -39,6 +39,7 @@ class EncoderOutput:
     latents: [B, num_latents, C] scene latents the keys/values came from (latent-bottleneck
       models only, else None); `kv_from_latents` recomputes keys/values after tuning them.
   """
+
   keys: jax.Array
   values: jax.Array
   latents: jax.Array | None = None
@@ -75,6 +76,7 @@ def _split_kv(kv: jax.Array, num_heads: int) -> tuple[jax.Array, jax.Array]:
 
 class EncDecBackbone(nn.Module):
   """Encoder blocks, readout, shared K/V (optionally through latents) and decoder blocks."""
+
   config: ModelConfig
 
   def setup(self):
@@ -90,17 +92,20 @@ class EncDecBackbone(nn.Module):
     self.k_proj_norm = layer_norm(dtype)
     decoder_block = block_class(DecoderBlock, cfg)
     if cfg.use_latent_bottleneck:
-      self.latents = self.param("latents", nn.initializers.normal(LATENT_INIT_STD),
-                                (cfg.num_latents, c), jnp.float32)
+      self.latents = self.param(
+        "latents", nn.initializers.normal(LATENT_INIT_STD), (cfg.num_latents, c), jnp.float32
+      )
       self.latent_feature_kv_proj = dense(2 * c, dtype)
       self.latent_feature_k_norm = layer_norm(dtype)
       self.latent_blocks = [
-          decoder_block(cfg.enc_num_heads, cfg.mlp_hidden_dim, LATENT_LAYER_SCALE_INIT, dtype)
-          for _ in range(cfg.latent_cross_attn_depth)]
+        decoder_block(cfg.enc_num_heads, cfg.mlp_hidden_dim, LATENT_LAYER_SCALE_INIT, dtype)
+        for _ in range(cfg.latent_cross_attn_depth)
+      ]
       self.latent_kv_proj = dense(2 * c, dtype)
     self.decoder_blocks = [
-        decoder_block(cfg.enc_num_heads, cfg.mlp_hidden_dim, cfg.decoder_layer_scale, dtype)
-        for _ in range(cfg.dec_depth)]
+      decoder_block(cfg.enc_num_heads, cfg.mlp_hidden_dim, cfg.decoder_layer_scale, dtype)
+      for _ in range(cfg.dec_depth)
+    ]
 
   def encode_features(self, tokens: jax.Array) -> jax.Array:
     """Encoder blocks + readout. tokens: [B, N, C] -> features [B, N, encoder_feature_dim]."""
@@ -119,8 +124,9 @@ class EncDecBackbone(nn.Module):
     cfg = self.config
     keys, values = _split_kv(self.latent_feature_kv_proj(features), cfg.enc_num_heads)
     keys = self.latent_feature_k_norm(keys)
-    latents = jnp.broadcast_to(self.latents.astype(cfg.compute_dtype),
-                               (features.shape[0], *self.latents.shape))
+    latents = jnp.broadcast_to(
+      self.latents.astype(cfg.compute_dtype), (features.shape[0], *self.latents.shape)
+    )
     for block in self.latent_blocks:
       latents = block(latents, keys, values, None)
     return latents
@@ -147,6 +153,7 @@ class EncDecBackbone(nn.Module):
 
 class TokenGS(nn.Module):
   """Patch embeds + backbone + Gaussian head + learnt Gaussian tokens."""
+
   config: ModelConfig
 
   def setup(self):
@@ -163,8 +170,9 @@ class TokenGS(nn.Module):
     token_init = nn.initializers.normal(cfg.gs_token_std)
     self.gs_tokens = self.param("gs_tokens", token_init, (cfg.num_gs_tokens, c), jnp.float32)
     if cfg.num_dynamic_gs_tokens:
-      self.gs_tokens_dynamic = self.param("gs_tokens_dynamic", token_init,
-                                          (cfg.num_dynamic_gs_tokens, c), jnp.float32)
+      self.gs_tokens_dynamic = self.param(
+        "gs_tokens_dynamic", token_init, (cfg.num_dynamic_gs_tokens, c), jnp.float32
+      )
 
   def _time_patch(self, times: jax.Array) -> jax.Array:
     """One p x p patch filled with the time embedding: [...] -> [..., p, p, time_dim].
@@ -174,11 +182,13 @@ class TokenGS(nn.Module):
     """
     cfg = self.config
     emb = timestep_embedding(times, cfg.time_embedding_dim).astype(cfg.compute_dtype)
-    return jnp.broadcast_to(emb[..., None, None, :],
-                            (*emb.shape[:-1], cfg.patch_size, cfg.patch_size, emb.shape[-1]))
+    return jnp.broadcast_to(
+      emb[..., None, None, :], (*emb.shape[:-1], cfg.patch_size, cfg.patch_size, emb.shape[-1])
+    )
 
-  def embed(self, images: jax.Array, plucker: jax.Array,
-            times: jax.Array | None = None) -> jax.Array:
+  def embed(
+    self, images: jax.Array, plucker: jax.Array, times: jax.Array | None = None
+  ) -> jax.Array:
     """Image tokens of all views in one sequence.
 
     Args:
@@ -191,8 +201,9 @@ class TokenGS(nn.Module):
     """
     cfg = self.config
     dtype = cfg.compute_dtype
-    tokens = (self.patch_embed(images.astype(dtype))
-              + self.patch_plucker_embed(plucker.astype(dtype)))  # [B, V, n, C]
+    tokens = self.patch_embed(images.astype(dtype)) + self.patch_plucker_embed(
+      plucker.astype(dtype)
+    )  # [B, V, n, C]
     if cfg.time_embedding:
       if times is None:
         raise ValueError("this model has time embeddings: pass the input-view times [B, V]")
@@ -200,8 +211,9 @@ class TokenGS(nn.Module):
     b, v, n, c = tokens.shape
     return tokens.reshape(b, v * n, c)
 
-  def encode(self, images: jax.Array, plucker: jax.Array,
-             times: jax.Array | None = None) -> EncoderOutput:
+  def encode(
+    self, images: jax.Array, plucker: jax.Array, times: jax.Array | None = None
+  ) -> EncoderOutput:
     """Images -> shared keys/values (through the scene latents if the model has them)."""
     backbone = self.enc_dec_backbone
     features = backbone.encode_features(self.embed(images, plucker, times))
@@ -222,8 +234,12 @@ class TokenGS(nn.Module):
       tokens = jnp.concatenate([tokens, self.gs_tokens_dynamic], axis=0)
     return jnp.broadcast_to(tokens, (batch_size, *tokens.shape))
 
-  def decode_tokens(self, encoded: EncoderOutput, tokens: jax.Array | None = None,
-                    target_times: jax.Array | None = None) -> jax.Array:
+  def decode_tokens(
+    self,
+    encoded: EncoderOutput,
+    tokens: jax.Array | None = None,
+    target_times: jax.Array | None = None,
+  ) -> jax.Array:
     """Gaussian tokens after the last decoder block (the head's input).
 
     Args:
@@ -244,18 +260,27 @@ class TokenGS(nn.Module):
       time_token = self.patch_time_embed_tgt(self._time_patch(target_times))  # [B, 1, C]
       if cfg.num_dynamic_gs_tokens:
         # Only the dynamic tokens see the target time; the static part stays time-invariant.
-        tokens = tokens.at[:, cfg.num_gs_tokens:].add(time_token)
+        tokens = tokens.at[:, cfg.num_gs_tokens :].add(time_token)
       else:
         tokens = tokens + time_token
     return self.enc_dec_backbone.decode(tokens, encoded.keys, encoded.values)
 
-  def decode(self, encoded: EncoderOutput, tokens: jax.Array | None = None,
-             target_times: jax.Array | None = None) -> jax.Array:
+  def decode(
+    self,
+    encoded: EncoderOutput,
+    tokens: jax.Array | None = None,
+    target_times: jax.Array | None = None,
+  ) -> jax.Array:
     """Flat Gaussians [B, T * p², 14] (see `decode_tokens` for the arguments)."""
     raw = self.activation_head(self.decode_tokens(encoded, tokens, target_times))
     return activate(raw, self.config)
 
-  def __call__(self, images: jax.Array, plucker: jax.Array, times: jax.Array | None = None,
-               target_times: jax.Array | None = None) -> jax.Array:
+  def __call__(
+    self,
+    images: jax.Array,
+    plucker: jax.Array,
+    times: jax.Array | None = None,
+    target_times: jax.Array | None = None,
+  ) -> jax.Array:
     """images [B, V, H, W, 3] (normalised), plucker [B, V, H, W, 6] -> [B, N, 14]."""
     return self.decode(self.encode(images, plucker, times), target_times=target_times)

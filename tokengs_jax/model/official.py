@@ -81,8 +81,9 @@ def params_from_state_dict(state_dict: dict[str, np.ndarray], config: ModelConfi
   Raises:
     ValueError: naming every missing tensor, unexpected tensor and shape mismatch.
   """
-  expected = {official_name(path): (path, shape.shape)
-              for path, shape in _flat_paths(param_shapes(config))}
+  expected = {
+    official_name(path): (path, shape.shape) for path, shape in _flat_paths(param_shapes(config))
+  }
   present = {k for k in state_dict if not k.startswith(_IGNORED_PREFIXES)}
   missing = sorted(set(expected) - present)
   unexpected = sorted(present - set(expected))
@@ -94,31 +95,45 @@ def params_from_state_dict(state_dict: dict[str, np.ndarray], config: ModelConfi
       mismatched.append(f"{name}: checkpoint {tuple(state_dict[name].shape)} != model {want}")
   if missing or unexpected or mismatched:
     lines = ["official checkpoint does not match the config:"]
-    for title, items in (("missing", missing), ("unexpected", unexpected),
-                         ("shape mismatch", mismatched)):
+    for title, items in (
+      ("missing", missing),
+      ("unexpected", unexpected),
+      ("shape mismatch", mismatched),
+    ):
       if items:
         lines.append(f"  {title} ({len(items)}): " + ", ".join(items))
     raise ValueError("\n".join(lines))
   # Own C-contiguous float32 copies: no views into (possibly memory-mapped) checkpoint data.
-  items = {path: np.array(_from_torch_layout(path, np.asarray(state_dict[name])), np.float32,
-                          order="C")
-           for name, (path, _) in expected.items()}
+  items = {
+    path: np.array(_from_torch_layout(path, np.asarray(state_dict[name])), np.float32, order="C")
+    for name, (path, _) in expected.items()
+  }
   return _unflatten(items)
 
 
 def to_official_state_dict(params: Params, config: ModelConfig) -> dict[str, np.ndarray]:
   """params -> official state_dict (numpy float32, torch layouts), e.g. to export."""
-  return {official_name(path): np.ascontiguousarray(
-      _to_torch_layout(path, np.asarray(value, np.float32), config.patch_size))
-          for path, value in _flat_paths(params)}
+  return {
+    official_name(path): np.ascontiguousarray(
+      _to_torch_layout(path, np.asarray(value, np.float32), config.patch_size)
+    )
+    for path, value in _flat_paths(params)
+  }
 
 
 # safetensors dtype names -> little-endian numpy dtypes. numpy has no bfloat16, which is why the
 # safetensors numpy API cannot read BF16 checkpoints; ml_dtypes (a jax dependency) supplies it.
 _SAFETENSORS_DTYPES = {
-    "F64": np.dtype("<f8"), "F32": np.dtype("<f4"), "F16": np.dtype("<f2"),
-    "BF16": np.dtype(ml_dtypes.bfloat16), "I64": np.dtype("<i8"), "I32": np.dtype("<i4"),
-    "I16": np.dtype("<i2"), "I8": np.dtype("i1"), "U8": np.dtype("u1"), "BOOL": np.dtype("?"),
+  "F64": np.dtype("<f8"),
+  "F32": np.dtype("<f4"),
+  "F16": np.dtype("<f2"),
+  "BF16": np.dtype(ml_dtypes.bfloat16),
+  "I64": np.dtype("<i8"),
+  "I32": np.dtype("<i4"),
+  "I16": np.dtype("<i2"),
+  "I8": np.dtype("i1"),
+  "U8": np.dtype("u1"),
+  "BOOL": np.dtype("?"),
 }
 
 
@@ -140,8 +155,8 @@ def read_safetensors(path: str | os.PathLike) -> dict[str, np.ndarray]:
   header_len = int(data[:8].view("<u8")[0])
   if header_len > data.size - 8:
     raise ValueError(f"{path}: header length {header_len} exceeds the file size {data.size}")
-  header = json.loads(bytes(data[8:8 + header_len]))
-  body = data[8 + header_len:]
+  header = json.loads(bytes(data[8 : 8 + header_len]))
+  body = data[8 + header_len :]
   tensors = {}
   for name, info in header.items():
     if name == "__metadata__":
@@ -152,8 +167,10 @@ def read_safetensors(path: str | os.PathLike) -> dict[str, np.ndarray]:
     shape = tuple(int(n) for n in info["shape"])
     begin, end = (int(n) for n in info["data_offsets"])
     if end - begin != math.prod(shape) * dtype.itemsize or not 0 <= begin <= end <= body.size:
-      raise ValueError(f"{path}: tensor {name} ({info['dtype']} {list(shape)}) has byte range "
-                       f"[{begin}, {end}) in a data section of {body.size} bytes")
+      raise ValueError(
+        f"{path}: tensor {name} ({info['dtype']} {list(shape)}) has byte range "
+        f"[{begin}, {end}) in a data section of {body.size} bytes"
+      )
     tensors[name] = body[begin:end].view(dtype).reshape(shape)
   return tensors
 

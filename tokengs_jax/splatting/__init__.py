@@ -4,5 +4,12 @@ from tokengs_jax.splatting.config import RenderConfig, RenderResult, RenderStats
 from tokengs_jax.splatting.exact import RenderBudgetError, larger_budget, render_exact
 from tokengs_jax.splatting.pipeline import render
 
-__all__ = ["RenderBudgetError", "RenderConfig", "RenderResult", "RenderStats", "larger_budget",
-           "render", "render_exact"]
+__all__ = [
+  "RenderBudgetError",
+  "RenderConfig",
+  "RenderResult",
+  "RenderStats",
+  "larger_budget",
+  "render",
+  "render_exact",
+]

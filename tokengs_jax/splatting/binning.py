@@ -52,8 +52,9 @@ def box_counts(means2d, radii, visible, *, tile_size, tiles_x, tiles_y):
 
   means2d: [N, 2], radii: [N, 2], visible: [N] -> (counts [N] int32, the four `tile_rectangles`).
   """
-  x0, x1, y0, y1 = tile_rectangles(means2d, radii, tile_size=tile_size, tiles_x=tiles_x,
-                                   tiles_y=tiles_y)
+  x0, x1, y0, y1 = tile_rectangles(
+    means2d, radii, tile_size=tile_size, tiles_x=tiles_x, tiles_y=tiles_y
+  )
   return jnp.where(visible, (x1 - x0) * (y1 - y0), 0), (x0, x1, y0, y1)
 
 
@@ -81,12 +82,27 @@ def min_sigma_over_tile(means2d, conics, tile_x, tile_y, *, tile_size, height, w
   edges = [sigma(x, jnp.clip(-b * x / c, y0, y1)) for x in (x0, x1)]
   edges += [sigma(jnp.clip(-b * y / a, x0, x1), y) for y in (y0, y1)]
   inside = (x0 <= 0) & (x1 >= 0) & (y0 <= 0) & (y1 >= 0)
-  return jnp.where(inside, 0.0, jnp.minimum(jnp.minimum(edges[0], edges[1]),
-                                            jnp.minimum(edges[2], edges[3])))
+  return jnp.where(
+    inside, 0.0, jnp.minimum(jnp.minimum(edges[0], edges[1]), jnp.minimum(edges[2], edges[3]))
+  )
 
 
-def bin_gaussians(means2d, radii, depths, visible, conics, opacities, *, tile_size, tiles_x, tiles_y,
-                  height, width, alpha_threshold, budget) -> TileBins:
+def bin_gaussians(
+  means2d,
+  radii,
+  depths,
+  visible,
+  conics,
+  opacities,
+  *,
+  tile_size,
+  tiles_x,
+  tiles_y,
+  height,
+  width,
+  alpha_threshold,
+  budget,
+) -> TileBins:
   """Builds the per-tile, depth-ordered intersection lists with a fixed budget.
 
   Gaussians are ranked by (depth, index) first and their intersections emitted in rank order, so a
@@ -107,9 +123,11 @@ def bin_gaussians(means2d, radii, depths, visible, conics, opacities, *, tile_si
   num = depths.shape[0]
   num_tiles = tiles_x * tiles_y
   means2d, radii, depths, conics, opacities = jax.lax.stop_gradient(
-      (means2d, radii, depths, conics, opacities))
-  counts, (x0, x1, y0, y1) = box_counts(means2d, radii, visible, tile_size=tile_size,
-                                        tiles_x=tiles_x, tiles_y=tiles_y)
+    (means2d, radii, depths, conics, opacities)
+  )
+  counts, (x0, x1, y0, y1) = box_counts(
+    means2d, radii, visible, tile_size=tile_size, tiles_x=tiles_x, tiles_y=tiles_y
+  )
 
   order = jnp.argsort(jnp.where(visible, depths, jnp.inf), stable=True)  # rank -> Gaussian
   counts_by_rank = counts[order]
@@ -120,21 +138,33 @@ def bin_gaussians(means2d, radii, depths, visible, conics, opacities, *, tile_si
   # Owner rank of each slot: mark every non-empty run's first slot, then a running max fills it.
   slots = jnp.arange(budget, dtype=jnp.int32)
   ranks = jnp.arange(num, dtype=jnp.int32)
-  marks = jnp.zeros(budget, jnp.int32).at[jnp.where(counts_by_rank > 0, starts, budget)].max(
-      ranks, mode="drop")
+  marks = (
+    jnp.zeros(budget, jnp.int32)
+    .at[jnp.where(counts_by_rank > 0, starts, budget)]
+    .max(ranks, mode="drop")
+  )
   slot_rank = jax.lax.cummax(marks)
   slot_gauss = order[slot_rank]
   local = slots - starts[slot_rank]
   box_width = jnp.maximum(x1 - x0, 1)[slot_gauss]
   tile_x = x0[slot_gauss] + local % box_width
   tile_y = y0[slot_gauss] + local // box_width
-  sigma_floor = min_sigma_over_tile(means2d[slot_gauss], conics[slot_gauss], tile_x, tile_y,
-                                    tile_size=tile_size, height=height, width=width)
+  sigma_floor = min_sigma_over_tile(
+    means2d[slot_gauss],
+    conics[slot_gauss],
+    tile_x,
+    tile_y,
+    tile_size=tile_size,
+    height=height,
+    width=width,
+  )
   # Slack far above float rounding: a kept pair only costs work, a wrongly dropped one changes
   # pixels. Written as "not beyond" so that a NaN bound (a conic entry underflowing to 0) keeps it.
   reach = jnp.log(jnp.maximum(opacities[slot_gauss], alpha_threshold) / alpha_threshold)
   touches = ~(sigma_floor > reach * (1.0 + 1e-3) + 1e-3)
-  slot_tile = jnp.where((slots < total) & touches, tile_y * tiles_x + tile_x, num_tiles)  # rest last
+  slot_tile = jnp.where(
+    (slots < total) & touches, tile_y * tiles_x + tile_x, num_tiles
+  )  # rest last
 
   if (num_tiles + 1) * num <= _INT32_MAX:
     keys = jnp.sort(slot_tile * num + slot_rank)
@@ -152,9 +182,9 @@ def bin_gaussians(means2d, radii, depths, visible, conics, opacities, *, tile_si
   cut_boxes = jnp.cumsum(jnp.cumsum(corners, axis=0), axis=1)[:tiles_y, :tiles_x]
   bounds = jnp.searchsorted(sorted_tile, jnp.arange(num_tiles + 1, dtype=jnp.int32), side="left")
   return TileBins(
-      gaussian_ids=gaussian_ids.astype(jnp.int32),
-      tile_starts=bounds[:-1].astype(jnp.int32),
-      tile_ends=bounds[1:].astype(jnp.int32),
-      num_intersections=total.astype(jnp.int32),
-      tile_truncated=cut_boxes.reshape(-1) > 0,
+    gaussian_ids=gaussian_ids.astype(jnp.int32),
+    tile_starts=bounds[:-1].astype(jnp.int32),
+    tile_ends=bounds[1:].astype(jnp.int32),
+    num_intersections=total.astype(jnp.int32),
+    tile_truncated=cut_boxes.reshape(-1) > 0,
   )

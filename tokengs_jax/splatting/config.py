@@ -58,14 +58,19 @@ class RenderConfig:
       if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value <= 0:
         raise ValueError(f"RenderConfig.{name} must be a positive int, got {value!r}")
     if not self.intersections_per_gaussian > 0:
-      raise ValueError("RenderConfig.intersections_per_gaussian must be > 0, got "
-                       f"{self.intersections_per_gaussian!r}")
+      raise ValueError(
+        "RenderConfig.intersections_per_gaussian must be > 0, got "
+        f"{self.intersections_per_gaussian!r}"
+      )
     if self.max_intersections is not None and self.max_intersections <= 0:
-      raise ValueError(f"RenderConfig.max_intersections must be None or > 0, got "
-                       f"{self.max_intersections!r}")
+      raise ValueError(
+        f"RenderConfig.max_intersections must be None or > 0, got {self.max_intersections!r}"
+      )
     if not 0 < self.max_alpha <= 1 or not 0 <= self.alpha_threshold < 1:
-      raise ValueError("RenderConfig needs 0 < max_alpha <= 1 and 0 <= alpha_threshold < 1, got "
-                       f"{self.max_alpha!r}, {self.alpha_threshold!r}")
+      raise ValueError(
+        "RenderConfig needs 0 < max_alpha <= 1 and 0 <= alpha_threshold < 1, got "
+        f"{self.max_alpha!r}, {self.alpha_threshold!r}"
+      )
 
   def intersection_budget(self, num_gaussians: int, num_tiles: int | None = None) -> int:
     """Static size of the (Gaussian, tile) buffer for N Gaussians (a chunk multiple).
@@ -75,7 +80,9 @@ class RenderConfig:
     if self.max_intersections is not None:
       budget = self.max_intersections
     else:
-      budget = max(self.min_intersections, math.ceil(self.intersections_per_gaussian * num_gaussians))
+      budget = max(
+        self.min_intersections, math.ceil(self.intersections_per_gaussian * num_gaussians)
+      )
     if num_tiles is not None:
       budget = min(budget, max(1, num_gaussians) * num_tiles)
     return self._chunks(budget)

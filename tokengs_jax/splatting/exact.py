@@ -31,8 +31,9 @@ class RenderBudgetError(RuntimeError):
   """A scene needs more (Gaussian, tile) pairs than `BUDGET_LIMIT` allows."""
 
 
-def larger_budget(config: RenderConfig, num_gaussians: int, height: int, width: int,
-                  needed: int | None = None) -> RenderConfig:
+def larger_budget(
+  config: RenderConfig, num_gaussians: int, height: int, width: int, needed: int | None = None
+) -> RenderConfig:
   """`config` with a buffer for `needed` pairs per camera (None: 4x the current buffer).
 
   Rounded up to a power of two (few distinct sizes: few compilations), capped at N x tiles,
@@ -43,20 +44,31 @@ def larger_budget(config: RenderConfig, num_gaussians: int, height: int, width: 
   current = config.intersection_budget(num_gaussians, tiles)
   ceiling = max(1, num_gaussians) * tiles
   if current >= ceiling:
-    raise RenderBudgetError(f"the buffer ({current} pairs) already holds every Gaussian in every "
-                            "tile; an overflow beyond it is impossible")
+    raise RenderBudgetError(
+      f"the buffer ({current} pairs) already holds every Gaussian in every "
+      "tile; an overflow beyond it is impossible"
+    )
   target = 4 * current if needed is None else max(needed, current + 1)
   budget = min(1 << (int(target) - 1).bit_length(), ceiling)
   if budget > BUDGET_LIMIT:
     raise RenderBudgetError(
-        f"an exact render needs {target} (Gaussian, tile) pairs per camera, above "
-        f"splatting.exact.BUDGET_LIMIT = {BUDGET_LIMIT}; render fewer or smaller Gaussians, a "
-        f"smaller image, or raise the limit if memory allows")
+      f"an exact render needs {target} (Gaussian, tile) pairs per camera, above "
+      f"splatting.exact.BUDGET_LIMIT = {BUDGET_LIMIT}; render fewer or smaller Gaussians, a "
+      f"smaller image, or raise the limit if memory allows"
+    )
   return dataclasses.replace(config, max_intersections=budget)
 
 
-def render_exact(gaussians: Gaussians, world_to_camera, intrinsics, *, height: int, width: int,
-                 config: RenderConfig = RenderConfig(), **kwargs) -> RenderResult:
+def render_exact(
+  gaussians: Gaussians,
+  world_to_camera,
+  intrinsics,
+  *,
+  height: int,
+  width: int,
+  config: RenderConfig = RenderConfig(),
+  **kwargs,
+) -> RenderResult:
   """`render`, re-rendered with a larger buffer until no camera overflowed (call outside jit).
 
   Same arguments and result as `render` (`kwargs`: background, near, far). The result's
@@ -71,19 +83,34 @@ def render_exact(gaussians: Gaussians, world_to_camera, intrinsics, *, height: i
   """
   leaves = jax.tree.leaves((gaussians, world_to_camera, intrinsics, kwargs))
   if any(isinstance(leaf, jax.core.Tracer) for leaf in leaves):
-    raise TypeError("render_exact reads the overflow flag on the host and cannot run under "
-                    "jit/grad/vmap; inside a transformation use render and its stats.overflow")
+    raise TypeError(
+      "render_exact reads the overflow flag on the host and cannot run under "
+      "jit/grad/vmap; inside a transformation use render and its stats.overflow"
+    )
   num = gaussians.num_gaussians
   tiles = -(-height // config.tile_size) * -(-width // config.tile_size)
-  key = (jax.tree.map(np.shape, gaussians), np.shape(world_to_camera), np.shape(intrinsics),
-         height, width, config)
+  key = (
+    jax.tree.map(np.shape, gaussians),
+    np.shape(world_to_camera),
+    np.shape(intrinsics),
+    height,
+    width,
+    config,
+  )
   if key in _learnt_budgets and _learnt_budgets[key] > config.intersection_budget(num, tiles):
     config_now = dataclasses.replace(config, max_intersections=_learnt_budgets[key])
   else:
     config_now = config
   while True:
-    out = render(gaussians, world_to_camera, intrinsics, height=height, width=width,
-                 config=config_now, **kwargs)
+    out = render(
+      gaussians,
+      world_to_camera,
+      intrinsics,
+      height=height,
+      width=width,
+      config=config_now,
+      **kwargs,
+    )
     if not np.any(np.asarray(out.stats.overflow)):
       return out
     # overflow implies a cut, so the count exceeds the buffer: the next render holds it all

@@ -28,7 +28,7 @@ def tiles_to_image(values: jax.Array, tiling: rasterize.Tiling) -> jax.Array:
   ts = tiling.tile_size
   grid = values.reshape(tiling.tiles_y, tiling.tiles_x, ts, ts, values.shape[-1])
   image = grid.transpose(0, 2, 1, 3, 4).reshape(tiling.tiles_y * ts, tiling.tiles_x * ts, -1)
-  return image[:tiling.height, :tiling.width]
+  return image[: tiling.height, : tiling.width]
 
 
 class _Camera(NamedTuple):
@@ -50,36 +50,76 @@ def _finite_or_absent(gaussians: Gaussians) -> tuple[Gaussians, jax.Array]:
   finite = jnp.all(jnp.isfinite(gaussians.means), axis=-1) & jnp.isfinite(gaussians.opacities)
   for field in (gaussians.scales, gaussians.quats, gaussians.colors):
     finite &= jnp.all(jnp.isfinite(field), axis=-1)
-  stand_in = Gaussians(means=jnp.zeros_like(gaussians.means),
-                       opacities=jnp.zeros_like(gaussians.opacities),
-                       scales=jnp.ones_like(gaussians.scales),
-                       quats=jnp.zeros_like(gaussians.quats).at[:, 0].set(1.0),
-                       colors=jnp.zeros_like(gaussians.colors))
-  pick = lambda good, bad: jnp.where(finite.reshape(finite.shape + (1,) * (good.ndim - 1)), good, bad)
+  stand_in = Gaussians(
+    means=jnp.zeros_like(gaussians.means),
+    opacities=jnp.zeros_like(gaussians.opacities),
+    scales=jnp.ones_like(gaussians.scales),
+    quats=jnp.zeros_like(gaussians.quats).at[:, 0].set(1.0),
+    colors=jnp.zeros_like(gaussians.colors),
+  )
+  pick = lambda good, bad: jnp.where(
+    finite.reshape(finite.shape + (1,) * (good.ndim - 1)), good, bad
+  )
   return jax.tree.map(pick, gaussians, stand_in), finite
 
 
-def _project(gaussians: Gaussians, world_to_camera, intrinsics, near, far, *, height: int,
-             width: int, config: RenderConfig) -> _Camera:
+def _project(
+  gaussians: Gaussians,
+  world_to_camera,
+  intrinsics,
+  near,
+  far,
+  *,
+  height: int,
+  width: int,
+  config: RenderConfig,
+) -> _Camera:
   """One scene [N] seen by one camera (w2c [4, 4], intrinsics [4]): projection and culling."""
   gaussians, finite = _finite_or_absent(gaussians)
   proj = projection.project_gaussians(
-      gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, world_to_camera,
-      intrinsics, height=height, width=width, near=near, far=far, eps2d=config.eps2d,
-      radius_sigmas=config.radius_sigmas, alpha_threshold=config.alpha_threshold)
+    gaussians.means,
+    gaussians.quats,
+    gaussians.scales,
+    gaussians.opacities,
+    world_to_camera,
+    intrinsics,
+    height=height,
+    width=width,
+    near=near,
+    far=far,
+    eps2d=config.eps2d,
+    radius_sigmas=config.radius_sigmas,
+    alpha_threshold=config.alpha_threshold,
+  )
   proj = dataclasses.replace(
-      proj, cull_code=jnp.where(finite, proj.cull_code, projection.CULLED_NONFINITE),
-      radii=jnp.where(finite[:, None], proj.radii, 0.0))
-  attrs = jnp.concatenate([proj.means2d, proj.conics, gaussians.opacities[:, None],
-                           gaussians.colors, proj.depths[:, None]], axis=-1)
-  counts, _ = binning.box_counts(proj.means2d, proj.radii, proj.cull_code == projection.VISIBLE,
-                                 tile_size=config.tile_size, tiles_x=-(-width // config.tile_size),
-                                 tiles_y=-(-height // config.tile_size))
+    proj,
+    cull_code=jnp.where(finite, proj.cull_code, projection.CULLED_NONFINITE),
+    radii=jnp.where(finite[:, None], proj.radii, 0.0),
+  )
+  attrs = jnp.concatenate(
+    [
+      proj.means2d,
+      proj.conics,
+      gaussians.opacities[:, None],
+      gaussians.colors,
+      proj.depths[:, None],
+    ],
+    axis=-1,
+  )
+  counts, _ = binning.box_counts(
+    proj.means2d,
+    proj.radii,
+    proj.cull_code == projection.VISIBLE,
+    tile_size=config.tile_size,
+    tiles_x=-(-width // config.tile_size),
+    tiles_y=-(-height // config.tile_size),
+  )
   return _Camera(proj, attrs, jnp.sum(counts), None)
 
 
-def _bin(cameras: _Camera, *, height: int, width: int, config: RenderConfig,
-         ladder: tuple[int, ...]) -> binning.TileBins:
+def _bin(
+  cameras: _Camera, *, height: int, width: int, config: RenderConfig, ladder: tuple[int, ...]
+) -> binning.TileBins:
   """Tile lists of C cameras [C, ...], sorted at the smallest ladder size that holds them all.
 
   Sorting dominates binning and grows with the buffer, so a scene needing few pairs sorts a small
@@ -92,15 +132,26 @@ def _bin(cameras: _Camera, *, height: int, width: int, config: RenderConfig,
     def bin_one(camera):
       proj = camera.proj
       return binning.bin_gaussians(
-          proj.means2d, proj.radii, proj.depths, proj.cull_code == projection.VISIBLE, proj.conics,
-          camera.attrs[:, rasterize.OPACITY], tile_size=config.tile_size,
-          tiles_x=-(-width // config.tile_size), tiles_y=-(-height // config.tile_size),
-          height=height, width=width, alpha_threshold=config.alpha_threshold, budget=size)
+        proj.means2d,
+        proj.radii,
+        proj.depths,
+        proj.cull_code == projection.VISIBLE,
+        proj.conics,
+        camera.attrs[:, rasterize.OPACITY],
+        tile_size=config.tile_size,
+        tiles_x=-(-width // config.tile_size),
+        tiles_y=-(-height // config.tile_size),
+        height=height,
+        width=width,
+        alpha_threshold=config.alpha_threshold,
+        budget=size,
+      )
 
     def run(cameras):
       bins = jax.vmap(bin_one)(cameras)
       ids = jnp.pad(bins.gaussian_ids, ((0, 0), (0, budget - size)))
       return dataclasses.replace(bins, gaussian_ids=ids)
+
     return run
 
   branches = [bin_at(size) for size in ladder]
@@ -124,29 +175,49 @@ def _composite(cameras: _Camera, *, height: int, width: int, config: RenderConfi
   num_cameras, num = cameras.attrs.shape[:2]
   tiles_x, tiles_y = -(-width // config.tile_size), -(-height // config.tile_size)
   num_tiles = tiles_x * tiles_y
-  tiling = rasterize.Tiling(height, width, config.tile_size, tiles_x, tiles_y, num_cameras,
-                            config.chunk_size, min(config.tiles_per_step, num_cameras * num_tiles),
-                            config.max_alpha, config.alpha_threshold, config.transmittance_stop)
+  tiling = rasterize.Tiling(
+    height,
+    width,
+    config.tile_size,
+    tiles_x,
+    tiles_y,
+    num_cameras,
+    config.chunk_size,
+    min(config.tiles_per_step, num_cameras * num_tiles),
+    config.max_alpha,
+    config.alpha_threshold,
+    config.transmittance_stop,
+  )
   if cameras.bins is None:  # an empty scene: nothing to bin, the image is the background
     dtype = cameras.attrs.dtype
-    return (jnp.zeros((num_cameras, height, width, 4), dtype),
-            jnp.ones((num_cameras, height, width, 1), dtype), jnp.zeros((num_cameras,), jnp.int32),
-            jnp.zeros((num_cameras,), bool))
+    return (
+      jnp.zeros((num_cameras, height, width, 4), dtype),
+      jnp.ones((num_cameras, height, width, 1), dtype),
+      jnp.zeros((num_cameras,), jnp.int32),
+      jnp.zeros((num_cameras,), bool),
+    )
   camera = jnp.arange(num_cameras, dtype=jnp.int32)[:, None]
   bins = cameras.bins
   accum, transmittance, chunks, saturated = rasterize.rasterize_tiles(
-      cameras.attrs.reshape(num_cameras * num, -1), (bins.gaussian_ids + camera * num).reshape(-1),
-      (bins.tile_starts + camera * budget).reshape(-1), (bins.tile_ends + camera * budget).reshape(-1),
-      tiling)
+    cameras.attrs.reshape(num_cameras * num, -1),
+    (bins.gaussian_ids + camera * num).reshape(-1),
+    (bins.tile_starts + camera * budget).reshape(-1),
+    (bins.tile_ends + camera * budget).reshape(-1),
+    tiling,
+  )
   split = lambda x: x.reshape((num_cameras, num_tiles) + x.shape[1:])
   to_images = jax.vmap(functools.partial(tiles_to_image, tiling=tiling))
-  return (to_images(split(accum)), to_images(split(transmittance)[..., None]),
-          jnp.sum(split(chunks), axis=-1).astype(jnp.int32),
-          jnp.any(bins.tile_truncated & ~split(saturated), axis=-1))
+  return (
+    to_images(split(accum)),
+    to_images(split(transmittance)[..., None]),
+    jnp.sum(split(chunks), axis=-1).astype(jnp.int32),
+    jnp.any(bins.tile_truncated & ~split(saturated), axis=-1),
+  )
 
 
-def _finish(cameras: _Camera, accum, transmittance, tile_chunks, lossy, background,
-            budget) -> RenderResult:
+def _finish(
+  cameras: _Camera, accum, transmittance, tile_chunks, lossy, background, budget
+) -> RenderResult:
   """Per-camera images and stats from the compositor's sums (each array with a leading [C])."""
   proj = cameras.proj
   alpha = 1.0 - transmittance
@@ -161,20 +232,27 @@ def _finish(cameras: _Camera, accum, transmittance, tile_chunks, lossy, backgrou
   else:
     num_intersections = cameras.bins.num_intersections
   stats = RenderStats(
-      num_culled_nonfinite=count(projection.CULLED_NONFINITE),
-      num_culled_depth=count(projection.CULLED_DEPTH),
-      num_culled_degenerate=count(projection.CULLED_DEGENERATE),
-      num_culled_opacity=count(projection.CULLED_OPACITY),
-      num_culled_frustum=count(projection.CULLED_FRUSTUM),
-      num_visible=count(projection.VISIBLE),
-      num_intersections=num_intersections,
-      budget=jnp.full(tile_chunks.shape, budget, jnp.int32),
-      truncated=num_intersections > budget,
-      overflow=lossy,
-      tile_chunks=tile_chunks,
+    num_culled_nonfinite=count(projection.CULLED_NONFINITE),
+    num_culled_depth=count(projection.CULLED_DEPTH),
+    num_culled_degenerate=count(projection.CULLED_DEGENERATE),
+    num_culled_opacity=count(projection.CULLED_OPACITY),
+    num_culled_frustum=count(projection.CULLED_FRUSTUM),
+    num_visible=count(projection.VISIBLE),
+    num_intersections=num_intersections,
+    budget=jnp.full(tile_chunks.shape, budget, jnp.int32),
+    truncated=num_intersections > budget,
+    overflow=lossy,
+    tile_chunks=tile_chunks,
   )
-  return RenderResult(rgb=rgb, alpha=alpha, depth=depth, means2d=proj.means2d,
-                      radii=proj.radii.astype(jnp.int32), depths=proj.depths, stats=stats)
+  return RenderResult(
+    rgb=rgb,
+    alpha=alpha,
+    depth=depth,
+    means2d=proj.means2d,
+    radii=proj.radii.astype(jnp.int32),
+    depths=proj.depths,
+    stats=stats,
+  )
 
 
 def _positive_int(name: str, value) -> None:
@@ -182,8 +260,9 @@ def _positive_int(name: str, value) -> None:
     raise ValueError(f"render: {name} must be a positive int, got {value!r}")
 
 
-def _check_inputs(gaussians: Gaussians, world_to_camera, intrinsics, background, height,
-                  width) -> tuple[int, ...]:
+def _check_inputs(
+  gaussians: Gaussians, world_to_camera, intrinsics, background, height, width
+) -> tuple[int, ...]:
   """Trace-time checks of `render`'s arguments; returns the broadcast batch shape [...]."""
   _positive_int("height", height)
   _positive_int("width", width)
@@ -197,18 +276,26 @@ def _check_inputs(gaussians: Gaussians, world_to_camera, intrinsics, background,
     hint = " (one pose needs a view axis: world_to_camera[None])" if w2c_shape == (4, 4) else ""
     raise ValueError(f"render: world_to_camera must be [..., V, 4, 4], got shape {w2c_shape}{hint}")
   if len(intr_shape) < 2 or intr_shape[-1] != 4:
-    hint = (" (a 3x3 K matrix? pass (fx, fy, cx, cy) = K[0, 0], K[1, 1], K[0, 2], K[1, 2])"
-            if intr_shape[-2:] == (3, 3) else "")
-    raise ValueError(f"render: intrinsics must be [..., V, 4] (fx, fy, cx, cy), got shape "
-                     f"{intr_shape}{hint}")
+    hint = (
+      " (a 3x3 K matrix? pass (fx, fy, cx, cy) = K[0, 0], K[1, 1], K[0, 2], K[1, 2])"
+      if intr_shape[-2:] == (3, 3)
+      else ""
+    )
+    raise ValueError(
+      f"render: intrinsics must be [..., V, 4] (fx, fy, cx, cy), got shape {intr_shape}{hint}"
+    )
   if intr_shape[-2] != w2c_shape[-3]:
-    raise ValueError(f"render: intrinsics {intr_shape} and world_to_camera {w2c_shape} disagree "
-                     f"on the number of views V")
+    raise ValueError(
+      f"render: intrinsics {intr_shape} and world_to_camera {w2c_shape} disagree "
+      f"on the number of views V"
+    )
   try:
     batch = jnp.broadcast_shapes(scene_batch, w2c_shape[:-3], intr_shape[:-2])
   except ValueError:
-    raise ValueError(f"render: batch shapes do not broadcast: gaussians {scene_batch}, "
-                     f"world_to_camera {w2c_shape[:-3]}, intrinsics {intr_shape[:-2]}") from None
+    raise ValueError(
+      f"render: batch shapes do not broadcast: gaussians {scene_batch}, "
+      f"world_to_camera {w2c_shape[:-3]}, intrinsics {intr_shape[:-2]}"
+    ) from None
   if background is not None:
     bg_shape = jnp.shape(background)
     try:
@@ -216,15 +303,26 @@ def _check_inputs(gaussians: Gaussians, world_to_camera, intrinsics, background,
         raise ValueError
       jnp.broadcast_shapes(bg_shape, batch + (w2c_shape[-3], 3))
     except ValueError:
-      raise ValueError(f"render: background must be None, [3] or [..., V, 3] for batch {batch} "
-                       f"and V = {w2c_shape[-3]}, got shape {bg_shape}") from None
+      raise ValueError(
+        f"render: background must be None, [3] or [..., V, 3] for batch {batch} "
+        f"and V = {w2c_shape[-3]}, got shape {bg_shape}"
+      ) from None
   return batch
 
 
 @functools.partial(jax.jit, static_argnames=("height", "width", "config"))
-def render(gaussians: Gaussians, world_to_camera: jax.Array, intrinsics: jax.Array, *, height: int,
-           width: int, background: jax.Array | None = None, near: float = 0.025, far: float = 125.0,
-           config: RenderConfig = RenderConfig()) -> RenderResult:
+def render(
+  gaussians: Gaussians,
+  world_to_camera: jax.Array,
+  intrinsics: jax.Array,
+  *,
+  height: int,
+  width: int,
+  background: jax.Array | None = None,
+  near: float = 0.025,
+  far: float = 125.0,
+  config: RenderConfig = RenderConfig(),
+) -> RenderResult:
   """Renders Gaussians with gsplat 1.5.3 semantics (`rasterization(render_mode="RGB+ED")`).
 
   Differentiable w.r.t. every Gaussian field (and the cameras); jit-compiled (height, width and
@@ -266,12 +364,16 @@ def render(gaussians: Gaussians, world_to_camera: jax.Array, intrinsics: jax.Arr
   background = jnp.broadcast_to(jnp.asarray(background, dtype), batch + (num_views, 3))
 
   def flat(x, tail):
-    tail_shape = x.shape[x.ndim - tail:]
+    tail_shape = x.shape[x.ndim - tail :]
     return jnp.broadcast_to(x, batch + tail_shape).reshape((math.prod(batch),) + tail_shape)
 
-  scenes = Gaussians(means=flat(gaussians.means, 2), opacities=flat(gaussians.opacities, 1),
-                     scales=flat(gaussians.scales, 2), quats=flat(gaussians.quats, 2),
-                     colors=flat(gaussians.colors, 2))
+  scenes = Gaussians(
+    means=flat(gaussians.means, 2),
+    opacities=flat(gaussians.opacities, 1),
+    scales=flat(gaussians.scales, 2),
+    quats=flat(gaussians.quats, 2),
+    colors=flat(gaussians.colors, 2),
+  )
   one = functools.partial(_project, height=height, width=width, config=config)
   per_view = jax.vmap(one, in_axes=(None, 0, 0, None, None))
   per_scene = jax.vmap(per_view, in_axes=(0, 0, 0, None, None))
@@ -281,10 +383,12 @@ def render(gaussians: Gaussians, world_to_camera: jax.Array, intrinsics: jax.Arr
   tiles = -(-height // config.tile_size) * -(-width // config.tile_size)
   ladder = config.budget_ladder(scenes.num_gaussians, tiles)
   if scenes.num_gaussians:
-    cameras = cameras._replace(bins=_bin(cameras, height=height, width=width, config=config,
-                                         ladder=ladder))
+    cameras = cameras._replace(
+      bins=_bin(cameras, height=height, width=width, config=config, ladder=ladder)
+    )
   composited = _composite(cameras, height=height, width=width, config=config, budget=ladder[-1])
-  out = _finish(cameras, *composited, background=flat(background, 2).reshape(-1, 3),
-                budget=ladder[-1])
+  out = _finish(
+    cameras, *composited, background=flat(background, 2).reshape(-1, 3), budget=ladder[-1]
+  )
   out = jax.tree.map(lambda x: x.reshape((math.prod(batch), num_views) + x.shape[1:]), out)
   return jax.tree.map(lambda x: x.reshape(batch + x.shape[1:]), out)

@@ -12,7 +12,9 @@ from tokengs_jax.splatting.config import PRECISION
 
 # Culling codes, in the order gsplat tests them (the first rule that fires is recorded); `render`
 # marks Gaussians with non-finite fields CULLED_NONFINITE before any of these.
-VISIBLE, CULLED_DEPTH, CULLED_DEGENERATE, CULLED_OPACITY, CULLED_FRUSTUM, CULLED_NONFINITE = range(6)
+VISIBLE, CULLED_DEPTH, CULLED_DEGENERATE, CULLED_OPACITY, CULLED_FRUSTUM, CULLED_NONFINITE = range(
+  6
+)
 
 
 @jax.tree_util.register_dataclass
@@ -45,8 +47,22 @@ def _matmul(a, b):
   return jnp.matmul(a, b, precision=PRECISION)
 
 
-def project_gaussians(means, quats, scales, opacities, world_to_camera, intrinsics, *, height, width,
-                      near, far, eps2d, radius_sigmas, alpha_threshold) -> Projected:
+def project_gaussians(
+  means,
+  quats,
+  scales,
+  opacities,
+  world_to_camera,
+  intrinsics,
+  *,
+  height,
+  width,
+  near,
+  far,
+  eps2d,
+  radius_sigmas,
+  alpha_threshold,
+) -> Projected:
   """Projects N Gaussians into one camera.
 
   Args:
@@ -77,11 +93,16 @@ def project_gaussians(means, quats, scales, opacities, world_to_camera, intrinsi
   tx = z_safe * jnp.clip(x * inv_z, -(cx / fx + lim_x), (width - cx) / fx + lim_x)
   ty = z_safe * jnp.clip(y * inv_z, -(cy / fy + lim_y), (height - cy) / fy + lim_y)
   zeros = jnp.zeros_like(z)
-  jac = jnp.stack([
+  jac = jnp.stack(
+    [
       jnp.stack([fx * inv_z, zeros, -fx * tx * inv_z * inv_z], axis=-1),
       jnp.stack([zeros, fy * inv_z, -fy * ty * inv_z * inv_z], axis=-1),
-  ], axis=-2)  # [N, 2, 3]
-  cov2d = _matmul(_matmul(jac, cov_cam), jnp.swapaxes(jac, -1, -2)) + eps2d * jnp.eye(2, dtype=means.dtype)
+    ],
+    axis=-2,
+  )  # [N, 2, 3]
+  cov2d = _matmul(_matmul(jac, cov_cam), jnp.swapaxes(jac, -1, -2)) + eps2d * jnp.eye(
+    2, dtype=means.dtype
+  )
   a, b, c = cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]
   det = a * c - b * b
   good_det = in_depth & (det > 0)
@@ -97,18 +118,23 @@ def project_gaussians(means, quats, scales, opacities, world_to_camera, intrinsi
   radii = jax.lax.stop_gradient(jnp.ceil(extent[:, None] * jnp.sqrt(jnp.stack([var_x, var_y], -1))))
   nonzero_radius = (radii[:, 0] > 0) | (radii[:, 1] > 0)
   mx, my = jax.lax.stop_gradient(means2d[:, 0]), jax.lax.stop_gradient(means2d[:, 1])
-  in_image = ((mx + radii[:, 0] > 0) & (mx - radii[:, 0] < width)
-              & (my + radii[:, 1] > 0) & (my - radii[:, 1] < height))
+  in_image = (
+    (mx + radii[:, 0] > 0)
+    & (mx - radii[:, 0] < width)
+    & (my + radii[:, 1] > 0)
+    & (my - radii[:, 1] < height)
+  )
 
   cull_code = jnp.select(
-      [~in_depth, ~good_det, ~opaque_enough, ~nonzero_radius, ~in_image],
-      [CULLED_DEPTH, CULLED_DEGENERATE, CULLED_OPACITY, CULLED_DEGENERATE, CULLED_FRUSTUM],
-      VISIBLE).astype(jnp.int32)
+    [~in_depth, ~good_det, ~opaque_enough, ~nonzero_radius, ~in_image],
+    [CULLED_DEPTH, CULLED_DEGENERATE, CULLED_OPACITY, CULLED_DEGENERATE, CULLED_FRUSTUM],
+    VISIBLE,
+  ).astype(jnp.int32)
   visible = cull_code == VISIBLE
   return Projected(
-      means2d=means2d,
-      conics=conics,
-      depths=z,
-      radii=jnp.where(visible[:, None], radii, 0.0),
-      cull_code=cull_code,
+    means2d=means2d,
+    conics=conics,
+    depths=z,
+    radii=jnp.where(visible[:, None], radii, 0.0),
+    cull_code=cull_code,
   )

@@ -74,16 +74,22 @@ class _Chunk(NamedTuple):
   keep: jax.Array  # a valid slot not skipped by the sigma / threshold rules
 
 
-def _load_chunk(chunk_index, attrs, gaussian_ids, tile_starts, tile_ends, centres, tiling) -> _Chunk:
+def _load_chunk(
+  chunk_index, attrs, gaussian_ids, tile_starts, tile_ends, centres, tiling
+) -> _Chunk:
   """Evaluates chunk `chunk_index [S]` of S tiles (ranges [S], centres [S, P, 2]) at their pixels."""
-  positions = (tile_starts + chunk_index * tiling.chunk_size)[:, None] + jnp.arange(tiling.chunk_size)
+  positions = (tile_starts + chunk_index * tiling.chunk_size)[:, None] + jnp.arange(
+    tiling.chunk_size
+  )
   slot_valid = positions < tile_ends[:, None]
   ids = gaussian_ids[jnp.minimum(positions, gaussian_ids.shape[0] - 1)]
   data = attrs[ids]
   dx = data[:, None, :, MEAN_X] - centres[:, :, None, 0]
   dy = data[:, None, :, MEAN_Y] - centres[:, :, None, 1]
-  sigma = (0.5 * (data[:, None, :, CONIC_A] * dx * dx + data[:, None, :, CONIC_C] * dy * dy)
-           + data[:, None, :, CONIC_B] * dx * dy)
+  sigma = (
+    0.5 * (data[:, None, :, CONIC_A] * dx * dx + data[:, None, :, CONIC_C] * dy * dy)
+    + data[:, None, :, CONIC_B] * dx * dy
+  )
   vis = jnp.exp(-jnp.maximum(sigma, 0.0))
   raw_alpha = data[:, None, :, OPACITY] * vis
   alpha = jnp.minimum(tiling.max_alpha, raw_alpha)
@@ -101,10 +107,13 @@ class _Transmittance(NamedTuple):
 
 def _transmittance(chunk: _Chunk, transmittance, done, tiling) -> _Transmittance:
   k = tiling.chunk_size
-  strict_upper = jnp.triu(jnp.ones((k, k), chunk.alpha.dtype), 1)  # [i, j] = i < j: exclusive prefix
+  strict_upper = jnp.triu(
+    jnp.ones((k, k), chunk.alpha.dtype), 1
+  )  # [i, j] = i < j: exclusive prefix
   log_keep = jnp.log1p(-chunk.alpha)
   before = transmittance[..., None] * jnp.exp(
-      jnp.matmul(log_keep, strict_upper, precision=PRECISION))
+    jnp.matmul(log_keep, strict_upper, precision=PRECISION)
+  )
   after = before * (1.0 - chunk.alpha)
   # T only decreases, so once a Gaussian would take T to <= stop every later one would too: this
   # mask is exactly gsplat's "stop before the Gaussian that saturates the pixel".
@@ -142,17 +151,28 @@ def _forward(attrs, gaussian_ids, tile_starts, tile_ends, tiling):
   def body(state):
     chunk_index, transmittance, done, tile_done, accum = state
     sel = _select_tiles(active(chunk_index, tile_done), tiling)
-    chunk = _load_chunk(chunk_index[sel], attrs, gaussian_ids, starts[sel], ends[sel], centres[sel],
-                        tiling)
+    chunk = _load_chunk(
+      chunk_index[sel], attrs, gaussian_ids, starts[sel], ends[sel], centres[sel], tiling
+    )
     trans = _transmittance(chunk, transmittance[sel], done[sel], tiling)
-    summed = accum[sel] + jnp.einsum("spk,skf->spf", trans.weight, chunk.attrs[..., NUM_GEOMETRY:],
-                                         precision=PRECISION)
-    return (chunk_index.at[sel].set(chunk_index[sel] + 1), transmittance.at[sel].set(trans.transmittance),
-            done.at[sel].set(trans.done), tile_done.at[sel].set(jnp.all(trans.done, axis=-1)),
-            accum.at[sel].set(summed))
+    summed = accum[sel] + jnp.einsum(
+      "spk,skf->spf", trans.weight, chunk.attrs[..., NUM_GEOMETRY:], precision=PRECISION
+    )
+    return (
+      chunk_index.at[sel].set(chunk_index[sel] + 1),
+      transmittance.at[sel].set(trans.transmittance),
+      done.at[sel].set(trans.done),
+      tile_done.at[sel].set(jnp.all(trans.done, axis=-1)),
+      accum.at[sel].set(summed),
+    )
 
-  init = (jnp.zeros(starts.shape, jnp.int32), jnp.ones(inside.shape, attrs.dtype), ~inside,
-          jnp.all(~inside, axis=-1), jnp.zeros(inside.shape + (num_features,), attrs.dtype))
+  init = (
+    jnp.zeros(starts.shape, jnp.int32),
+    jnp.ones(inside.shape, attrs.dtype),
+    ~inside,
+    jnp.all(~inside, axis=-1),
+    jnp.zeros(inside.shape + (num_features,), attrs.dtype),
+  )
   chunks, transmittance, _, tile_done, accum = jax.lax.while_loop(cond, body, init)
   return accum[:-1], transmittance[:-1], chunks[:-1], tile_done[:-1]
 
@@ -196,43 +216,56 @@ def _rasterize_bwd(tiling, residuals, cotangents):
   def body(state):
     chunk_index, transmittance, done, g_prefix, grads = state
     sel = _select_tiles(chunk_index < num_chunks, tiling)
-    chunk = _load_chunk(chunk_index[sel], attrs, gaussian_ids, starts[sel], ends[sel], centres[sel],
-                        tiling)
+    chunk = _load_chunk(
+      chunk_index[sel], attrs, gaussian_ids, starts[sel], ends[sel], centres[sel], tiling
+    )
     trans = _transmittance(chunk, transmittance[sel], done[sel], tiling)
     g_out = g_accum[sel]
-    g_feat = jnp.einsum("skf,spf->spk", chunk.attrs[..., NUM_GEOMETRY:], g_out,
-                        precision=PRECISION)
+    g_feat = jnp.einsum("skf,spf->spk", chunk.attrs[..., NUM_GEOMETRY:], g_out, precision=PRECISION)
     contrib = trans.weight * g_feat
     g_before = g_prefix[sel]
     # suffix_k = sum over later composited Gaussians (this chunk and the rest) of w <f, gF>
     earlier_in_chunk = jnp.matmul(contrib, strict_upper, precision=PRECISION)
     g_suffix = g_total[sel][..., None] - g_before[..., None] - earlier_in_chunk - contrib
     v_alpha = jnp.where(
-        trans.include,
-        trans.before * g_feat - (g_suffix + g_through_final[sel][..., None]) / (1.0 - chunk.alpha),
-        0.0)
+      trans.include,
+      trans.before * g_feat - (g_suffix + g_through_final[sel][..., None]) / (1.0 - chunk.alpha),
+      0.0,
+    )
     v_raw = jnp.where(chunk.raw_alpha <= tiling.max_alpha, v_alpha, 0.0)  # the cap has no slope
     v_sigma = -v_raw * chunk.raw_alpha
-    conic = chunk.attrs[:, None, :, CONIC_A:CONIC_C + 1]
+    conic = chunk.attrs[:, None, :, CONIC_A : CONIC_C + 1]
     dx, dy = chunk.dx, chunk.dy
-    v_geometry = jnp.stack([
+    v_geometry = jnp.stack(
+      [
         jnp.sum(v_sigma * (conic[..., 0] * dx + conic[..., 1] * dy), axis=1),
         jnp.sum(v_sigma * (conic[..., 1] * dx + conic[..., 2] * dy), axis=1),
         jnp.sum(v_sigma * 0.5 * dx * dx, axis=1),
         jnp.sum(v_sigma * dx * dy, axis=1),
         jnp.sum(v_sigma * 0.5 * dy * dy, axis=1),
         jnp.sum(v_raw * chunk.vis, axis=1),
-    ], axis=-1)  # [S, K, 6]
+      ],
+      axis=-1,
+    )  # [S, K, 6]
     v_features = jnp.einsum("spk,spf->skf", trans.weight, g_out, precision=PRECISION)
     rows = jnp.concatenate([v_geometry, v_features], axis=-1)
     rows = jnp.where(chunk.slot_valid[..., None], rows, 0.0)
     grads = grads.at[chunk.gaussian_ids.reshape(-1)].add(rows.reshape(-1, rows.shape[-1]))
-    return (chunk_index.at[sel].set(chunk_index[sel] + 1),
-            transmittance.at[sel].set(trans.transmittance), done.at[sel].set(trans.done),
-            g_prefix.at[sel].set(g_before + jnp.sum(contrib, axis=-1)), grads)
+    return (
+      chunk_index.at[sel].set(chunk_index[sel] + 1),
+      transmittance.at[sel].set(trans.transmittance),
+      done.at[sel].set(trans.done),
+      g_prefix.at[sel].set(g_before + jnp.sum(contrib, axis=-1)),
+      grads,
+    )
 
-  init = (jnp.zeros(starts.shape, jnp.int32), jnp.ones(inside.shape, attrs.dtype), ~inside,
-          jnp.zeros(inside.shape, attrs.dtype), jnp.zeros_like(attrs))
+  init = (
+    jnp.zeros(starts.shape, jnp.int32),
+    jnp.ones(inside.shape, attrs.dtype),
+    ~inside,
+    jnp.zeros(inside.shape, attrs.dtype),
+    jnp.zeros_like(attrs),
+  )
   grads = jax.lax.while_loop(cond, body, init)[-1]
   return grads, None, None, None
 

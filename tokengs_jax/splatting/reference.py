@@ -17,15 +17,35 @@ from tokengs_jax.splatting import projection
 from tokengs_jax.splatting.config import RenderConfig
 
 
-def render_dense(gaussians: Gaussians, world_to_camera, intrinsics, *, height: int, width: int,
-                 background=None, near: float = 0.025, far: float = 125.0,
-                 config: RenderConfig = RenderConfig()):
+def render_dense(
+  gaussians: Gaussians,
+  world_to_camera,
+  intrinsics,
+  *,
+  height: int,
+  width: int,
+  background=None,
+  near: float = 0.025,
+  far: float = 125.0,
+  config: RenderConfig = RenderConfig(),
+):
   """One scene [N], one camera (w2c [4, 4], intrinsics [4]) -> (rgb [H, W, 3], alpha, depth [H, W, 1])."""
   dtype = gaussians.means.dtype
   proj = projection.project_gaussians(
-      gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, world_to_camera,
-      intrinsics, height=height, width=width, near=near, far=far, eps2d=config.eps2d,
-      radius_sigmas=config.radius_sigmas, alpha_threshold=config.alpha_threshold)
+    gaussians.means,
+    gaussians.quats,
+    gaussians.scales,
+    gaussians.opacities,
+    world_to_camera,
+    intrinsics,
+    height=height,
+    width=width,
+    near=near,
+    far=far,
+    eps2d=config.eps2d,
+    radius_sigmas=config.radius_sigmas,
+    alpha_threshold=config.alpha_threshold,
+  )
   visible = proj.cull_code == projection.VISIBLE
   order = jnp.argsort(jnp.where(visible, proj.depths, jnp.inf), stable=True)
   pixels = camera.pixel_centers(height, width, dtype).reshape(-1, 2)
@@ -37,7 +57,9 @@ def render_dense(gaussians: Gaussians, world_to_camera, intrinsics, *, height: i
     dy = proj.means2d[index, 1] - pixels[:, 1]
     a, b, c = proj.conics[index, 0], proj.conics[index, 1], proj.conics[index, 2]
     sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
-    alpha = jnp.minimum(config.max_alpha, gaussians.opacities[index] * jnp.exp(-jnp.maximum(sigma, 0.0)))
+    alpha = jnp.minimum(
+      config.max_alpha, gaussians.opacities[index] * jnp.exp(-jnp.maximum(sigma, 0.0))
+    )
     evaluated = visible[index] & ~done & (sigma >= 0) & (alpha >= config.alpha_threshold)
     next_t = transmittance * (1.0 - alpha)
     stop = evaluated & (next_t <= config.transmittance_stop)
@@ -45,8 +67,11 @@ def render_dense(gaussians: Gaussians, world_to_camera, intrinsics, *, height: i
     accum = accum + jnp.where(composite, alpha * transmittance, 0.0)[:, None] * features[index]
     return (jnp.where(composite, next_t, transmittance), done | stop, accum), None
 
-  init = (jnp.ones(height * width, dtype), jnp.zeros(height * width, bool),
-          jnp.zeros((height * width, 4), dtype))
+  init = (
+    jnp.ones(height * width, dtype),
+    jnp.zeros(height * width, bool),
+    jnp.zeros((height * width, 4), dtype),
+  )
   (transmittance, _, accum), _ = jax.lax.scan(step, init, order)
   background = jnp.zeros(3, dtype) if background is None else jnp.asarray(background, dtype)
   alpha = (1.0 - transmittance)[:, None]

@@ -57,14 +57,17 @@ def data_state_handler(process_index: int, process_count: int) -> ocp.JsonCheckp
   which would keep one process's position for all).
   """
   return ocp.JsonCheckpointHandler(
-      filename=data_state_file(process_index, process_count),
-      multiprocessing_options=ocp.options.MultiprocessingOptions(primary_host=None))
+    filename=data_state_file(process_index, process_count),
+    multiprocessing_options=ocp.options.MultiprocessingOptions(primary_host=None),
+  )
 
 
 def _index_key(index: tuple, shape: tuple) -> str:
   """'0:4,0:16' for a shard's index (tuple of slices) into an array of `shape`."""
-  return ",".join(f"{s.start or 0}:{dim if s.stop is None else s.stop}"
-                  for s, dim in zip(index, shape, strict=True))
+  return ",".join(
+    f"{s.start or 0}:{dim if s.stop is None else s.stop}"
+    for s, dim in zip(index, shape, strict=True)
+  )
 
 
 def array_checksums(tree) -> dict[str, dict[str, int]]:
@@ -109,8 +112,10 @@ def verify_checksums(tree, expected: dict[str, dict[str, int]]) -> int:
         if expected[name][key] != crc:
           bad.append(f"{name}[{key}]")
   if bad:
-    raise ChecksumError(f"checksum mismatch in {len(bad)} array(s): {', '.join(bad[:5])}"
-                        + (" ..." if len(bad) > 5 else ""))
+    raise ChecksumError(
+      f"checksum mismatch in {len(bad)} array(s): {', '.join(bad[:5])}"
+      + (" ..." if len(bad) > 5 else "")
+    )
   return verified
 
 
@@ -137,9 +142,14 @@ class Checkpointer:
       `jax.process_index()` / `jax.process_count()` (other values only simulate hosts in tests).
   """
 
-  def __init__(self, directory: str | pathlib.Path, max_to_keep: int | None = 3,
-               async_save: bool = True, process_index: int | None = None,
-               process_count: int | None = None):
+  def __init__(
+    self,
+    directory: str | pathlib.Path,
+    max_to_keep: int | None = 3,
+    async_save: bool = True,
+    process_index: int | None = None,
+    process_count: int | None = None,
+  ):
     self.directory = pathlib.Path(directory).resolve()
     self.process_index = jax.process_index() if process_index is None else process_index
     self.process_count = jax.process_count() if process_count is None else process_count
@@ -152,9 +162,12 @@ class Checkpointer:
     for args in (ocp.args.StandardSave, ocp.args.StandardRestore):
       registry.add("state", args, state_handler)
     self._manager = ocp.CheckpointManager(
-        self.directory, handler_registry=registry,
-        options=ocp.CheckpointManagerOptions(max_to_keep=max_to_keep,
-                                             enable_async_checkpointing=async_save))
+      self.directory,
+      handler_registry=registry,
+      options=ocp.CheckpointManagerOptions(
+        max_to_keep=max_to_keep, enable_async_checkpointing=async_save
+      ),
+    )
 
   def save(self, state, data_state: Any = None) -> None:
     """Saves `state` under step `int(state.step)` with this process's JSON-able host state.
@@ -163,9 +176,15 @@ class Checkpointer:
     checksums are taken here, from the arrays being saved, before the asynchronous write.
     """
     step = int(jax.device_get(state.step))
-    self._manager.save(step, args=ocp.args.Composite(
-        state=ocp.args.StandardSave(state), data=ocp.args.JsonSave({"iterator": data_state}),
-        checksums=ocp.args.JsonSave(array_checksums(state))), force=True)
+    self._manager.save(
+      step,
+      args=ocp.args.Composite(
+        state=ocp.args.StandardSave(state),
+        data=ocp.args.JsonSave({"iterator": data_state}),
+        checksums=ocp.args.JsonSave(array_checksums(state)),
+      ),
+      force=True,
+    )
 
   def latest_step(self) -> int | None:
     return self._manager.latest_step()
@@ -215,17 +234,23 @@ class Checkpointer:
           self._set_aside(skipped)
           return restored
       reason = _short(error) if error is not None else "another process could not restore it"
-      log.warning("checkpoint step %d in %s is unusable, skipped (%s)", candidate,
-                  self.directory, reason)
+      log.warning(
+        "checkpoint step %d in %s is unusable, skipped (%s)", candidate, self.directory, reason
+      )
       skipped.append((candidate, reason))
     raise UnusableCheckpointError(
-        f"no usable checkpoint in {self.directory}; every step failed to restore or verify:\n"
-        + "\n".join(f"  step {s}: {reason}" for s, reason in skipped)
-        + "\nMove the directory away to start afresh, or point checkpoint_dir elsewhere.")
+      f"no usable checkpoint in {self.directory}; every step failed to restore or verify:\n"
+      + "\n".join(f"  step {s}: {reason}" for s, reason in skipped)
+      + "\nMove the directory away to start afresh, or point checkpoint_dir elsewhere."
+    )
 
   def _restore_verified(self, step: int, abstract):
-    restored = self._manager.restore(step, args=ocp.args.Composite(
-        state=ocp.args.StandardRestore(abstract), data=ocp.args.JsonRestore()))
+    restored = self._manager.restore(
+      step,
+      args=ocp.args.Composite(
+        state=ocp.args.StandardRestore(abstract), data=ocp.args.JsonRestore()
+      ),
+    )
     state, host = restored["state"], restored["data"]
     name = data_state_file(self.process_index, self.process_count)
     if not isinstance(host, dict) or "iterator" not in host:
@@ -236,8 +261,12 @@ class Checkpointer:
     if checksums.is_file():
       verify_checksums(state, json.loads(checksums.read_text()))
     else:
-      log.warning("checkpoint step %d in %s has no checksums/%s: restored unverified", step,
-                  self.directory, name)
+      log.warning(
+        "checkpoint step %d in %s has no checksums/%s: restored unverified",
+        step,
+        self.directory,
+        name,
+      )
     return state, host["iterator"]
 
   def _read_own_files(self, step: int) -> None:
@@ -256,10 +285,11 @@ class Checkpointer:
     counts = {int(re.search(r"-of-(\d+)", name).group(1)) for name in written}
     if written and self.process_count not in counts:
       raise FileNotFoundError(
-          f"checkpoint step {step} in {self.directory} has no iterator state for process "
-          f"{self.process_index} of {self.process_count} "
-          f"(expected data/{data_state_file(self.process_index, self.process_count)}; found "
-          f"{written}): resume with the process count it was written with")
+        f"checkpoint step {step} in {self.directory} has no iterator state for process "
+        f"{self.process_index} of {self.process_count} "
+        f"(expected data/{data_state_file(self.process_index, self.process_count)}; found "
+        f"{written}): resume with the process count it was written with"
+      )
 
   def _set_aside(self, skipped: list[tuple[int, str]]) -> None:
     """Renames skipped steps to `<step>.unusable[.k]` (kept for inspection, invisible to orbax)."""
@@ -307,5 +337,6 @@ def set_iterator_state(iterator, state: Any) -> None:
   """Inverse of `iterator_state`."""
   if state is None:
     return
-  iterator.set_state(state["utf8"].encode() if isinstance(state, dict) and set(state) == {"utf8"}
-                     else state)
+  iterator.set_state(
+    state["utf8"].encode() if isinstance(state, dict) and set(state) == {"utf8"} else state
+  )

@@ -41,13 +41,19 @@ def initialize() -> None:
   if "TOKENGS_HEARTBEAT_TIMEOUT" in os.environ:
     timeouts["heartbeat_timeout_seconds"] = int(os.environ["TOKENGS_HEARTBEAT_TIMEOUT"])
   if coordinator is not None:
-    jax.distributed.initialize(coordinator_address=coordinator,
-                               num_processes=int(os.environ["TOKENGS_NUM_PROCESSES"]),
-                               process_id=int(os.environ["TOKENGS_PROCESS_ID"]), **timeouts)
+    jax.distributed.initialize(
+      coordinator_address=coordinator,
+      num_processes=int(os.environ["TOKENGS_NUM_PROCESSES"]),
+      process_id=int(os.environ["TOKENGS_PROCESS_ID"]),
+      **timeouts,
+    )
   else:
     jax.distributed.initialize(**timeouts)
-  print(f"[distributed] process {jax.process_index()} of {jax.process_count()}: "
-        f"{jax.local_device_count()} local of {jax.device_count()} devices", flush=True)
+  print(
+    f"[distributed] process {jax.process_index()} of {jax.process_count()}: "
+    f"{jax.local_device_count()} local of {jax.device_count()} devices",
+    flush=True,
+  )
 
 
 _BARRIER_CALLS = itertools.count()
@@ -63,8 +69,9 @@ def barrier(name: str, timeout_s: int = 1800) -> None:
   call count makes the coordination service's barrier ids unique).
   """
   if jax.process_count() > 1:
-    ocp.multihost.get_barrier_sync_fn()(key=f"{name}_{next(_BARRIER_CALLS)}",
-                                        timeout_ms=timeout_s * 1000)
+    ocp.multihost.get_barrier_sync_fn()(
+      key=f"{name}_{next(_BARRIER_CALLS)}", timeout_ms=timeout_s * 1000
+    )
 
 
 def make_mesh(data: int | None = None, model: int = 1, devices=None) -> Mesh:
@@ -77,15 +84,20 @@ def make_mesh(data: int | None = None, model: int = 1, devices=None) -> Mesh:
   """
   devices = jax.devices() if devices is None else list(devices)
   data = len(devices) // model if data is None else data
-  return jax.make_mesh((data, model), ("data", "model"), axis_types=(AxisType.Auto,) * 2,
-                       devices=devices[:data * model])
+  return jax.make_mesh(
+    (data, model),
+    ("data", "model"),
+    axis_types=(AxisType.Auto,) * 2,
+    devices=devices[: data * model],
+  )
 
 
 def shard_batch(local_batch: dict, mesh: Mesh) -> dict:
   """Global arrays sharded over "data" from each process's local examples `[B_local, ...]`."""
   sharding = NamedSharding(mesh, P("data"))
   return jax.tree.map(
-      lambda x: jax.make_array_from_process_local_data(sharding, np.asarray(x)), local_batch)
+    lambda x: jax.make_array_from_process_local_data(sharding, np.asarray(x)), local_batch
+  )
 
 
 def replicate(tree, mesh: Mesh):

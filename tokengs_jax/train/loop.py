@@ -51,14 +51,24 @@ class NonFiniteError(RuntimeError):
 
 
 def _print_log(step: int, metrics: dict) -> None:
-  print(f"[train] step {step} " + " ".join(f"{k} {v:.6g}" for k, v in sorted(metrics.items())),
-        flush=True)
+  print(
+    f"[train] step {step} " + " ".join(f"{k} {v:.6g}" for k, v in sorted(metrics.items())),
+    flush=True,
+  )
 
 
-def train(loss_fn: LossFn, params, batches: Iterator[dict], optim_config: OptimConfig,
-          loop_config: LoopConfig, *, mesh: Mesh | None = None, precision: Precision | None = None,
-          eval_fn: Callable[[TrainState], dict] | None = None,
-          log_fn: Callable[[int, dict], None] = _print_log) -> tuple[TrainState, list[dict]]:
+def train(
+  loss_fn: LossFn,
+  params,
+  batches: Iterator[dict],
+  optim_config: OptimConfig,
+  loop_config: LoopConfig,
+  *,
+  mesh: Mesh | None = None,
+  precision: Precision | None = None,
+  eval_fn: Callable[[TrainState], dict] | None = None,
+  log_fn: Callable[[int, dict], None] = _print_log,
+) -> tuple[TrainState, list[dict]]:
   """Trains `params` on `batches`, resuming from `loop_config.checkpoint_dir` when it holds one.
 
   Args:
@@ -85,14 +95,16 @@ def train(loss_fn: LossFn, params, batches: Iterator[dict], optim_config: OptimC
   mesh = make_mesh() if mesh is None else mesh
   optimizer = make_optimizer(optim_config)
   replicated = NamedSharding(mesh, P())
-  init_state = jax.jit(lambda p: create_train_state(p, optimizer, loop_config.seed),
-                       out_shardings=replicated)
+  init_state = jax.jit(
+    lambda p: create_train_state(p, optimizer, loop_config.seed), out_shardings=replicated
+  )
   state = init_state(replicate(jax.device_get(params), mesh))
 
   checkpointer = None
   if loop_config.checkpoint_dir is not None:
-    checkpointer = Checkpointer(loop_config.checkpoint_dir, loop_config.max_to_keep,
-                                loop_config.async_checkpoint)
+    checkpointer = Checkpointer(
+      loop_config.checkpoint_dir, loop_config.max_to_keep, loop_config.async_checkpoint
+    )
   # Leaving the block waits for a pending save and closes the manager, also on an error.
   with checkpointer or contextlib.nullcontext():
     history = []
@@ -100,10 +112,13 @@ def train(loss_fn: LossFn, params, batches: Iterator[dict], optim_config: OptimC
       state, host_state = checkpointer.restore(state)
       set_iterator_state(batches, host_state["iterator"])
       history = host_state["history"]
-      print(f"[train] resuming from step {int(jax.device_get(state.step))} "
-            f"({checkpointer.directory})", flush=True)
-    train_step = make_train_step(loss_fn, optimizer, mesh,
-                                 precision=Precision() if precision is None else precision)
+      print(
+        f"[train] resuming from step {int(jax.device_get(state.step))} ({checkpointer.directory})",
+        flush=True,
+      )
+    train_step = make_train_step(
+      loss_fn, optimizer, mesh, precision=Precision() if precision is None else precision
+    )
     # A separate buffer: the state (and its rng) is donated to each step.
     key = jnp.copy(state.rng)
 
@@ -123,10 +138,11 @@ def train(loss_fn: LossFn, params, batches: Iterator[dict], optim_config: OptimC
       for offset, metrics in enumerate(fetched):
         if not metrics["finite"]:
           raise NonFiniteError(
-              f"non-finite loss or gradient at step {first + offset - 1} (loss "
-              f"{float(metrics['loss'])}, grad_norm {float(metrics['grad_norm'])}); the update was "
-              f"skipped and training stopped. Last good checkpoint: step {last_saved} in "
-              f"{checkpointer.directory if checkpointer else '(checkpointing off)'}.")
+            f"non-finite loss or gradient at step {first + offset - 1} (loss "
+            f"{float(metrics['loss'])}, grad_norm {float(metrics['grad_norm'])}); the update was "
+            f"skipped and training stopped. Last good checkpoint: step {last_saved} in "
+            f"{checkpointer.directory if checkpointer else '(checkpointing off)'}."
+          )
       logged = {k: float(np.mean([m[k] for m in fetched])) for k in fetched[0] if k != "finite"}
       now = time.perf_counter()
       logged["steps_per_s"] = len(fetched) / (now - tick)
@@ -145,8 +161,9 @@ def train(loss_fn: LossFn, params, batches: Iterator[dict], optim_config: OptimC
       pending.append(metrics)
       step += 1
       is_last = step == loop_config.total_steps
-      save_now = checkpointer is not None and (is_last or (
-          loop_config.checkpoint_every and step % loop_config.checkpoint_every == 0))
+      save_now = checkpointer is not None and (
+        is_last or (loop_config.checkpoint_every and step % loop_config.checkpoint_every == 0)
+      )
       if save_now or is_last or step % loop_config.log_every == 0:
         drain(step)
       # Before the save, so the checkpoint's history holds this step's evaluation.

@@ -89,26 +89,50 @@ class ObjectiveConfig:
       raise ValueError(f"decode_times must be 'per_view' or 'first', got {self.decode_times!r}")
 
 
-def render_views(gaussians: Gaussians, world_to_camera: jax.Array, intrinsics: jax.Array,
-                 height: int, width: int, render_config, objective: ObjectiveConfig):
+def render_views(
+  gaussians: Gaussians,
+  world_to_camera: jax.Array,
+  intrinsics: jax.Array,
+  height: int,
+  width: int,
+  render_config,
+  objective: ObjectiveConfig,
+):
   """Float32 renders of Gaussians [B(, ...)] into views [B, V(, ...)] (`splatting.render`)."""
   from tokengs_jax import splatting  # the heavy areas only when this objective is used
 
   return splatting.render(
-      gaussians, world_to_camera, intrinsics, height=height, width=width,
-      background=jnp.asarray(objective.background, jnp.float32), near=objective.near,
-      far=objective.far, config=render_config)
+    gaussians,
+    world_to_camera,
+    intrinsics,
+    height=height,
+    width=width,
+    background=jnp.asarray(objective.background, jnp.float32),
+    near=objective.near,
+    far=objective.far,
+    config=render_config,
+  )
 
 
 def render_diagnostics(stats) -> dict:
   """Logged render health: "render_overflow" (fraction of renders whose tile budget overflowed)
   and "visible" (mean number of Gaussians drawn per view)."""
-  return {"render_overflow": jnp.mean(stats.overflow.astype(jnp.float32)),
-          "visible": jnp.mean(stats.num_visible.astype(jnp.float32))}
+  return {
+    "render_overflow": jnp.mean(stats.overflow.astype(jnp.float32)),
+    "visible": jnp.mean(stats.num_visible.astype(jnp.float32)),
+  }
 
 
-def add_visibility(loss: jax.Array, terms: dict, means: jax.Array, world_to_camera: jax.Array,
-                   intrinsics: jax.Array, height: int, width: int, loss_config):
+def add_visibility(
+  loss: jax.Array,
+  terms: dict,
+  means: jax.Array,
+  world_to_camera: jax.Array,
+  intrinsics: jax.Array,
+  height: int,
+  width: int,
+  loss_config,
+):
   """`loss + lambda_vis * visibility` (terms gain "visibility" and the new "loss").
 
   means: [B, ..., N, 3] projected into every view [B, V] (min over views, as official).
@@ -119,9 +143,17 @@ def add_visibility(loss: jax.Array, terms: dict, means: jax.Array, world_to_came
 
   if loss_config.lambda_vis <= 0:
     return loss, terms
-  visibility = jnp.mean(losses.visibility_loss(
-      means, world_to_camera, intrinsics, height, width,
-      threshold=loss_config.visibility_threshold, near=loss_config.near))
+  visibility = jnp.mean(
+    losses.visibility_loss(
+      means,
+      world_to_camera,
+      intrinsics,
+      height,
+      width,
+      threshold=loss_config.visibility_threshold,
+      near=loss_config.near,
+    )
+  )
   loss = loss + loss_config.lambda_vis * visibility
   return loss, {**terms, "visibility": visibility, "loss": loss}
 
@@ -131,12 +163,21 @@ def photometric_loss(rgb: jax.Array, images: jax.Array, loss_config, lpips_param
   visibility term, which `add_visibility` adds over all views)."""
   from tokengs_jax import losses
 
-  return losses.render_loss(rgb, images, dataclasses.replace(loss_config, lambda_vis=0.0),
-                            lpips_params=lpips_params)
+  return losses.render_loss(
+    rgb, images, dataclasses.replace(loss_config, lambda_vis=0.0), lpips_params=lpips_params
+  )
 
 
-def supervision_loss(gaussians, images, world_to_camera, intrinsics, loss_config, render_config,
-                     objective: ObjectiveConfig = ObjectiveConfig(), lpips_params=None):
+def supervision_loss(
+  gaussians,
+  images,
+  world_to_camera,
+  intrinsics,
+  loss_config,
+  render_config,
+  objective: ObjectiveConfig = ObjectiveConfig(),
+  lpips_params=None,
+):
   """Loss of Gaussians against supervision views (training targets, or the inputs when tuning).
 
   The views are rendered in chunks of `objective.view_chunk_size` under remat and scored with
@@ -162,20 +203,35 @@ def supervision_loss(gaussians, images, world_to_camera, intrinsics, loss_config
   intrinsics = intrinsics.astype(jnp.float32)
 
   def chunk_loss(views):
-    rendered = render_views(gaussians, views["world_to_camera"], views["intrinsics"], height,
-                            width, render_config, objective)
+    rendered = render_views(
+      gaussians,
+      views["world_to_camera"],
+      views["intrinsics"],
+      height,
+      width,
+      render_config,
+      objective,
+    )
     loss, terms = photometric_loss(rendered.rgb, views["images"], loss_config, lpips_params)
     return loss, {**terms, **render_diagnostics(rendered.stats)}
 
   loss, terms = mean_over_view_chunks(
-      chunk_loss, {"world_to_camera": world_to_camera, "intrinsics": intrinsics,
-                   "images": images.astype(jnp.float32)}, objective.view_chunk_size)
-  return add_visibility(loss, terms, gaussians.means, world_to_camera, intrinsics, height, width,
-                        loss_config)
+    chunk_loss,
+    {
+      "world_to_camera": world_to_camera,
+      "intrinsics": intrinsics,
+      "images": images.astype(jnp.float32),
+    },
+    objective.view_chunk_size,
+  )
+  return add_visibility(
+    loss, terms, gaussians.means, world_to_camera, intrinsics, height, width, loss_config
+  )
 
 
-def decode_at_times(params, encoded, model_config, times: jax.Array,
-                    tokens: jax.Array | None = None) -> Gaussians:
+def decode_at_times(
+  params, encoded, model_config, times: jax.Array, tokens: jax.Array | None = None
+) -> Gaussians:
   """Gaussians of a time-conditioned model at several times, from one encoding.
 
   The decoder is vmapped over the times; the encoder's keys/values are closed over, so they are
@@ -205,11 +261,20 @@ def _slice_gaussians(gaussians: Gaussians, start: int) -> Gaussians:
   return Gaussians.from_flat(gaussians.to_flat()[..., start:, :])
 
 
-def time_conditioned_loss(gaussians_at: Callable[[jax.Array], Gaussians], times: jax.Array,
-                          images: jax.Array, world_to_camera: jax.Array, intrinsics: jax.Array,
-                          loss_config, render_config, objective: ObjectiveConfig = ObjectiveConfig(),
-                          lpips_params=None, *, num_static_gaussians: int | None = None,
-                          step: jax.Array | int = 0):
+def time_conditioned_loss(
+  gaussians_at: Callable[[jax.Array], Gaussians],
+  times: jax.Array,
+  images: jax.Array,
+  world_to_camera: jax.Array,
+  intrinsics: jax.Array,
+  loss_config,
+  render_config,
+  objective: ObjectiveConfig = ObjectiveConfig(),
+  lpips_params=None,
+  *,
+  num_static_gaussians: int | None = None,
+  step: jax.Array | int = 0,
+):
   """Loss of time-conditioned Gaussians against views taken at different times.
 
   Each view is rendered from `gaussians_at` its own time (or, with `objective.decode_times ==
@@ -258,14 +323,29 @@ def time_conditioned_loss(gaussians_at: Callable[[jax.Array], Gaussians], times:
 
   def scored(gaussians, views):
     """Loss of Gaussians [B, Vc or 1, N] rendered into the chunk's views [B, Vc]."""
-    rendered = render_views(gaussians, views["world_to_camera"][:, :, None],
-                            views["intrinsics"][:, :, None], height, width, render_config,
-                            objective)
-    loss, terms = photometric_loss(rendered.rgb[:, :, 0], views["images"], loss_config,
-                                   lpips_params)
+    rendered = render_views(
+      gaussians,
+      views["world_to_camera"][:, :, None],
+      views["intrinsics"][:, :, None],
+      height,
+      width,
+      render_config,
+      objective,
+    )
+    loss, terms = photometric_loss(
+      rendered.rgb[:, :, 0], views["images"], loss_config, lpips_params
+    )
     # the Gaussians of each time against every view: [B, Vc or 1]
-    loss, terms = add_visibility(loss, terms, gaussians.means, world_to_camera[:, None],
-                                 intrinsics[:, None], height, width, loss_config)
+    loss, terms = add_visibility(
+      loss,
+      terms,
+      gaussians.means,
+      world_to_camera[:, None],
+      intrinsics[:, None],
+      height,
+      width,
+      loss_config,
+    )
     return loss, terms, rendered.stats
 
   def chunk_loss(views):
@@ -286,26 +366,59 @@ def time_conditioned_loss(gaussians_at: Callable[[jax.Array], Gaussians], times:
       terms["dyn_aux_psnr"] = dyn_psnr
     return loss, terms
 
-  views = {"world_to_camera": world_to_camera, "intrinsics": intrinsics,
-           "images": images.astype(jnp.float32), "times": jnp.asarray(times, jnp.float32)}
+  views = {
+    "world_to_camera": world_to_camera,
+    "intrinsics": intrinsics,
+    "images": images.astype(jnp.float32),
+    "times": jnp.asarray(times, jnp.float32),
+  }
   return mean_over_view_chunks(chunk_loss, views, objective.view_chunk_size)
 
 
-def static_model_loss(params, batch: dict, *, model_config, loss_config, render_config,
-                      objective: ObjectiveConfig, lpips_params=None):
+def static_model_loss(
+  params,
+  batch: dict,
+  *,
+  model_config,
+  loss_config,
+  render_config,
+  objective: ObjectiveConfig,
+  lpips_params=None,
+):
   """Static models: context views -> `model.reconstruct` -> `supervision_loss` on the targets."""
   from tokengs_jax import model
   from tokengs_jax.camera import invert_rigid
 
-  gaussians = model.reconstruct(params, batch["context_images"], batch["context_c2w"],
-                                batch["context_intrinsics"], config=model_config)
-  return supervision_loss(gaussians, batch["target_images"], invert_rigid(batch["target_c2w"]),
-                          batch["target_intrinsics"], loss_config, render_config, objective,
-                          lpips_params)
+  gaussians = model.reconstruct(
+    params,
+    batch["context_images"],
+    batch["context_c2w"],
+    batch["context_intrinsics"],
+    config=model_config,
+  )
+  return supervision_loss(
+    gaussians,
+    batch["target_images"],
+    invert_rigid(batch["target_c2w"]),
+    batch["target_intrinsics"],
+    loss_config,
+    render_config,
+    objective,
+    lpips_params,
+  )
 
 
-def dynamic_model_loss(params, batch: dict, step: jax.Array | int, *, model_config, loss_config,
-                       render_config, objective: ObjectiveConfig, lpips_params=None):
+def dynamic_model_loss(
+  params,
+  batch: dict,
+  step: jax.Array | int,
+  *,
+  model_config,
+  loss_config,
+  render_config,
+  objective: ObjectiveConfig,
+  lpips_params=None,
+):
   """Time-conditioned models: context views and `batch["context_times"]` -> `encode_views` once
   -> `decode_at_times` at `batch["target_times"]` -> `time_conditioned_loss`, plus the dynamic
   auxiliary loss (weight scheduled by `step`) when the model has static and dynamic tokens and
@@ -313,20 +426,41 @@ def dynamic_model_loss(params, batch: dict, step: jax.Array | int, *, model_conf
   from tokengs_jax import model
   from tokengs_jax.camera import invert_rigid
 
-  with_aux = (loss_config.lambda_dyn_aux > 0 and model_config.num_dynamic_gs_tokens > 0
-              and model_config.num_gs_tokens > 0)
-  encoded = model.encode_views(params, batch["context_images"], batch["context_c2w"],
-                               batch["context_intrinsics"], model_config,
-                               times=batch["context_times"])
+  with_aux = (
+    loss_config.lambda_dyn_aux > 0
+    and model_config.num_dynamic_gs_tokens > 0
+    and model_config.num_gs_tokens > 0
+  )
+  encoded = model.encode_views(
+    params,
+    batch["context_images"],
+    batch["context_c2w"],
+    batch["context_intrinsics"],
+    model_config,
+    times=batch["context_times"],
+  )
   return time_conditioned_loss(
-      lambda times: decode_at_times(params, encoded, model_config, times),
-      batch["target_times"], batch["target_images"], invert_rigid(batch["target_c2w"]),
-      batch["target_intrinsics"], loss_config, render_config, objective, lpips_params,
-      num_static_gaussians=model_config.num_static_gaussians if with_aux else None, step=step)
+    lambda times: decode_at_times(params, encoded, model_config, times),
+    batch["target_times"],
+    batch["target_images"],
+    invert_rigid(batch["target_c2w"]),
+    batch["target_intrinsics"],
+    loss_config,
+    render_config,
+    objective,
+    lpips_params,
+    num_static_gaussians=model_config.num_static_gaussians if with_aux else None,
+    step=step,
+  )
 
 
-def tokengs_loss_fn(model_config, loss_config=None, render_config=None,
-                    objective: ObjectiveConfig = ObjectiveConfig(), lpips_params=None):
+def tokengs_loss_fn(
+  model_config,
+  loss_config=None,
+  render_config=None,
+  objective: ObjectiveConfig = ObjectiveConfig(),
+  lpips_params=None,
+):
   """The TokenGS training loss `(params, batch, key, step) -> (loss, terms)` for `train_step`.
 
   `static_model_loss`, or `dynamic_model_loss` for time-conditioned models
@@ -346,10 +480,13 @@ def tokengs_loss_fn(model_config, loss_config=None, render_config=None,
   """
   from tokengs_jax import losses, splatting
 
-  settings = {"model_config": model_config,
-              "loss_config": losses.LossConfig() if loss_config is None else loss_config,
-              "render_config": splatting.RenderConfig() if render_config is None else render_config,
-              "objective": objective, "lpips_params": lpips_params}
+  settings = {
+    "model_config": model_config,
+    "loss_config": losses.LossConfig() if loss_config is None else loss_config,
+    "render_config": splatting.RenderConfig() if render_config is None else render_config,
+    "objective": objective,
+    "lpips_params": lpips_params,
+  }
 
   def loss_fn(params, batch, key, step):
     del key

@@ -89,21 +89,27 @@ def learning_rate_schedule(config: OptimConfig) -> optax.Schedule:
     return optax.constant_schedule(config.learning_rate)
   if config.schedule == "warmup_cosine":
     return optax.warmup_cosine_decay_schedule(
-        init_value=0.0, peak_value=config.learning_rate, warmup_steps=config.warmup_steps,
-        decay_steps=config.total_steps, end_value=config.end_learning_rate)
+      init_value=0.0,
+      peak_value=config.learning_rate,
+      warmup_steps=config.warmup_steps,
+      decay_steps=config.total_steps,
+      end_value=config.end_learning_rate,
+    )
   if config.schedule == "one_cycle":
     start = config.learning_rate / config.div_factor
     end = start / config.final_div_factor
-    return lambda step: _one_cycle(step, config.total_steps, config.warmup_steps,
-                                   start, config.learning_rate, end)
+    return lambda step: _one_cycle(
+      step, config.total_steps, config.warmup_steps, start, config.learning_rate, end
+    )
   raise ValueError(f"unknown schedule {config.schedule!r}")
 
 
 def beta1_schedule(config: OptimConfig) -> optax.Schedule | float:
   """AdamW's beta1: constant, or torch `OneCycleLR`'s inverse cycle (high when lr is low)."""
   if config.schedule == "one_cycle" and config.cycle_momentum:
-    return lambda step: _one_cycle(step, config.total_steps, config.warmup_steps,
-                                   config.max_b1, config.base_b1, config.max_b1)
+    return lambda step: _one_cycle(
+      step, config.total_steps, config.warmup_steps, config.max_b1, config.base_b1, config.max_b1
+    )
   return config.b1
 
 
@@ -128,6 +134,7 @@ def weight_decay_mask(params, no_decay_names: tuple[str, ...] = ("gs_tokens", "l
   Returns:
     A pytree of Python bools with the structure of `params`.
   """
+
   def decays(path, leaf):
     exempt = any(part.startswith(no_decay_names) for part in path_name(path).split("/"))
     return jnp.ndim(leaf) >= 2 and not exempt
@@ -144,11 +151,18 @@ def make_optimizer(config: OptimConfig) -> optax.GradientTransformation:
   torch/accelerate clip the accumulated gradient; the schedule counts optimiser updates.
   """
   adamw = optax.inject_hyperparams(optax.adamw, static_args=("mask",))(
-      learning_rate=learning_rate_schedule(config), b1=beta1_schedule(config), b2=config.b2,
-      eps=config.eps, weight_decay=config.weight_decay,
-      mask=lambda params: weight_decay_mask(params, config.no_decay_names))
-  parts = [adamw] if config.grad_clip_norm is None else [
-      optax.clip_by_global_norm(config.grad_clip_norm), adamw]
+    learning_rate=learning_rate_schedule(config),
+    b1=beta1_schedule(config),
+    b2=config.b2,
+    eps=config.eps,
+    weight_decay=config.weight_decay,
+    mask=lambda params: weight_decay_mask(params, config.no_decay_names),
+  )
+  parts = (
+    [adamw]
+    if config.grad_clip_norm is None
+    else [optax.clip_by_global_norm(config.grad_clip_norm), adamw]
+  )
   optimizer = optax.chain(*parts)
   if config.accumulation_steps > 1:
     optimizer = optax.MultiSteps(optimizer, every_k_schedule=config.accumulation_steps)
@@ -157,6 +171,7 @@ def make_optimizer(config: OptimConfig) -> optax.GradientTransformation:
 
 def current_learning_rate(opt_state) -> jax.Array | None:
   """The learning rate the last update used (read from an injected-hyperparams state)."""
+
   def has_hyperparams(node):
     return hasattr(node, "hyperparams") and isinstance(node.hyperparams, dict)
 

@@ -30,5 +30,9 @@ class TrainState:
 
 def create_train_state(params, optimizer: optax.GradientTransformation, seed: int) -> TrainState:
   """A fresh state at step 0 (call inside `jax.jit(..., out_shardings=...)` to place it)."""
-  return TrainState(params=params, opt_state=optimizer.init(params),
-                    step=jnp.zeros((), jnp.int32), rng=jax.random.PRNGKey(seed))
+  return TrainState(
+    params=params,
+    opt_state=optimizer.init(params),
+    step=jnp.zeros((), jnp.int32),
+    rng=jax.random.PRNGKey(seed),
+  )

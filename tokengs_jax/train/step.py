@@ -43,20 +43,26 @@ class Precision:
 
 def cast_floating(tree, dtype):
   """Casts every floating leaf of `tree` to `dtype`; integer and key leaves are left alone."""
+
   def cast(leaf):
     return leaf.astype(dtype) if jnp.issubdtype(jnp.result_type(leaf), jnp.floating) else leaf
+
   return jax.tree.map(cast, tree)
 
 
 def all_finite(tree) -> jax.Array:
   """True iff no floating leaf of `tree` holds a NaN or an infinity (bool scalar)."""
-  checks = [jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(tree)
-            if jnp.issubdtype(jnp.result_type(leaf), jnp.floating)]
+  checks = [
+    jnp.all(jnp.isfinite(leaf))
+    for leaf in jax.tree.leaves(tree)
+    if jnp.issubdtype(jnp.result_type(leaf), jnp.floating)
+  ]
   return jnp.all(jnp.stack(checks)) if checks else jnp.array(True)
 
 
-def train_step_fn(loss_fn: LossFn, optimizer: optax.GradientTransformation,
-                  precision: Precision = Precision()):
+def train_step_fn(
+  loss_fn: LossFn, optimizer: optax.GradientTransformation, precision: Precision = Precision()
+):
   """The unjitted step `(state, batch, key) -> (state, metrics)`.
 
   The loss is called as `loss_fn(params, batch, fold_in(key, state.step), state.step)`: the step
@@ -64,29 +70,44 @@ def train_step_fn(loss_fn: LossFn, optimizer: optax.GradientTransformation,
   any gradient is non-finite the returned state is the input state (update skipped, step not
   advanced) and `metrics["finite"]` is False; the loop turns that into a loud stop.
   """
+
   def step(state: TrainState, batch: dict, key: jax.Array):
     step_key = jax.random.fold_in(key, state.step)
 
     def compute_loss(params):
-      loss, aux = loss_fn(cast_floating(params, precision.compute_dtype), batch, step_key,
-                          state.step)
+      loss, aux = loss_fn(
+        cast_floating(params, precision.compute_dtype), batch, step_key, state.step
+      )
       return loss.astype(jnp.float32), aux
 
     (loss, aux), grads = jax.value_and_grad(compute_loss, has_aux=True)(state.params)
     finite = jnp.isfinite(loss) & all_finite(grads)
     updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
-    stepped = state.replace(params=optax.apply_updates(state.params, updates),
-                            opt_state=opt_state, step=state.step + 1)
+    stepped = state.replace(
+      params=optax.apply_updates(state.params, updates), opt_state=opt_state, step=state.step + 1
+    )
     new_state = jax.tree.map(lambda new, old: jnp.where(finite, new, old), stepped, state)
-    metrics = {"loss": loss, "grad_norm": optax.tree.norm(grads), "finite": finite,
-               "learning_rate": current_learning_rate(opt_state), **aux}
+    metrics = {
+      "loss": loss,
+      "grad_norm": optax.tree.norm(grads),
+      "finite": finite,
+      "learning_rate": current_learning_rate(opt_state),
+      **aux,
+    }
     return new_state, metrics
 
   return step
 
 
-def make_train_step(loss_fn: LossFn, optimizer: optax.GradientTransformation, mesh: Mesh, *,
-                    precision: Precision = Precision(), state_sharding=None, donate: bool = True):
+def make_train_step(
+  loss_fn: LossFn,
+  optimizer: optax.GradientTransformation,
+  mesh: Mesh,
+  *,
+  precision: Precision = Precision(),
+  state_sharding=None,
+  donate: bool = True,
+):
   """Jits the step with shardings over `mesh` and the state buffers donated.
 
   Args:
@@ -105,7 +126,9 @@ def make_train_step(loss_fn: LossFn, optimizer: optax.GradientTransformation, me
   replicated = NamedSharding(mesh, P())
   batch_sharding = NamedSharding(mesh, P("data"))
   state_sharding = replicated if state_sharding is None else state_sharding
-  return jax.jit(train_step_fn(loss_fn, optimizer, precision),
-                 in_shardings=(state_sharding, batch_sharding, replicated),
-                 out_shardings=(state_sharding, replicated),
-                 donate_argnums=(0,) if donate else ())
+  return jax.jit(
+    train_step_fn(loss_fn, optimizer, precision),
+    in_shardings=(state_sharding, batch_sharding, replicated),
+    out_shardings=(state_sharding, replicated),
+    donate_argnums=(0,) if donate else (),
+  )

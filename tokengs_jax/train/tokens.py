@@ -15,8 +15,9 @@ import numpy as np
 from tokengs_jax.train.optim import path_name
 
 
-def expand_tokens(key: jax.Array, tokens: jax.Array, num_tokens: int,
-                  noise_std: float = 0.01) -> jax.Array:
+def expand_tokens(
+  key: jax.Array, tokens: jax.Array, num_tokens: int, noise_std: float = 0.01
+) -> jax.Array:
   """A `[num_tokens, D]` table initialised from pretrained `tokens [N, D]`.
 
   Args:
@@ -32,13 +33,14 @@ def expand_tokens(key: jax.Array, tokens: jax.Array, num_tokens: int,
   if num_tokens <= count:
     # torch.linspace(0, N - 1, M).long() truncates toward zero
     return tokens[np.linspace(0, count - 1, num_tokens).astype(np.int64)]
-  extra = jnp.tile(tokens, (-(-(num_tokens - count) // count), 1))[:num_tokens - count]
+  extra = jnp.tile(tokens, (-(-(num_tokens - count) // count), 1))[: num_tokens - count]
   extra = extra + noise_std * jax.random.normal(key, extra.shape, tokens.dtype)
   return jnp.concatenate([tokens, extra], axis=0)
 
 
-def dynamic_tokens_from_static(key: jax.Array, static_tokens: jax.Array,
-                               num_dynamic: int) -> jax.Array:
+def dynamic_tokens_from_static(
+  key: jax.Array, static_tokens: jax.Array, num_dynamic: int
+) -> jax.Array:
   """`[num_dynamic, D]` dynamic tokens: cyclic copies of `static_tokens [N, D]` (no noise), or a
   random subset when fewer."""
   count = static_tokens.shape[0]
@@ -49,9 +51,14 @@ def dynamic_tokens_from_static(key: jax.Array, static_tokens: jax.Array,
   return static_tokens[jax.random.permutation(key, count)[:num_dynamic]]
 
 
-def transplant_params(key: jax.Array, pretrained, fresh,
-                      token_names: tuple[str, ...] = ("gs_tokens",),
-                      noise_std: float = 0.01, dynamic_from_static: bool = True):
+def transplant_params(
+  key: jax.Array,
+  pretrained,
+  fresh,
+  token_names: tuple[str, ...] = ("gs_tokens",),
+  noise_std: float = 0.01,
+  dynamic_from_static: bool = True,
+):
   """Loads `pretrained` into the structure of `fresh`, growing token tables (tolerant load).
 
   Leaves present in both with equal shapes are copied; a leaf whose path has a component starting
@@ -69,20 +76,28 @@ def transplant_params(key: jax.Array, pretrained, fresh,
   def pick(path, leaf):
     name = path_name(path)
     old = flat_pre.get(name)
-    if old is None and dynamic_from_static and name == "gs_tokens_dynamic" and (
-        flat_pre.get("gs_tokens") is not None):
+    if (
+      old is None
+      and dynamic_from_static
+      and name == "gs_tokens_dynamic"
+      and (flat_pre.get("gs_tokens") is not None)
+    ):
       report.append(f"{name}: from static gs_tokens")
-      return dynamic_tokens_from_static(jax.random.fold_in(key, len(report)),
-                                        jnp.asarray(flat_pre["gs_tokens"], leaf.dtype),
-                                        leaf.shape[0])
+      return dynamic_tokens_from_static(
+        jax.random.fold_in(key, len(report)),
+        jnp.asarray(flat_pre["gs_tokens"], leaf.dtype),
+        leaf.shape[0],
+      )
     if old is not None and old.shape == leaf.shape:
       return jnp.asarray(old, leaf.dtype)
     is_token = any(part.startswith(token_names) for part in name.split("/"))
-    if (old is not None and is_token and old.ndim == 2 == leaf.ndim
-        and old.shape[1] == leaf.shape[1]):
+    if (
+      old is not None and is_token and old.ndim == 2 == leaf.ndim and old.shape[1] == leaf.shape[1]
+    ):
       report.append(f"{name}: tokens {old.shape[0]} -> {leaf.shape[0]}")
-      return expand_tokens(jax.random.fold_in(key, len(report)), jnp.asarray(old, leaf.dtype),
-                           leaf.shape[0], noise_std)
+      return expand_tokens(
+        jax.random.fold_in(key, len(report)), jnp.asarray(old, leaf.dtype), leaf.shape[0], noise_std
+      )
     report.append(f"{name}: kept fresh ({'missing' if old is None else f'shape {old.shape}'})")
     return leaf
 
