@@ -60,7 +60,9 @@ def _scene(key, frames=5, seed=0, size=8):
 
 
 def _records(keys, **kwargs):
-  return [chunks._scene_to_record(_scene(key, seed=i, **kwargs), 90) for i, key in enumerate(keys)]
+  return [
+    chunks.scenes._scene_to_record(_scene(key, seed=i, **kwargs), 90) for i, key in enumerate(keys)
+  ]
 
 
 def _index(root, mapping):
@@ -216,8 +218,8 @@ def test_build_opcode_is_refused_and_leaves_the_shared_globals_alone(tmp_path, p
   _archive_with_pickle(tmp_path / "evil.torch", payload)
   with pytest.raises(UnsafeChunkError, match=r"evil\.torch.*BUILD"):
     chunks.load_tensor_archive(tmp_path / "evil.torch")
-  storage = chunks._TensorUnpickler._GLOBALS[("torch", "FloatStorage")]
-  assert storage.dtype == np.float32 and not hasattr(chunks._rebuild_tensor, "x")
+  storage = chunks.unpickler._TensorUnpickler._GLOBALS[("torch", "FloatStorage")]
+  assert storage.dtype == np.float32 and not hasattr(chunks.storage._rebuild_tensor, "x")
   write_chunk(tmp_path / "good.torch", [_scene("after")])  # later chunks still read
   assert chunks.read_chunk(tmp_path / "good.torch")[0]["key"] == "after"
 

@@ -145,7 +145,7 @@ def test_truncated_or_non_chunk_file(tmp_path, content):
 
 def _rewrite_record(tmp_path, mutate):
   """Writes a chunk via the raw record layer after `mutate(record)`."""
-  record = chunks._scene_to_record(_scene("sceneX"), 95)
+  record = chunks.scenes._scene_to_record(_scene("sceneX"), 95)
   mutate(record)
   path = tmp_path / "000001.torch"
   chunks.save_tensor_archive(path, [record])

@@ -171,7 +171,7 @@ def test_bad_scenes_raise_naming_file_and_scene_or_are_skipped_and_counted(tmp_p
   good = [_scene(f"g{i}", seed=i) for i in range(3)]
   short = _scene("short", frames=2)
   root = _write_dataset(tmp_path / "bad", [good + [short]])
-  record = chunks._scene_to_record(_scene("corrupt"), 95)
+  record = chunks.scenes._scene_to_record(_scene("corrupt"), 95)
   for frame in range(1, 10):  # frame 0 stays readable: the scan reads the image size from it
     record["images"][frame] = np.frombuffer(b"\xff\xd8\xff\xe0 not a jpeg", np.uint8)
   chunks.save_tensor_archive(root / "000001.torch", [record])
@@ -198,7 +198,7 @@ def test_bad_scenes_raise_naming_file_and_scene_or_are_skipped_and_counted(tmp_p
 
 
 def test_nan_pose_chunk_is_refused_at_scan(tmp_path):
-  record = chunks._scene_to_record(_scene("nan"), 95)
+  record = chunks.scenes._scene_to_record(_scene("nan"), 95)
   record["cameras"][3, 7] = np.inf
   root = tmp_path / "nan"
   root.mkdir()

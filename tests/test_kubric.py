@@ -403,10 +403,12 @@ def test_scene_metadata_is_parsed_once_per_process(kubric_root, monkeypatch):
   source = kubric.KubricSceneSource(root)
   parsed = []
   parse = kubric.parse_kubric_view
-  monkeypatch.setattr(kubric, "parse_kubric_view", lambda path: parsed.append(path) or parse(path))
+  monkeypatch.setattr(
+    kubric.source, "parse_kubric_view", lambda path: parsed.append(path) or parse(path)
+  )
   record = source[0]
   assert len(parsed) == CAMERAS
-  monkeypatch.setattr(kubric.tarfile, "open", None)  # reading frames never reopens a tar
+  monkeypatch.setattr(kubric.camera_tar.tarfile, "open", None)  # reading frames never reopens a tar
   for _ in range(3):
     record = source[0]
   assert len(parsed) == CAMERAS

@@ -35,7 +35,8 @@ from collections.abc import Iterable, Sequence
 import numpy as np
 from PIL import Image
 
-from tokengs_jax.data.chunks import ChunkError, _open_archive, check_regular_file, read_member
+from tokengs_jax.data.chunks import ChunkError, check_regular_file, read_member
+from tokengs_jax.data.chunks.archive import _open_archive
 from tokengs_jax.data.rejections import Rejections
 from tokengs_jax.data.sampler import MissingIndexEntryError
 

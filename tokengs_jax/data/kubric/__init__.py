@@ -1,0 +1,62 @@
+"""Kubric-4D (multi-view dynamic) reader, as the official TokenGS `Kubric` dataset + provider.
+
+Layout: `<root>/<subset>/<scene>/output_{view:03d}.tar` (subsets v0, v1, v2; 9 cameras x 24
+frames), each tar holding `./metadata.json`, `./rgba_{frame:05d}.png` and (optional)
+`./depth_{frame:05d}.tiff` (float32 z-depth). From the metadata, as official:
+
+- intrinsics: fx = focal_length * W / sensor_width, fy = focal_length * H / sensor_width,
+  (cx, cy) = (W / 2, H / 2), with `H, W = metadata.resolution` (the same for every frame);
+- frame f's camera-to-world: rotation of the wxyz (Hamilton) quaternion `camera.quaternions[f]`,
+  translation `camera.positions[f]`, in Blender/OpenGL axes (+y up, looking down -z); OpenCV
+  is obtained by negating the y and z columns.
+
+Examples are built by the shared input pipeline: `KubricSceneSource` yields scene records (the C
+cameras x F frames flattened camera-major, lazy PNG/TIFF members) and `kubric_view_selector`
+draws the official views (`_get_indices_dynamic` + `_curate_batch_dynamic`): `num_context`
+cameras and `num_context` increasing frames spanning a random gap, plus one target frame; context
+view v is camera v at frame v, target view v is camera v at the target frame. The pipeline
+(`DATASET_PRESETS["kubric"]`) then min-max normalises the times, normalises the cameras
+(`mean_cam`) and scales them by `translation_scale / mean distance of the context views' depth
+points from the origin` ("pointmap", `pointmap_scale`).
+
+Every failure to read a scene (unreadable or truncated tar, missing member, bad metadata, a
+frame whose size is not the metadata's resolution) raises `KubricError` naming the file.
+
+Modules: `camera_tar` (one camera's tar: metadata, poses, frames), `source` (scene listing and
+`KubricSceneSource`), `sampling` (`kubric_view_selector`, `pointmap_scale`).
+"""
+
+from tokengs_jax.data.kubric.camera_tar import (
+  KubricError,
+  KubricView,
+  intrinsics_from_metadata,
+  kubric_pose_to_opencv,
+  opencv_to_kubric_pose,
+  parse_kubric_view,
+  quat_wxyz_to_rotation,
+  read_kubric_view,
+  rotation_to_quat_wxyz,
+)
+from tokengs_jax.data.kubric.sampling import (
+  kubric_view_selector,
+  pointmap_scale,
+  sample_dynamic_indices,
+)
+from tokengs_jax.data.kubric.source import KubricSceneSource, list_kubric_scenes
+
+__all__ = [
+  "KubricError",
+  "KubricSceneSource",
+  "KubricView",
+  "intrinsics_from_metadata",
+  "kubric_view_selector",
+  "kubric_pose_to_opencv",
+  "list_kubric_scenes",
+  "opencv_to_kubric_pose",
+  "parse_kubric_view",
+  "pointmap_scale",
+  "quat_wxyz_to_rotation",
+  "read_kubric_view",
+  "rotation_to_quat_wxyz",
+  "sample_dynamic_indices",
+]

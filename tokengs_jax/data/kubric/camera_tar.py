@@ -1,0 +1,251 @@
+"""One Kubric camera's tar: its metadata (poses, intrinsics, in the official conventions) and frames.
+
+`parse_kubric_view` reads a tar's index and `metadata.json` once into a `KubricView` (cameras and
+each member's byte range); `read_kubric_view` decodes frames (PNG RGB, TIFF depth) checked
+against the metadata's resolution. Every failure is a `KubricError` naming the file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import os
+import tarfile
+from typing import Sequence
+
+import numpy as np
+from PIL import Image
+
+from tokengs_jax.data.chunks import ChunkError, check_regular_file
+
+# Blender/OpenGL camera axes (x right, y up, looking down -z) -> OpenCV (x right, y down, +z).
+_GL_TO_CV = np.diag([1.0, -1.0, -1.0])
+_MAX_METADATA_BYTES = 64 << 20
+
+
+class KubricError(ValueError):
+  """A Kubric scene is malformed; the message names the file."""
+
+
+def quat_wxyz_to_rotation(quats: np.ndarray) -> np.ndarray:
+  """Unit quaternions (w, x, y, z), Hamilton convention -> rotation matrices.
+
+  quats: [..., 4] -> [..., 3, 3] float64.
+  """
+  w, x, y, z = np.moveaxis(np.asarray(quats, np.float64), -1, 0)
+  return np.stack(
+    [
+      np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+      np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+      np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+    ],
+    -2,
+  )
+
+
+def rotation_to_quat_wxyz(rotation: np.ndarray) -> np.ndarray:
+  """Rotation matrices -> unit quaternions (w, x, y, z) with w >= 0.
+
+  Takes the eigenvector of the largest eigenvalue of Bar-Itzhack's symmetric 4x4 matrix, which
+  is robust for every rotation (no branch on the trace).  rotation: [..., 3, 3] -> [..., 4].
+  """
+  r = np.asarray(rotation, np.float64)
+  r00, r01, r02 = r[..., 0, 0], r[..., 0, 1], r[..., 0, 2]
+  r10, r11, r12 = r[..., 1, 0], r[..., 1, 1], r[..., 1, 2]
+  r20, r21, r22 = r[..., 2, 0], r[..., 2, 1], r[..., 2, 2]
+  k = (
+    np.stack(
+      [
+        np.stack([r00 + r11 + r22, r21 - r12, r02 - r20, r10 - r01], -1),
+        np.stack([r21 - r12, r00 - r11 - r22, r01 + r10, r02 + r20], -1),
+        np.stack([r02 - r20, r01 + r10, r11 - r00 - r22, r12 + r21], -1),
+        np.stack([r10 - r01, r02 + r20, r12 + r21, r22 - r00 - r11], -1),
+      ],
+      -2,
+    )
+    / 3.0
+  )
+  _, vectors = np.linalg.eigh(k)
+  quats = vectors[..., :, -1]  # eigh sorts eigenvalues ascending
+  return quats * np.where(quats[..., :1] < 0, -1.0, 1.0)
+
+
+def kubric_pose_to_opencv(positions: np.ndarray, quats: np.ndarray) -> np.ndarray:
+  """Kubric camera poses -> OpenCV c2w.  positions: [F, 3], quats: [F, 4] wxyz -> [F, 4, 4]."""
+  positions = np.asarray(positions, np.float64)
+  c2w = np.zeros(positions.shape[:-1] + (4, 4))
+  c2w[..., :3, :3] = quat_wxyz_to_rotation(quats) @ _GL_TO_CV
+  c2w[..., :3, 3] = positions
+  c2w[..., 3, 3] = 1.0
+  return c2w
+
+
+def opencv_to_kubric_pose(c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  """Inverse of `kubric_pose_to_opencv`: c2w [F, 4, 4] -> (positions [F, 3], quats [F, 4] wxyz)."""
+  c2w = np.asarray(c2w, np.float64)
+  return c2w[..., :3, 3].copy(), rotation_to_quat_wxyz(c2w[..., :3, :3] @ _GL_TO_CV)
+
+
+def intrinsics_from_metadata(
+  focal_length: float, sensor_width: float, height: int, width: int
+) -> np.ndarray:
+  """(fx, fy, cx, cy) in pixels, as the official loader derives them.  -> [4] float32.
+
+  Note fy uses H / sensor_width like the official code: square pixels only for square images.
+  Raises `KubricError` unless focal length, sensor width and resolution are finite and positive.
+  """
+  values = np.array([focal_length, sensor_width, height, width], np.float64)
+  if not (np.isfinite(values).all() and (values > 0).all()):
+    raise KubricError(
+      f"focal_length {focal_length}, sensor_width {sensor_width} and resolution "
+      f"{[height, width]} must be finite and positive"
+    )
+  return np.array(
+    [
+      focal_length * width / sensor_width,
+      focal_length * height / sensor_width,
+      0.5 * width,
+      0.5 * height,
+    ],
+    np.float32,
+  )
+
+
+@dataclasses.dataclass(frozen=True)
+class KubricView:
+  """One camera's tar, parsed once: its cameras, and where each member's bytes lie in the file
+  (so reading a frame is one seek + read, without rescanning the tar). Picklable.
+
+  Attributes:
+    path: the `output_{view:03d}.tar` file.
+    c2w: [F, 4, 4] float32 camera-to-world (OpenCV) of every frame.
+    intrinsics: [4] float32 (fx, fy, cx, cy) pixels, the same for every frame.
+    height, width: the metadata's resolution.
+    members: member name (without "./") -> (byte offset, size).
+  """
+
+  path: str
+  c2w: np.ndarray
+  intrinsics: np.ndarray
+  height: int
+  width: int
+  members: dict
+
+  @property
+  def num_frames(self) -> int:
+    return len(self.c2w)
+
+  def read(self, name: str) -> bytes:
+    """The bytes of member `name`; `KubricError` if it is missing or the tar is truncated."""
+    if name not in self.members:
+      raise KubricError(f"{self.path}: member '{name}' is missing")
+    offset, size = self.members[name]
+    try:
+      with open(self.path, "rb") as handle:
+        handle.seek(offset)
+        data = handle.read(size)
+    except OSError as error:
+      raise KubricError(f"{self.path}: cannot read member '{name}' ({error})") from error
+    if len(data) != size:
+      raise KubricError(f"{self.path}: member '{name}' is truncated ({len(data)} of {size} bytes)")
+    return data
+
+
+def parse_kubric_view(tar_path: str | os.PathLike) -> KubricView:
+  """Reads one camera's tar index and metadata (no pixels).  Raises `KubricError`."""
+  path = str(tar_path)
+  try:
+    check_regular_file(path)
+    with tarfile.open(path, "r") as tar:
+      members = {
+        m.name.removeprefix("./"): (m.offset_data, m.size) for m in tar.getmembers() if m.isreg()
+      }
+  except (ChunkError, tarfile.TarError, OSError, EOFError) as error:
+    raise KubricError(f"{path}: not a readable tar ({error})") from error
+  view = KubricView(path, np.zeros((0, 4, 4), np.float32), np.zeros(4, np.float32), 0, 0, members)
+  if members.get("metadata.json", (0, 0))[1] > _MAX_METADATA_BYTES:
+    raise KubricError(f"{path}: metadata.json larger than {_MAX_METADATA_BYTES} bytes")
+  try:
+    meta = json.loads(view.read("metadata.json"))
+    camera = meta["camera"]
+    height, width = (int(v) for v in meta["metadata"]["resolution"])
+    positions = np.asarray(camera["positions"], np.float64)
+    quats = np.asarray(camera["quaternions"], np.float64)
+    focal, sensor = float(camera["focal_length"]), float(camera["sensor_width"])
+  except (KeyError, TypeError, ValueError) as error:  # JSON and UTF-8 errors are ValueErrors
+    raise KubricError(f"{path}: bad metadata.json ({type(error).__name__}: {error})") from error
+  if positions.ndim != 2 or positions.shape[1] != 3 or quats.shape != (len(positions), 4):
+    raise KubricError(
+      f"{path}: camera positions {list(positions.shape)} / quaternions "
+      f"{list(quats.shape)} must be [F, 3] / [F, 4]"
+    )
+  if not (np.isfinite(positions).all() and np.isfinite(quats).all()):
+    raise KubricError(f"{path}: NaN/inf in the camera poses")
+  try:
+    intrinsics = intrinsics_from_metadata(focal, sensor, height, width)
+  except KubricError as error:
+    raise KubricError(f"{path}: metadata.json {error}") from None
+  c2w = kubric_pose_to_opencv(positions, quats).astype(np.float32)
+  return dataclasses.replace(view, c2w=c2w, intrinsics=intrinsics, height=height, width=width)
+
+
+def read_kubric_view(
+  tar_path: str | os.PathLike,
+  frames: Sequence[int] | None = None,
+  *,
+  load_images: bool = True,
+  load_depth: bool = False,
+) -> dict:
+  """Reads frames of one camera's tar.
+
+  Args:
+    tar_path: `.../output_{view:03d}.tar`.
+    frames: frame indices to read (default all `camera.positions`).
+
+  Returns:
+    dict with `c2w` [F, 4, 4] float32 (OpenCV), `intrinsics` [F, 4] float32 (pixels),
+    `frames` int [F], `num_frames` (in the file), `height`, `width`; `images` uint8 [F, H, W, 3]
+    when `load_images`; `depths` float32 [F, H, W] (z-depth) when `load_depth`.
+  """
+  view = parse_kubric_view(tar_path)
+  frames = np.arange(view.num_frames) if frames is None else np.asarray(frames, np.int64)
+  if frames.size and (frames.min() < 0 or frames.max() >= view.num_frames):
+    raise KubricError(
+      f"{view.path}: frames {frames.tolist()} outside the {view.num_frames} in the file"
+    )
+  shape = (view.height, view.width)
+  result = {
+    "c2w": view.c2w[frames],
+    "intrinsics": np.tile(view.intrinsics, (len(frames), 1)),
+    "frames": frames,
+    "num_frames": view.num_frames,
+    "height": view.height,
+    "width": view.width,
+  }
+  if load_images:
+    images = [_decode(view, f"rgba_{f:05d}.png", shape) for f in frames]
+    result["images"] = np.stack(images) if images else np.zeros((0, *shape, 3), np.uint8)
+  if load_depth:
+    depths = [_decode(view, f"depth_{f:05d}.tiff", shape) for f in frames]
+    result["depths"] = np.stack(depths) if depths else np.zeros((0, *shape), np.float32)
+  return result
+
+
+def _decode(view: KubricView, name: str, shape: tuple[int, int]) -> np.ndarray:
+  """Member `name` as uint8 [H, W, 3] RGB (PNG, alpha dropped as official) or float32 [H, W]
+  depth (TIFF, read with PIL as official); its size must be the metadata's resolution."""
+  try:
+    with Image.open(io.BytesIO(view.read(name))) as image:
+      pixels = (
+        np.asarray(image.convert("RGB")) if name.endswith(".png") else np.asarray(image, np.float32)
+      )
+  except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as error:
+    raise KubricError(f"{view.path}: corrupt {name} ({error})") from error
+  pixels = pixels[..., 0] if name.endswith(".tiff") and pixels.ndim == 3 else pixels
+  if pixels.shape[:2] != shape:
+    raise KubricError(
+      f"{view.path}: {name} is {list(pixels.shape[:2])}, metadata.json resolution "
+      f"is {list(shape)} (the intrinsics would be wrong)"
+    )
+  return pixels

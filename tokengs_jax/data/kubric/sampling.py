@@ -1,0 +1,104 @@
+"""What the pipeline draws from a Kubric scene record: the official views and translation scale.
+
+`sample_dynamic_indices` is the official `_get_indices_dynamic`; `kubric_view_selector` wraps it
+as a pipeline `select_views` over `KubricSceneSource`'s flattened records; `pointmap_scale` is the
+official "pointmap" scene scale from the context views' depth maps.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tokengs_jax.data.sampler import NotEnoughFramesError
+
+
+def sample_dynamic_indices(
+  rng: np.random.Generator,
+  num_frames: int,
+  num_cameras: int,
+  num_context: int,
+  min_gap: int = 3,
+  max_gap: int = 23,
+  interp_target: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+  """Official `_get_indices_dynamic`, with the same draws from `rng` in the same order.
+
+  Returns:
+    frames [num_context + 1] (increasing context frames spanning the gap, then the target frame,
+    anywhere in the span when `interp_target`, else one of the context frames) and
+    cameras [num_context] (distinct cameras; repeated in a shuffled cycle when there are fewer).
+  """
+  if num_frames < num_context:
+    raise NotEnoughFramesError(f"{num_frames} frames are fewer than {num_context} context views")
+  gap = int(rng.integers(min_gap, max_gap + 1))
+  gap = max(min(num_frames - 1, gap), num_context - 1)
+  start = int(rng.integers(0, num_frames - gap))
+  between = np.sort(rng.permutation(np.arange(start + 1, start + gap))[: num_context - 2])
+  frames = np.array([start, *between, start + gap])
+  target = rng.permutation(np.arange(start, start + gap + 1))[:1]
+  if not interp_target:
+    target = rng.permutation(frames)[:1]
+  frames = np.concatenate([frames, target])
+  if num_context > num_cameras:
+    views = rng.permutation(np.arange(num_context) % num_cameras)
+  else:
+    views = rng.permutation(np.arange(num_cameras))[:num_context]
+  return frames, views
+
+
+def pointmap_scale(
+  depths: np.ndarray,
+  c2w: np.ndarray,
+  intrinsics: np.ndarray,
+  trim: tuple[float, float] = (0.0, 1.0),
+) -> float:
+  """Mean distance from the origin of the points the depth maps see (official "pointmap").
+
+  Unprojects every pixel with depth > 1e-8 at integer pixel coordinates (as official, no +0.5),
+  optionally keeps only distances between the `trim` quantiles, and returns the mean (1.0 when
+  no pixel has depth).
+
+  depths: [V, H, W] z-depth, c2w: [V, 4, 4] (already normalised), intrinsics: [V, 4] pixels.
+  """
+  distances = []
+  for depth, pose, (fx, fy, cx, cy) in zip(depths, np.asarray(c2w, np.float64), intrinsics):
+    rows, cols = np.nonzero(depth > 1e-8)
+    z = depth[rows, cols].astype(np.float64)
+    points = np.stack([(cols - cx) / fx * z, (rows - cy) / fy * z, z], -1)
+    distances.append(np.linalg.norm(points @ pose[:3, :3].T + pose[:3, 3], axis=-1))
+  distances = np.concatenate(distances) if distances else np.zeros(0)
+  if distances.size == 0:
+    return 1.0
+  lo, hi = trim
+  if (lo > 0.0 or hi < 1.0) and distances.size > 1:
+    kept = distances[
+      (distances >= np.quantile(distances, lo)) & (distances <= np.quantile(distances, hi))
+    ]
+    distances = kept if kept.size else distances
+  return float(max(distances.mean(), 1e-6))
+
+
+def kubric_view_selector(
+  num_context: int,
+  num_targets: int,
+  min_gap: int = 3,
+  max_gap: int = 23,
+  interp_target: bool = True,
+):
+  """A pipeline `select_views(record, rng, step)` doing the official dynamic sampling on the
+  flattened records of `KubricSceneSource`: context v = (camera v, frame v), target v =
+  (camera v, target frame), returned as flat indices camera * F + frame."""
+  if not 0 < num_targets <= num_context:
+    raise ValueError(f"need 0 < targets ({num_targets}) <= context views ({num_context})")
+
+  def select(record: dict, rng: np.random.Generator, step: int) -> tuple[np.ndarray, np.ndarray]:
+    del step  # the official dynamic sampler has no warm-up
+    num_frames = record["num_frames"]
+    frames, cameras = sample_dynamic_indices(
+      rng, num_frames, record["num_cameras"], num_context, min_gap, max_gap, interp_target
+    )
+    context = cameras * num_frames + frames[:num_context]
+    target = cameras[:num_targets] * num_frames + frames[-1]
+    return context, target
+
+  return select

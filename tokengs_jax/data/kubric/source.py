@@ -1,0 +1,141 @@
+"""Kubric scenes as scene records for the input pipeline (`tokengs_jax.data.pipeline`).
+
+`list_kubric_scenes` finds the scene directories `<root>/<subset>/<scene>`; `KubricSceneSource`
+turns each into a record whose C cameras x F frames are flattened camera-major, with lazy PNG/TIFF
+members read only for the views a sample picks.
+"""
+
+from __future__ import annotations
+
+import collections
+import os
+import pathlib
+from typing import Sequence
+
+import numpy as np
+
+from tokengs_jax.data.kubric.camera_tar import KubricError, KubricView, parse_kubric_view
+
+DEFAULT_SUBSETS = ("v0", "v1", "v2")
+
+
+def list_kubric_scenes(
+  root: str | os.PathLike, subsets: Sequence[str] = DEFAULT_SUBSETS
+) -> list[pathlib.Path]:
+  """Scene directories `<root>/<subset>/<scene>`, subsets in the given order, scenes sorted.
+
+  Missing subsets are skipped (as official); no scene at all is an error.
+  """
+  root = pathlib.Path(root)
+  found = [
+    d
+    for subset in subsets
+    if (root / subset).is_dir()
+    for d in sorted((root / subset).iterdir())
+    if d.is_dir()
+  ]
+  if not found:
+    raise KubricError(f"{root}: no Kubric scenes under subsets {list(subsets)}")
+  return found
+
+
+class _TarFrames:
+  """Lazy length-(C*F) sequence of one per-frame member's bytes, camera-major: item c * F + f
+  is camera c, frame f. `member` is a format string of the frame, e.g. "rgba_{:05d}.png".
+
+  The pipeline decodes only the items it picks.
+  """
+
+  def __init__(self, views: Sequence[KubricView], num_frames: int, member: str):
+    self.views, self.num_frames, self.member = tuple(views), num_frames, member
+
+  def __len__(self) -> int:
+    return len(self.views) * self.num_frames
+
+  def __getitem__(self, index: int) -> bytes:
+    if not 0 <= index < len(self):
+      raise IndexError(f"{self.views[0].path}: view {index} of {len(self)}")
+    camera, frame = divmod(int(index), self.num_frames)
+    return self.views[camera].read(self.member.format(frame))
+
+
+class KubricSceneSource:
+  """Random-access source of Kubric scene records in the pipeline's record contract.
+
+  A scene's C cameras x F frames are flattened camera-major into C*F "frames": `c2w [C*F, 4, 4]`
+  (OpenCV), `intrinsics [C*F, 4]`, lazy PNG `images`, lazy TIFF `depths` (the pipeline's
+  "pointmap" scale reads the context views' ones), and `times [C*F]` = the frame index (the
+  pipeline min-max normalises times per example, as official), plus `num_cameras`,
+  `num_frames` for `kubric_view_selector`.
+
+  Each scene's tars are parsed once per process (metadata and member offsets, cached for the
+  last 64 scenes); a sample then reads only its views' members. A malformed scene raises
+  `KubricError` on access (the pipeline's `skip_bad` counts and skips it).
+
+  Args:
+    root, subsets: list the scenes with `list_kubric_scenes(root, subsets)`...
+    scenes: ...or use exactly these scene directories (e.g. a train/held-out split of a listing).
+  """
+
+  def __init__(
+    self,
+    root: str | os.PathLike | None = None,
+    subsets: Sequence[str] = DEFAULT_SUBSETS,
+    *,
+    scenes: Sequence[str | os.PathLike] | None = None,
+  ):
+    if (root is None) == (scenes is None):
+      raise ValueError("give either root (with subsets) or scenes")
+    self.scenes = (
+      [pathlib.Path(s) for s in scenes] if scenes is not None else list_kubric_scenes(root, subsets)
+    )
+    self._cache: collections.OrderedDict = collections.OrderedDict()
+
+  def __len__(self) -> int:
+    return len(self.scenes)
+
+  @property
+  def keys(self) -> list[str]:
+    """The scene keys (directory names), in item order."""
+    return [scene.name for scene in self.scenes]
+
+  def __getitem__(self, index: int) -> dict:
+    scene_dir = self.scenes[index]
+    key = (os.getpid(), scene_dir)
+    if key not in self._cache:
+      self._cache[key] = self._read_scene(scene_dir)
+      while len(self._cache) > 64:
+        self._cache.popitem(last=False)
+    self._cache.move_to_end(key)
+    return dict(self._cache[key])
+
+  def __getstate__(self):  # workers build their own cache
+    return {**self.__dict__, "_cache": collections.OrderedDict()}
+
+  @staticmethod
+  def _read_scene(scene_dir: pathlib.Path) -> dict:
+    count = len(list(scene_dir.glob("output_*.tar")))
+    if not count:
+      raise KubricError(f"{scene_dir}: no output_*.tar camera files")
+    views = [parse_kubric_view(scene_dir / f"output_{c:03d}.tar") for c in range(count)]
+    first = views[0]
+    if any(
+      (v.num_frames, v.height, v.width) != (first.num_frames, first.height, first.width)
+      for v in views
+    ):
+      raise KubricError(f"{scene_dir}: cameras differ in frame count or resolution")
+    return {
+      "key": scene_dir.name,
+      "source": str(scene_dir),
+      "c2w": np.concatenate([v.c2w for v in views]),
+      "intrinsics": np.tile(
+        np.stack([v.intrinsics for v in views])[:, None], (1, first.num_frames, 1)
+      ).reshape(-1, 4),
+      "height": first.height,
+      "width": first.width,
+      "images": _TarFrames(views, first.num_frames, "rgba_{:05d}.png"),
+      "depths": _TarFrames(views, first.num_frames, "depth_{:05d}.tiff"),
+      "times": np.tile(np.arange(first.num_frames, dtype=np.float64), len(views)),
+      "num_cameras": len(views),
+      "num_frames": first.num_frames,
+    }
