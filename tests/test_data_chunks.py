@@ -1,5 +1,6 @@
 """Chunk reader/writer: the torch-written fixture, round trips, unsafe pickles and bad input."""
 
+import concurrent.futures
 import json
 import os
 import pickle
@@ -63,6 +64,29 @@ def test_write_read_round_trip(tmp_path):
     np.testing.assert_allclose(back["c2w"], scene["c2w"], atol=1e-6)
     np.testing.assert_allclose(back["intrinsics"], scene["intrinsics"], rtol=1e-6)
     assert np.abs(back["images"].astype(int) - scene["images"]).max() <= 8  # JPEG quality 95
+
+
+def test_lazy_frames_load_from_many_threads_past_the_open_file_cache(tmp_path, monkeypatch):
+  """grain reads with threads: more chunk files than the cache holds, read concurrently, must
+  neither race on the cache nor close an archive another thread is reading."""
+  monkeypatch.setattr(chunks.archive, "_MAX_OPEN_ARCHIVES", 2)
+  frames = []
+  for number in range(6):
+    scene = _scene(f"s{number}", seed=number)
+    scene["images"] = [chunks.encode_jpeg(image) for image in scene["images"]]
+    write_chunk(tmp_path / f"{number:06d}.torch", [scene])
+    (lazy,) = read_chunk(tmp_path / f"{number:06d}.torch", images="lazy")
+    frames += [(frame, scene["images"][i]) for i, frame in enumerate(lazy["images"])]
+
+  def load_all(offset):
+    return all(
+      frames[(i + offset) % len(frames)][0].load().tobytes()
+      == frames[(i + offset) % len(frames)][1]
+      for i in range(len(frames) * 10)
+    )
+
+  with concurrent.futures.ThreadPoolExecutor(8) as pool:
+    assert all(pool.map(load_all, range(8)))
 
 
 def test_jpeg_bytes_are_stored_verbatim_and_lazy_frames_load(tmp_path):

@@ -11,6 +11,7 @@ import collections
 import os
 import stat
 import struct
+import threading
 import zipfile
 import zlib
 
@@ -112,16 +113,32 @@ def read_member(
 
 
 _ARCHIVES: collections.OrderedDict = collections.OrderedDict()
+_ARCHIVES_LOCK = threading.Lock()
 _MAX_OPEN_ARCHIVES = 8
 
 
+def _forget_archives_after_fork() -> None:
+  # A forked worker must not share the parent's file offsets, nor inherit a lock another parent
+  # thread held at the fork.
+  global _ARCHIVES_LOCK
+  _ARCHIVES.clear()
+  _ARCHIVES_LOCK = threading.Lock()
+
+
+os.register_at_fork(after_in_child=_forget_archives_after_fork)
+
+
 def _open_archive(path: str) -> zipfile.ZipFile:
-  """A per-process cache of open chunk files (keyed by pid: a forked worker must not share the
-  parent's file offset)."""
-  key = (os.getpid(), path)
-  if key not in _ARCHIVES:
-    _ARCHIVES[key] = open_zip(path)
-    while len(_ARCHIVES) > _MAX_OPEN_ARCHIVES:
-      _ARCHIVES.popitem(last=False)[1].close()
-  _ARCHIVES.move_to_end(key)
-  return _ARCHIVES[key]
+  """A per-process cache of open chunk files, safe under grain's reader threads.
+
+  An archive pushed out of the cache is dropped, not closed: a thread that fetched it earlier may
+  still be reading it, and the ZipFile closes itself once no thread holds it.
+  """
+  with _ARCHIVES_LOCK:
+    archive = _ARCHIVES.get(path)
+    if archive is None:
+      archive = _ARCHIVES[path] = open_zip(path)
+      while len(_ARCHIVES) > _MAX_OPEN_ARCHIVES:
+        _ARCHIVES.popitem(last=False)
+    _ARCHIVES.move_to_end(path)
+    return archive
