@@ -15,11 +15,20 @@ from tokengs_jax import model
 
 @dataclasses.dataclass(frozen=True)
 class SyntheticSettings:
-  """The offline RE10K-format set written when no `--data-dir` is given."""
+  """The offline RE10K-format set written when no `--data-dir` is given.
+
+  Attributes:
+    num_train / num_test: rooms of the training generator in `train/` and `test/`.
+    frames: frames per room walk.
+    num_ood: out-of-distribution scenes of another generator (`galleries/`, 64x64 on disk, read
+      at the model's size), scored next to the test rooms and never trained on; 0: none.
+    workers: generator processes.
+  """
 
   num_train: int = 48
   num_test: int = 8
   frames: int = 24
+  num_ood: int = 24
   workers: int = 2
 
 

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import pathlib
+import shutil
 import time
 from collections.abc import Callable
 
@@ -29,6 +31,25 @@ from tokengs_jax.data.sampler import EvaluationIndexReport, validate_evaluation_
 ViewChooser = Callable[[dict, int], tuple[np.ndarray, np.ndarray]]
 
 
+def _publish(root: pathlib.Path, parts: tuple[str, ...], write: Callable[[pathlib.Path], object]):
+  """Writes a generated set into a private sibling folder, then renames each part into `root`.
+
+  Every process of a multi-process run prepares its data before `jax.distributed` starts (the
+  generator forks), so several may write the same set at once: none ever reads a half-written
+  part, and a part another process published first is kept (this process's copy is dropped).
+  """
+  staging = root.parent / f".{root.name}.{os.getpid()}.partial"
+  shutil.rmtree(staging, ignore_errors=True)
+  write(staging)
+  root.mkdir(parents=True, exist_ok=True)
+  for part in parts:
+    try:
+      os.rename(staging / part, root / part)
+    except OSError:  # published by another process meanwhile
+      pass
+  shutil.rmtree(staging, ignore_errors=True)
+
+
 def ensure_synthetic(experiment: Experiment) -> pathlib.Path:
   """Writes the synthetic RE10K-format set unless it is already there; returns its root."""
   root = pathlib.Path(experiment.synthetic_dir)
@@ -43,17 +64,52 @@ def ensure_synthetic(experiment: Experiment) -> pathlib.Path:
     flush=True,
   )
   start = time.perf_counter()
-  generate_re10k_like(
+  _publish(
     root,
-    s.num_train,
-    s.num_test,
-    *experiment.image_size,
-    frames=s.frames,
-    seed=experiment.seed,
-    workers=s.workers,
+    ("train", "test"),
+    lambda staging: generate_re10k_like(
+      staging,
+      s.num_train,
+      s.num_test,
+      *experiment.image_size,
+      frames=s.frames,
+      seed=experiment.seed,
+      workers=s.workers,
+    ),
   )
   print(f"[data] written in {time.perf_counter() - start:.1f} s", flush=True)
   return root
+
+
+def ensure_galleries(experiment: Experiment) -> pathlib.Path | None:
+  """Writes the out-of-distribution gallery set of a synthetic run unless it is there; returns
+  its root (`<synthetic_dir>/galleries`: `test/` chunks + `eval_index.json`), None for real data
+  or `synthetic.num_ood = 0`. Another generator's scenes (`generate_galleries`: polygonal rooms,
+  other textures, objects, light and orbit cameras, 64x64 on disk), never trained on."""
+  s = experiment.synthetic
+  if experiment.data_dir or s.num_ood <= 0:
+    return None
+  root = pathlib.Path(experiment.synthetic_dir) / "galleries"
+  if (root / "eval_index.json").exists():
+    return root
+  from tokengs_jax.data.synthetic import generate_galleries  # only needed to write the set
+
+  print(f"[data] writing {s.num_ood} out-of-distribution gallery scenes to {root}", flush=True)
+  start = time.perf_counter()
+  # The index last: its presence is what marks the set complete.
+  _publish(
+    root,
+    ("test", "eval_index.json"),
+    lambda staging: generate_galleries(staging, s.num_ood, seed=experiment.seed, workers=s.workers),
+  )
+  print(f"[data] written in {time.perf_counter() - start:.1f} s", flush=True)
+  return root
+
+
+def gallery_set(experiment: Experiment) -> HeldOutSet | None:
+  """The gallery set as a held-out set (its own index's views; every scene), None without one."""
+  root = ensure_galleries(experiment)
+  return None if root is None else HeldOutSet(root / "test", str(root / "eval_index.json"), 0)
 
 
 def data_root(experiment: Experiment) -> pathlib.Path:
@@ -104,20 +160,42 @@ def training_batches(experiment: Experiment) -> InputPipeline:
   )
 
 
+@dataclasses.dataclass(frozen=True)
+class HeldOutSet:
+  """Where a held-out set's scenes are.
+
+  Attributes:
+    folder: the chunk folder (`*.torch` + `index.json`).
+    index_path: its evaluation index JSON (fixed views), or None: deterministic views.
+    num_scenes: scenes scored (the first ones); 0 = all.
+  """
+
+  folder: pathlib.Path
+  index_path: str | None
+  num_scenes: int
+
+
+def held_out_set(experiment: Experiment) -> HeldOutSet:
+  """The experiment's own test split (`<root>/test`, `--eval-index`, `eval.num_scenes`)."""
+  return HeldOutSet(
+    data_root(experiment) / "test", experiment.eval_index, experiment.eval.num_scenes
+  )
+
+
 def _test_source(
-  experiment: Experiment, index: dict | None
+  experiment: Experiment, held_out: HeldOutSet, index: dict | None
 ) -> tuple[ChunkedSceneSource, EvaluationIndexReport | None]:
-  """The test split (only the index's scenes when there is one) and, with an index, how it matches
-  the data (`validate_evaluation_index`: unknown keys listed, an error when none matches or a
-  frame is out of range), before any scene is decoded."""
-  root = data_root(experiment) / "test"
+  """The held-out folder (only the index's scenes when there is one) and, with an index, how it
+  matches the data (`validate_evaluation_index`: unknown keys listed, an error when none matches
+  or a frame is out of range), before any scene is decoded."""
+  root = held_out.folder
   if index is None:
     return ChunkedSceneSource(root, skip_bad=bool(experiment.data_dir)), None
   source = ChunkedSceneSource(root, keys=list(index), skip_bad=True)
   available = {entry.key: entry.num_frames for entry in source.entries}
   if not available:  # name the split's scenes in the error, whatever their state
     available = list(json.loads((root / "index.json").read_text()))
-  report = validate_evaluation_index(index, available, where=str(experiment.eval_index))
+  report = validate_evaluation_index(index, available, where=str(held_out.index_path))
   return source, report
 
 
@@ -126,7 +204,8 @@ def check_evaluation_data(experiment: Experiment) -> dict | None:
   it matches the data (for metrics.json), None without an index."""
   if not experiment.eval_index:
     return None
-  return _test_source(experiment, _load_index(experiment))[1].as_dict()
+  held_out = held_out_set(experiment)
+  return _test_source(experiment, held_out, _load_index(experiment, held_out))[1].as_dict()
 
 
 def novel_targets(context: np.ndarray, num_targets: int) -> np.ndarray:
@@ -145,14 +224,14 @@ def novel_targets(context: np.ndarray, num_targets: int) -> np.ndarray:
   return free[np.linspace(0, len(free) - 1, num_targets).round().astype(np.int64)]
 
 
-def _load_index(experiment: Experiment) -> dict | None:
-  if not experiment.eval_index:
+def _load_index(experiment: Experiment, held_out: HeldOutSet) -> dict | None:
+  if not held_out.index_path:
     return None
-  return load_evaluation_index(experiment.eval_index, num_context=experiment.num_context_views)
+  return load_evaluation_index(held_out.index_path, num_context=experiment.num_context_views)
 
 
 def evaluation_scenes(
-  experiment: Experiment, views: ViewChooser | None = None
+  experiment: Experiment, views: ViewChooser | None = None, held_out: HeldOutSet | None = None
 ) -> list[tuple[str, dict]]:
   """(scene key, batch of one) for the held-out scenes, with fixed views.
 
@@ -161,12 +240,12 @@ def evaluation_scenes(
 
   views: optional chooser (studies use it for, e.g., extrapolated targets); default: the
     evaluation index, else the deterministic sampler's inputs and `novel_targets`.
+  held_out: the scenes to read (default: the experiment's test split, `held_out_set`).
   """
-  index = _load_index(experiment)
-  source, _ = _test_source(experiment, index)
-  count = (
-    len(source) if experiment.eval.num_scenes <= 0 else min(experiment.eval.num_scenes, len(source))
-  )
+  held_out = held_out_set(experiment) if held_out is None else held_out
+  index = _load_index(experiment, held_out)
+  source, _ = _test_source(experiment, held_out, index)
+  count = len(source) if held_out.num_scenes <= 0 else min(held_out.num_scenes, len(source))
   config = example_config(experiment, training=False)
   scenes = []
   for position in range(count):

@@ -171,6 +171,10 @@ class KubricTask(Task):
     )
     return pipeline
 
+  def test_sets(self, experiment: KubricExperiment) -> dict[str, list[evaluation.Scene]]:
+    """Its test split only: the out-of-distribution galleries are static rooms."""
+    return {"test": self.evaluation_examples(experiment)}
+
   def evaluation_examples(self, experiment: KubricExperiment) -> list[tuple[str, dict]]:
     _, test = self.sources(experiment)
     config = kubric_example_config(experiment, training=False)

@@ -16,7 +16,9 @@ Presets:
   every Gaussian in one clump, which a few CPU minutes cannot spread over a room) for 1500 steps
   (batch 4, 2 context + 2 target views, lr 3e-3 cosine, 100 warm-up) and scores the baselines
   (mean colour, input-view average, nearest input view) / untrained / trained / trained + 50-step
-  token tuning (lr 1e-4, the paper's) on the 8 test rooms (3 targets each).
+  token tuning (lr 1e-4, the paper's) on the 8 test rooms (3 targets each, never an input frame)
+  and on 24 out-of-distribution scenes of another generator (`galleries/`: polygonal rooms, other
+  textures, objects, light and orbit cameras; 64x64 read at 32x32; never trained on).
 - `smoke`: the same pipeline at 32x32 with a one-block model, for tests (seconds, not minutes).
 - `paper`: the paper's RE10K base training (256x256, 6/24 layers, 1024 tokens, global batch 64,
   150k steps, cosine lr 4e-4 with 2k warm-up, DepthSplat sampler, translation scale 0.25).
@@ -66,7 +68,7 @@ PRESETS = {
       num_gs_tokens=4,
       dec_patch_size=4,
     ),
-    synthetic=SyntheticSettings(num_train=4, num_test=2, frames=10, workers=1),
+    synthetic=SyntheticSettings(num_train=4, num_test=2, frames=10, num_ood=2, workers=1),
     train=TrainSettings(
       steps=3,
       batch_size=2,

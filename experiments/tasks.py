@@ -34,6 +34,7 @@ class Task:
     """Writes the synthetic data if needed: called before any JAX work, because the generator's
     worker processes are forked and forking after JAX has started threads is unsafe."""
     data.data_root(experiment)
+    data.ensure_galleries(experiment)
 
   def check_evaluation(self, experiment: Experiment) -> dict | None:
     """Raises before any work if the held-out data cannot be evaluated (index vs data); returns
@@ -50,8 +51,13 @@ class Task:
 
   def test_sets(self, experiment: Experiment) -> dict[str, list[evaluation.Scene]]:
     """Named held-out sets, all scored with the same methods; the first is the primary one
-    (top of metrics.json, grids/, PLY and fly-through). Add a set here to score it too."""
-    return {"test": self.evaluation_examples(experiment)}
+    (top of metrics.json, grids/, PLY and fly-through). Synthetic runs add the
+    out-of-distribution galleries (`data.gallery_set`)."""
+    sets = {"test": self.evaluation_examples(experiment)}
+    galleries = data.gallery_set(experiment)
+    if galleries is not None:
+      sets["ood_galleries"] = data.evaluation_scenes(experiment, held_out=galleries)
+    return sets
 
   def loss_config(self, experiment: Experiment):
     """The training (and token-tuning) loss weights: the library's defaults (official base)."""

@@ -238,6 +238,11 @@ def test_entry_point_end_to_end(tmp_path):
     assert (out / name).stat().st_size > 0, name
   assert list((out / "grids").glob("*.png"))
   assert "trained beats nearest_view" in payload["checks"]
+  assert payload["test_sets"] == ["test", "ood_galleries"]  # the other generator's scenes too
+  galleries = payload["other_test_sets"]["ood_galleries"]["metrics"]
+  assert set(galleries) == set(payload["metrics"])
+  assert all(len(method["per_scene"]) == 2 for method in galleries.values())
+  assert list((out / "grids" / "ood_galleries").glob("*.png"))
   assert (
     payload["training_data_rejections"] == "source: nothing rejected\npipeline: nothing rejected"
   )
@@ -441,3 +446,20 @@ def test_default_evaluation_scores_no_input_view_as_a_target(tmp_path):
     assert len(target) == smoke.eval.num_target_views
     assert not set(target.tolist()) & set(context.tolist())
     assert context.min() < target.min() and target.max() < context.max()
+
+
+def test_generated_sets_are_published_whole_and_the_first_copy_kept(tmp_path):
+  """Processes racing to write the same synthetic set never leave a partial or mixed one."""
+  root = tmp_path / "set"
+
+  def writer(content):
+    def write(staging):
+      (staging / "test").mkdir(parents=True)
+      (staging / "test" / "index.json").write_text(content)
+
+    return write
+
+  data._publish(root, ("test",), writer("first"))
+  data._publish(root, ("test",), writer("second"))
+  assert (root / "test" / "index.json").read_text() == "first"
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["set"]  # no staging folder left
