@@ -1,7 +1,7 @@
 """Generalisation lever sweep: train a small TokenGS under one setting, score it on held-out rooms
 of the training generator and on the gallery family it never saw, next to the copy baselines.
 
-    python benchmarks/generalisation.py --name base                  # one run -> <root>/base.json
+    python benchmarks/generalisation.py --name base    # one run -> <root>/base.json (+ .msgpack)
     python benchmarks/generalisation.py --name img64 --image-size 64 64 --steps 400
     python benchmarks/generalisation.py --table                      # every run -> <root>/levers.md
 
