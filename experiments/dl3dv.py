@@ -12,7 +12,7 @@ Presets:
 - `paper-{2,4,6}view`: the official DL3DV presets (`dl3dv_<N>view`: 3 / 12 layers, 4096 tokens,
   256x448), DL3DV sampler (gap 10-40, 4 targets) and translation scale 0.15; finetuning recipe of
   the paper (10k steps, lr 4e-5, 400 warm-up). Eval JSONs: pass the benchmark's index with
-  `--eval-index` (the key -> {context, target} format; see BUILD_NOTES.md for the list format).
+  `--eval-index` (the key -> {context, target} format; see docs/experiments.md for the list format).
 """
 
 from __future__ import annotations

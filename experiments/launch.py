@@ -1,6 +1,6 @@
 """Runs one command as N local processes of a multi-process JAX job (one machine, e.g. CPU tests).
 
-    python -m experiments.launch --processes 2 -- python -m experiments.re10k run --preset smoke
+    python -m experiments.launch --processes 2 -- python -m experiments.re10k run smoke
     python -m experiments.launch --processes 2 --devices-per-process 2 -- python my_script.py
 
 Each process gets `TOKENGS_COORDINATOR=127.0.0.1:<free port>`, `TOKENGS_NUM_PROCESSES=N` and

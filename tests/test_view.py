@@ -206,7 +206,7 @@ def _screenshot(url, path) -> np.ndarray:
 
 @pytest.mark.skipif(
   browser.find_chromium() is None,
-  reason="needs Chromium: apt-get install -y chromium (docs/notes/viewer.md)",
+  reason="needs Chromium: apt-get install -y chromium (docs/viewer.md)",
 )
 def test_viewer_draws_the_splats_in_headless_chromium(viewer, tmp_path):
   """The page needs nothing from the web; with the browser at the target camera, the splats are

@@ -8,7 +8,7 @@ The "pointmap" scale (official Kubric preset) also reads the context views' dept
 record's optional `depths` (a length-F sequence of float32 z-depth `[H, W]` arrays, TIFF bytes or
 `LazyTensor`s, at the stored resolution).
 
-Batches are dicts of numpy arrays (BUILD_NOTES.md): `context_images [B, Vc, H, W, 3]`,
+Batches are dicts of numpy arrays (docs/design.md): `context_images [B, Vc, H, W, 3]`,
 `context_c2w [B, Vc, 4, 4]`, `context_intrinsics [B, Vc, 4]`, the same for `target_*`,
 `scene_index [B]`, and for records with `times`: `context_times [B, Vc]`, `target_times [B, Vt]`.
 """
@@ -55,7 +55,7 @@ __all__ = [
 ]
 
 # Paper, training details: camera translations scaled so that mean depths are roughly 1. The
-# synthetic RE10K-like rooms have a median depth of ~3.8 m (measured, BUILD_NOTES.md), so RE10K's
+# synthetic RE10K-like rooms have a median depth of ~3.8 m (measured, docs/benchmarks.md), so RE10K's
 # 0.25 also brings them to ~1. (Kubric scales by its depth maps instead: "pointmap".)
 TRANSLATION_SCALES = {"re10k": 0.25, "dl3dv": 0.15, "synthetic": 0.25}
 

@@ -67,7 +67,7 @@ class BoundedSamplerConfig:
   initial_max_context_gap: int = 192
 
 
-# Published numbers (see BUILD_NOTES.md for the exact source of each).
+# Published numbers (see docs/design.md, "Sampler", for the exact source of each).
 SAMPLER_PRESETS = {
   # pixelSplat config/dataset/view_sampler_dataset_specific_config/bounded_re10k.yaml
   "pixelsplat_re10k": BoundedSamplerConfig(2, 4, 45, 192, 0, 150_000, 25, 45),
@@ -81,7 +81,7 @@ SAMPLER_PRESETS = {
   "tokengs_dl3dv": BoundedSamplerConfig(4, 4, 10, 40, 0, 0, 10, 40),
   # ours, for the 32-frame synthetic RE10K-like walks (tokengs_jax.data.synthetic, 3-8 cm per
   # frame, median depth ~3.8 m): gaps 8-24 give context baselines of ~0.11-0.34 x the median
-  # depth (measured, BUILD_NOTES.md); the warm-up starts at 4-12. Fits 32 frames (max gap 31).
+  # depth (measured, docs/benchmarks.md); the warm-up starts at 4-12. Fits 32 frames (max gap 31).
   "synthetic": BoundedSamplerConfig(2, 4, 8, 24, 0, 5_000, 4, 12),
 }
 

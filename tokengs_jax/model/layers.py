@@ -64,7 +64,7 @@ def merge_heads(x: jax.Array) -> jax.Array:
 # the whole [B, H, Nq, Nk] logits costs more than the matmuls: glibc serves buffers above 32 MB
 # with fresh mmap pages, so every call page-faults them in (about 30 ms per 50 MB here), and the
 # reverse-mode softmax allocates several of them. Tiles this size stay in cache and in the heap
-# (BUILD_NOTES.md has the measurements).
+# (docs/benchmarks.md has the measurements).
 ATTENTION_TILE = 1 << 20
 
 

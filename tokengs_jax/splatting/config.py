@@ -35,7 +35,7 @@ class RenderConfig:
       `min_intersections`); a scene needing more has its farthest Gaussians' tiles cut, which sets
       `stats.truncated`, and `stats.overflow` where that can change a pixel (see RenderStats).
       Binning only pays for what a scene uses: the buffer is sorted at the smallest of B/4, B/2, B
-      that holds the scene's pairs (docs/notes/renderer.md has the measurements).
+      that holds the scene's pairs (docs/benchmarks.md has the measurements).
     min_intersections: floor of the default budget (small scenes, few Gaussians, large tiles).
     max_intersections: explicit budget; overrides the two above when set (`render_exact` sets it).
   """

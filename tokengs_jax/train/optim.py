@@ -125,7 +125,7 @@ def weight_decay_mask(params, no_decay_names: tuple[str, ...] = ("gs_tokens", "l
   LayerScale gammas); the paper's wording is "except for the bias terms and the Layer
   Normalization layers". Token tables are rank 2 but are embeddings, not weights, so they are
   exempt too (by name: a path component starting with one of `no_decay_names`; the official code
-  decays its 2-D `gs_tokens`, see BUILD_NOTES.md).
+  decays its 2-D `gs_tokens`, see docs/deviations.md).
 
   Args:
     params: parameter pytree.
