@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import functools
 import json
 import time
@@ -46,6 +47,7 @@ from tokengs_jax.camera import plucker_rays
 from tokengs_jax.model import decoder as model_decoder
 from tokengs_jax.model import layers as model_layers
 from tokengs_jax.model import (
+  ModelConfig,
   count_params,
   decode,
   encode,
@@ -180,6 +182,146 @@ def torch_program(params, config, normalised, plucker, network):
   return lambda *a: jnp.asarray(reference.forward(*a).numpy()), inputs, deviation
 
 
+@dataclasses.dataclass(frozen=True)
+class Case:
+  """One PRESET:BATCH[:HxW[:TOKENS]] case: its model, initial weights and random scene inputs."""
+
+  name: str
+  config: ModelConfig
+  params: dict
+  images: jax.Array  # [B, V, H, W, 3] in [0, 1]
+  c2w: jax.Array
+  intrinsics: jax.Array
+
+  @classmethod
+  def parse(cls, case: str, views: int | None, dtype: str) -> Case:
+    name, batch, *rest = case.split(":")
+    config = case_config(name, dtype)
+    size = tuple(int(n) for n in rest[0].split("x")) if rest else None
+    if len(rest) > 1:
+      config = config.replace(num_gs_tokens=int(rest[1]))
+    height, width = size or config.image_size
+    images, c2w, intrinsics = scene_inputs(
+      int(batch), views or config.num_input_views, height, width
+    )
+    return cls(name, config, init_params(jax.random.key(0), config), images, c2w, intrinsics)
+
+  def describe(self, dtype: str) -> dict:
+    """The case's sizes, as the first entries of its result row."""
+    batch, views, height, width, _ = self.images.shape
+    return {
+      "preset": self.name,
+      "batch": batch,
+      "views": views,
+      "height": height,
+      "width": width,
+      "dtype": dtype,
+      "params_m": count_params(self.config) / 1e6,
+      "gaussians": self.config.num_gaussians,
+      "image_tokens": views * height * width // self.config.patch_size**2,
+    }
+
+  def loss(self, params):
+    """A loss on the flat Gaussians, so that the train step differentiates the whole network."""
+    flat = reconstruct(params, self.images, self.c2w, self.intrinsics, config=self.config)
+    return jnp.mean(jnp.square(flat.to_flat() - 0.5))
+
+  def stage_args(self) -> dict:
+    """Stage -> the arguments of its function (decode's cached keys/values are zeros)."""
+    _, _, height, width, _ = self.images.shape
+    plucker = plucker_rays(self.c2w, self.intrinsics, height, width)
+    normalised = normalize_images(self.images)
+    encoded = jax.eval_shape(
+      functools.partial(encode, config=self.config), self.params, normalised, plucker
+    )
+    encoded = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), encoded)
+    return {
+      "encode": (self.params, normalised, plucker),
+      "decode": (self.params, encoded),
+      "reconstruct": (self.params, self.images, self.c2w, self.intrinsics),
+      "train_step": (self.params,),
+      "network": (self.params, normalised, plucker),
+    }
+
+  def stage_functions(self, with_torch: bool) -> dict:
+    """Fresh jitted functions (jit caches traces per function object, so one set per variant)."""
+    config = self.config
+    stages = {
+      "encode": jax.jit(functools.partial(encode, config=config)),
+      "decode": jax.jit(functools.partial(decode, config=config)),
+      "reconstruct": jax.jit(functools.partial(reconstruct, config=config)),
+      "train_step": jax.jit(jax.value_and_grad(lambda p: self.loss(p))),
+    }
+    if with_torch:  # the network alone, as the PyTorch reference computes it
+      stages["network"] = jax.jit(functools.partial(predict_gaussians, config=config))
+    return stages
+
+
+def model_flops(case: Case, stage_args: dict, with_torch: bool) -> dict:
+  """Stage -> FLOPs of its forward program; the train step is credited with 3x reconstruct's."""
+  # From the untiled program: XLA's cost analysis counts a loop body once, so the tiled
+  # attention's scans would be under-counted.
+  with attention_variant("plain"):
+    flops = {
+      stage: flop_count(fn.lower(*stage_args[stage]))
+      for stage, fn in case.stage_functions(with_torch).items()
+      if stage != "train_step"
+    }
+  flops["train_step"] = 3 * flops["reconstruct"]
+  return flops
+
+
+def compile_stages(
+  case: Case,
+  stage_args: dict,
+  flops: dict,
+  variants: tuple[str, ...],
+  max_temp_gb: float,
+  with_torch: bool,
+) -> tuple[dict, list]:
+  """Compiles and warms up every stage under each attention variant.
+
+  Returns variant -> stage -> {gflop, temp_gb[, skipped]}, and the programs to time as
+  (variant, stage, compiled, args); a program over `max_temp_gb` of temporaries is not run.
+  """
+  results, programs = {}, []
+  for variant in variants:
+    results[variant] = {}
+    with attention_variant(variant):
+      for stage, fn in case.stage_functions(with_torch).items():
+        args = stage_args[stage]
+        compiled = compile_fn(fn, *args)
+        temp_gb = compiled.memory_analysis().temp_size_in_bytes / 1e9
+        results[variant][stage] = {"gflop": flops[stage] / 1e9, "temp_gb": temp_gb}
+        if temp_gb > max_temp_gb:
+          results[variant][stage]["skipped"] = f"needs {temp_gb:.1f} GB of temporaries"
+        else:
+          jax.block_until_ready(compiled(*args))  # warm-up
+          programs.append((variant, stage, compiled, args))
+  return results, programs
+
+
+def best_times(programs: list, peak_size: int, repeats: int) -> dict:
+  """Minimum [wall, CPU] seconds of each program and of the peak matmul ("peak").
+
+  Every round times the matmul and then each program, so that on a shared machine the peak and
+  the stages see the same load; train steps take part in the first max(1, repeats // 2) rounds.
+  """
+  matmul, matmul_args = matmul_program(peak_size)
+  never = np.full(2, np.inf)
+  best = {"peak": never}
+  for round_index in range(repeats):
+    # the matmul is cheap: sample it several times per round so that its minimum is as
+    # representative of an unloaded moment as the stages' minima
+    for _ in range(5):
+      best["peak"] = np.minimum(best["peak"], timed(matmul, *matmul_args))
+    for variant, stage, compiled, args in programs:
+      if stage != "train_step" or round_index < max(1, repeats // 2):
+        key = (variant, stage)
+        best[key] = np.minimum(best.get(key, never), timed(compiled, *args))
+  return best
+
+
 def run_case(
   case: str,
   views: int | None,
@@ -190,106 +332,61 @@ def run_case(
   variants: tuple[str, ...],
   with_torch: bool = False,
 ) -> dict:
-  name, batch, *rest = case.split(":")
-  batch = int(batch)
-  config = case_config(name, dtype)
-  size = tuple(int(n) for n in rest[0].split("x")) if rest else None
-  if len(rest) > 1:
-    config = config.replace(num_gs_tokens=int(rest[1]))
-  views = views or config.num_input_views
-  height, width = size or config.image_size
-  params = init_params(jax.random.key(0), config)
-  images, c2w, intrinsics = scene_inputs(batch, views, height, width)
-  plucker = plucker_rays(c2w, intrinsics, height, width)
-  normalised = normalize_images(images)
-
-  def loss(p):
-    flat = reconstruct(p, images, c2w, intrinsics, config=config).to_flat()
-    return jnp.mean(jnp.square(flat - 0.5))
-
-  row = {
-    "preset": name,
-    "batch": batch,
-    "views": views,
-    "height": height,
-    "width": width,
-    "dtype": dtype,
-    "params_m": count_params(config) / 1e6,
-    "gaussians": config.num_gaussians,
-    "image_tokens": views * height * width // config.patch_size**2,
-  }
-  encoded = jax.eval_shape(functools.partial(encode, config=config), params, normalised, plucker)
-  encoded = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), encoded)  # decode's input
-  stage_args = {
-    "encode": (params, normalised, plucker),
-    "decode": (params, encoded),
-    "reconstruct": (params, images, c2w, intrinsics),
-    "train_step": (params,),
-    "network": (params, normalised, plucker),
-  }
-
-  def stage_functions():
-    """Fresh jitted functions (jit caches traces per function object, so one set per variant)."""
-    stages = {
-      "encode": jax.jit(functools.partial(encode, config=config)),
-      "decode": jax.jit(functools.partial(decode, config=config)),
-      "reconstruct": jax.jit(functools.partial(reconstruct, config=config)),
-      "train_step": jax.jit(jax.value_and_grad(lambda p: loss(p))),
-    }
-    if with_torch:  # the network alone, as the PyTorch reference computes it
-      stages["network"] = jax.jit(functools.partial(predict_gaussians, config=config))
-    return stages
-
-  # Model FLOPs from the untiled program: XLA's cost analysis counts a loop body once, so the
-  # tiled attention's scans would be under-counted.
-  with attention_variant("plain"):
-    flops = {
-      stage: flop_count(fn.lower(*stage_args[stage]))
-      for stage, fn in stage_functions().items()
-      if stage != "train_step"
-    }
-  flops["train_step"] = 3 * flops["reconstruct"]  # credited with 3x the forward
-  programs = []  # (variant, stage, compiled, args)
-  for variant in variants:
-    row[variant] = {}
-    with attention_variant(variant):
-      for stage, fn in stage_functions().items():
-        args = stage_args[stage]
-        compiled = compile_fn(fn, *args)
-        temp_gb = compiled.memory_analysis().temp_size_in_bytes / 1e9
-        row[variant][stage] = {"gflop": flops[stage] / 1e9, "temp_gb": temp_gb}
-        if temp_gb > max_temp_gb:
-          row[variant][stage]["skipped"] = f"needs {temp_gb:.1f} GB of temporaries"
-        else:
-          jax.block_until_ready(compiled(*args))  # warm-up
-          programs.append((variant, stage, compiled, args))
+  setup = Case.parse(case, views, dtype)
+  stage_args = setup.stage_args()
+  flops = model_flops(setup, stage_args, with_torch)
+  results, programs = compile_stages(setup, stage_args, flops, variants, max_temp_gb, with_torch)
+  row = {**setup.describe(dtype), **results}
   if with_torch:
     network = next(c for v, stage, c, _ in programs if stage == "network")
-    fn, args, deviation = torch_program(params, config, normalised, plucker, network)
+    _, normalised, plucker = stage_args["network"]
+    fn, args, deviation = torch_program(setup.params, setup.config, normalised, plucker, network)
     fn(*args)  # warm-up
     programs.append(("torch", "network", fn, args))
     row["torch"] = {
       "network": {"gflop": flops["network"] / 1e9, "temp_gb": 0.0, "max_abs_deviation": deviation}
     }
-
-  matmul, matmul_args = matmul_program(peak_size)
-  never = np.full(2, np.inf)
-  best = {"peak": never}  # each entry: [wall, CPU] minima
-  for round_index in range(repeats):
-    # the matmul is cheap: sample it several times per round so that its minimum is as
-    # representative of an unloaded moment as the stages' minima
-    for _ in range(5):
-      best["peak"] = np.minimum(best["peak"], timed(matmul, *matmul_args))
-    for variant, stage, compiled, args in programs:
-      if stage != "train_step" or round_index < max(1, repeats // 2):
-        key = (variant, stage)
-        best[key] = np.minimum(best.get(key, never), timed(compiled, *args))
+  best = best_times(programs, peak_size, repeats)
   row["matmul_peak_gflops"] = peak = 2 * peak_size**3 / best["peak"][0] / 1e9
   row["matmul_peak_cpu_ms"] = best["peak"][1] * 1e3
   for variant, stage, _, _ in programs:
     wall, cpu = best[(variant, stage)]
     row[variant][stage].update(throughput(wall, flops[stage], peak), cpu_ms=cpu * 1e3)
   return row
+
+
+def print_case(row: dict, variants: tuple[str, ...], peak_size: int, with_torch: bool) -> None:
+  """The case's sizes and matmul peak, a line per (attention variant, stage), the PyTorch ratio."""
+  print(
+    f"\n{row['preset']}  B={row['batch']} V={row['views']} {row['height']}x{row['width']} "
+    f"{row['dtype']}  {row['params_m']:.1f} M params, {row['image_tokens']} image tokens "
+    f"-> {row['gaussians']} Gaussians;  matmul peak ({peak_size}^3 f32, same rounds): "
+    f"{row['matmul_peak_gflops']:.1f} GFLOP/s"
+  )
+  print(
+    f"  {'attention':<10}{'stage':<12}{'ms':>10}{'GFLOP':>10}{'GFLOP/s':>10}{'of peak':>9}"
+    f"{'temp GB':>9}{'CPU ms':>9}  (matmul peak CPU ms {row['matmul_peak_cpu_ms']:.1f})"
+  )
+  for variant in (*variants, "torch") if with_torch else variants:
+    for stage in ("network", "encode", "decode", "reconstruct", "train_step"):
+      if stage not in row[variant]:
+        continue
+      s = row[variant][stage]
+      if "skipped" in s:
+        print(f"  {variant:<10}{stage:<12}{'-':>10}{s['gflop']:>10.2f}  skipped: {s['skipped']}")
+        continue
+      print(
+        f"  {variant:<10}{stage:<12}{s['ms']:>10.1f}{s['gflop']:>10.2f}"
+        f"{s['gflops_per_s']:>10.1f}{s['fraction_of_peak']:>9.0%}{s['temp_gb']:>9.2f}"
+        f"{s['cpu_ms']:>9.1f}"
+      )
+  if with_torch:
+    torch_row, ours = row["torch"]["network"], row[variants[0]]["network"]
+    print(
+      f"  network: PyTorch reference / ours = {torch_row['ms'] / ours['ms']:.2f}x wall, "
+      f"{torch_row['cpu_ms'] / ours['cpu_ms']:.2f}x CPU time "
+      f"(max |difference| of the Gaussians {torch_row['max_abs_deviation']:.1e})"
+    )
 
 
 def main():
@@ -329,36 +426,7 @@ def main():
       args.torch,
     )
     results["cases"].append(row)
-    print(
-      f"\n{row['preset']}  B={row['batch']} V={row['views']} {row['height']}x{row['width']} "
-      f"{row['dtype']}  {row['params_m']:.1f} M params, {row['image_tokens']} image tokens "
-      f"-> {row['gaussians']} Gaussians;  matmul peak ({args.peak_size}^3 f32, same rounds): "
-      f"{row['matmul_peak_gflops']:.1f} GFLOP/s"
-    )
-    print(
-      f"  {'attention':<10}{'stage':<12}{'ms':>10}{'GFLOP':>10}{'GFLOP/s':>10}{'of peak':>9}"
-      f"{'temp GB':>9}{'CPU ms':>9}  (matmul peak CPU ms {row['matmul_peak_cpu_ms']:.1f})"
-    )
-    for variant in (*variants, "torch") if args.torch else variants:
-      for stage in ("network", "encode", "decode", "reconstruct", "train_step"):
-        if stage not in row[variant]:
-          continue
-        s = row[variant][stage]
-        if "skipped" in s:
-          print(f"  {variant:<10}{stage:<12}{'-':>10}{s['gflop']:>10.2f}  skipped: {s['skipped']}")
-          continue
-        print(
-          f"  {variant:<10}{stage:<12}{s['ms']:>10.1f}{s['gflop']:>10.2f}"
-          f"{s['gflops_per_s']:>10.1f}{s['fraction_of_peak']:>9.0%}{s['temp_gb']:>9.2f}"
-          f"{s['cpu_ms']:>9.1f}"
-        )
-    if args.torch:
-      torch_row, ours = row["torch"]["network"], row[variants[0]]["network"]
-      print(
-        f"  network: PyTorch reference / ours = {torch_row['ms'] / ours['ms']:.2f}x wall, "
-        f"{torch_row['cpu_ms'] / ours['cpu_ms']:.2f}x CPU time "
-        f"(max |difference| of the Gaussians {torch_row['max_abs_deviation']:.1e})"
-      )
+    print_case(row, variants, args.peak_size, args.torch)
   if args.out:
     with open(args.out, "w") as f:
       json.dump(results, f, indent=1)

@@ -161,7 +161,7 @@ def stage_times(gaussians, height, width, config, repeats):
     print(f"{name:>14}: {wall:.3f} s wall, {cpu:.3f} s cpu", flush=True)
 
 
-def main():
+def parse_args() -> argparse.Namespace:
   parser = argparse.ArgumentParser(
     description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
   )
@@ -184,7 +184,65 @@ def main():
   )
   parser.add_argument("--stages", action="store_true", help="time each stage of the first point")
   parser.add_argument("--out", default="benchmarks/render.json")
-  args = parser.parse_args()
+  return parser.parse_args()
+
+
+def knob_variants(sweep: bool) -> list[tuple[str, RenderConfig]]:
+  """(name, config) of the default render and, with `sweep`, of each speed-knob setting."""
+  default = RenderConfig()
+  variants = [("default", default)]
+  if sweep:
+    variants += [(f"chunk={c}", RenderConfig(chunk_size=c)) for c in (16, 64)]
+    variants += [(f"tiles/step={t}", RenderConfig(tiles_per_step=t)) for t in (32, 128)]
+    variants += [
+      (f"isect/gauss={b}", RenderConfig(intersections_per_gaussian=b)) for b in (32, 8, 4, 2)
+    ]
+    # 8-pixel tiles: fewer wasted pixel evaluations, ~3x the pairs (budget scaled to match)
+    variants += [
+      ("tile8 s64", RenderConfig(tile_size=8, tiles_per_step=64, intersections_per_gaussian=64))
+    ]
+    variants += [("bf16 inputs", default)]  # the default config on bfloat16 Gaussians
+  return variants
+
+
+def knob_results(gaussians, height, width, variants, repeats):
+  """Yields (knob name, `measure` row, max |rgb| error against the exact render) per variant."""
+  # the default render's intersection count sizes a budget that holds them all
+  probe, _ = measure(gaussians, height, width, RenderConfig(), 0)
+  _, exact_rgb = measure(gaussians, height, width, exact_config(probe["intersections"]), 0)
+  for name, config in variants:
+    scene = gaussians
+    if name == "bf16 inputs":
+      scene = jax.tree.map(lambda x: x.astype(jnp.bfloat16), gaussians)
+    row, rgb = measure(scene, height, width, config, repeats)
+    yield name, row, float(jnp.max(jnp.abs(rgb - exact_rgb)))
+
+
+_TABLE_HEADER = (
+  f"{'N':>7} {'image':>8} {'scales':>12} {'knobs':>14} {'fwd s':>6} {'cpu':>6} {'f+b s':>6} "
+  f"{'cpu':>6} {'rss GiB':>7} {'isects':>8} {'budget':>8} {'trunc':>5} {'ovfl':>5} "
+  f"{'chunks':>6} {'max err':>8}"
+)
+
+
+def print_row(row: dict) -> None:
+  """One line of the table under _TABLE_HEADER (nan where a figure was not measured)."""
+  timing = "".join(
+    f"{row.get(k, float('nan')):>7.3f}"
+    for k in ("forward_s", "forward_cpu_s", "forward_backward_s", "forward_backward_cpu_s")
+  )
+  scales = f"{row['scales'][0]:g}-{row['scales'][1]:g}"
+  rss = row.get("peak_rss_gib", float("nan"))
+  print(
+    f"{row['num']:>7} {row['image']:>8} {scales:>12} {row['knobs']:>14}{timing} {rss:>7.2f} "
+    f"{row['intersections']:>8} {row['budget']:>8} {row['truncated']!s:>5} "
+    f"{row['overflow']!s:>5} {row['tile_chunks']:>6} {row['max_error']:>8.1e}",
+    flush=True,
+  )
+
+
+def main():
+  args = parse_args()
   if args.stages:
     height, width = map(int, args.images[0].split("x"))
     scene = make_scene(args.sizes[0], tuple(args.scale_range or (0.005, 0.04)))
@@ -194,13 +252,11 @@ def main():
   scale_ranges = [tuple(args.scale_range or default_scales)]
   if args.budget_check:
     scale_ranges = [default_scales, (0.01, 0.075), (0.0276, 0.0276), (0.075, 0.075)]
+  variants = knob_variants(args.sweep)
+  repeats = 0 if args.budget_check else args.repeats
 
   rows = []
-  print(
-    f"{'N':>7} {'image':>8} {'scales':>12} {'knobs':>14} {'fwd s':>6} {'cpu':>6} {'f+b s':>6} "
-    f"{'cpu':>6} {'rss GiB':>7} {'isects':>8} {'budget':>8} {'trunc':>5} {'ovfl':>5} "
-    f"{'chunks':>6} {'max err':>8}"
-  )
+  print(_TABLE_HEADER)
   for image in args.images:
     height, width = map(int, image.split("x"))
     for num in args.sizes:
@@ -209,51 +265,17 @@ def main():
           gaussians = make_scene(num, scale_range)
         else:
           gaussians = make_tokengs_scene(num, scale_range, height, width)
-        default = RenderConfig()
-        variants = [("default", default)]
-        if args.sweep:
-          variants += [(f"chunk={c}", RenderConfig(chunk_size=c)) for c in (16, 64)]
-          variants += [(f"tiles/step={t}", RenderConfig(tiles_per_step=t)) for t in (32, 128)]
-          variants += [
-            (f"isect/gauss={b}", RenderConfig(intersections_per_gaussian=b)) for b in (32, 8, 4, 2)
-          ]
-          # 8-pixel tiles: fewer wasted pixel evaluations, ~3x the pairs (budget scaled to match)
-          variants += [
-            (
-              "tile8 s64",
-              RenderConfig(tile_size=8, tiles_per_step=64, intersections_per_gaussian=64),
-            )
-          ]
-          variants += [("bf16 inputs", default)]
-        repeats = 0 if args.budget_check else args.repeats
-        probe, _ = measure(gaussians, height, width, default, 0)
-        _, exact_rgb = measure(gaussians, height, width, exact_config(probe["intersections"]), 0)
-        for name, config in variants:
-          scene = gaussians
-          if name == "bf16 inputs":
-            scene = jax.tree.map(lambda x: x.astype(jnp.bfloat16), gaussians)
-          row, rgb = measure(scene, height, width, config, repeats)
+        for name, row, error in knob_results(gaussians, height, width, variants, repeats):
           row.update(
             num=num,
             image=image,
             scales=list(scale_range),
             knobs=name,
             scene=args.scene,
-            max_error=float(jnp.max(jnp.abs(rgb - exact_rgb))),
+            max_error=error,
           )
           rows.append(row)
-          timing = "".join(
-            f"{row.get(k, float('nan')):>7.3f}"
-            for k in ("forward_s", "forward_cpu_s", "forward_backward_s", "forward_backward_cpu_s")
-          )
-          scales = f"{scale_range[0]:g}-{scale_range[1]:g}"
-          rss = row.get("peak_rss_gib", float("nan"))
-          print(
-            f"{num:>7} {image:>8} {scales:>12} {name:>14}{timing} {rss:>7.2f} "
-            f"{row['intersections']:>8} {row['budget']:>8} {row['truncated']!s:>5} "
-            f"{row['overflow']!s:>5} {row['tile_chunks']:>6} {row['max_error']:>8.1e}",
-            flush=True,
-          )
+          print_row(row)
   with open(args.out, "w") as f:
     json.dump(dict(device=str(jax.devices()[0]), scene=args.scene, rows=rows), f, indent=1)
 

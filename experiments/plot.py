@@ -6,6 +6,7 @@ matplotlib is not a dependency of the project; the studies only need labelled li
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import pathlib
@@ -68,6 +69,90 @@ def _draw_series(draw, points: list[tuple[float, float]], color, *, dashed: bool
     draw.ellipse([u - 3, v - 3, u + 3, v + 3], fill=color)
 
 
+# Pixels between the canvas edge and the plot area: room for the tick labels and the texts.
+_LEFT, _RIGHT, _TOP, _BOTTOM = 64, 16, 36, 48
+
+
+def _finite_series(series, log_x: bool) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+  """The series as float arrays without their non-finite points (and x <= 0 on a log axis)."""
+  clean = {}
+  for name, (xs, ys) in series.items():
+    xs, ys = np.asarray(xs, np.float64), np.asarray(ys, np.float64)
+    keep = np.isfinite(xs) & np.isfinite(ys) & ((xs > 0) if log_x else True)
+    clean[name] = (xs[keep], ys[keep])
+  return clean
+
+
+@dataclasses.dataclass(frozen=True)
+class _Axes:
+  """Data -> pixel mapping of a chart's plot area, and the ticks of both axes."""
+
+  size: tuple[int, int]
+  log_x: bool
+  x_range: tuple[float, float]  # in axis units (log10 x on a log axis)
+  y_range: tuple[float, float]
+  x_ticks: list[float]  # in data units
+  y_ticks: np.ndarray
+
+  @classmethod
+  def fit(cls, clean: dict, log_x: bool, size: tuple[int, int]) -> _Axes:
+    """Axes spanning every point of the (finite) series; y widened to its outer round ticks."""
+    all_x = np.concatenate([xs for xs, _ in clean.values()] or [np.zeros(1)])
+    all_y = np.concatenate([ys for _, ys in clean.values()] or [np.zeros(1)])
+    if all_x.size == 0:
+      all_x, all_y = np.zeros(1), np.zeros(1)
+    axis_x = np.log10(all_x) if log_x else all_x
+    x_lo, x_hi = float(axis_x.min()), float(axis_x.max())
+    y_ticks = _nice_ticks(float(all_y.min()), float(all_y.max()))
+    y_lo, y_hi = float(min(y_ticks[0], all_y.min())), float(max(y_ticks[-1], all_y.max()))
+    if x_hi - x_lo < 1e-12:
+      x_lo, x_hi = x_lo - 0.5, x_hi + 0.5
+    if y_hi - y_lo < 1e-12:
+      y_lo, y_hi = y_lo - 0.5, y_hi + 0.5
+    # Few distinct x values (or a log axis): a tick at each, so every data point is labelled.
+    distinct = sorted(set(all_x.tolist()))
+    x_ticks = distinct if log_x or len(distinct) <= 8 else _nice_ticks(x_lo, x_hi).tolist()
+    return cls(size, log_x, (x_lo, x_hi), (y_lo, y_hi), x_ticks, y_ticks)
+
+  def u(self, x) -> float:
+    (x_lo, x_hi), width = self.x_range, self.size[0]
+    axis_x = np.log10(x) if self.log_x else np.asarray(x, np.float64)
+    return float(_LEFT + (axis_x - x_lo) / (x_hi - x_lo) * (width - _LEFT - _RIGHT))
+
+  def v(self, y) -> float:
+    (y_lo, y_hi), height = self.y_range, self.size[1]
+    return float(height - _BOTTOM - (y - y_lo) / (y_hi - y_lo) * (height - _TOP - _BOTTOM))
+
+
+def _draw_axes(draw, axes: _Axes, font) -> None:
+  """The plot-area frame, horizontal grid lines with y labels, and x tick marks with labels."""
+  width, height = axes.size
+  (x_lo, x_hi), (y_lo, y_hi) = axes.x_range, axes.y_range
+  draw.rectangle([_LEFT, _TOP, width - _RIGHT, height - _BOTTOM], outline=(0, 0, 0))
+  for tick in axes.y_ticks:
+    if y_lo <= tick <= y_hi:
+      v = axes.v(tick)
+      draw.line([_LEFT - 4, v, width - _RIGHT, v], fill=(225, 225, 225))
+      draw.text((4, v - 5), _label(tick, axes.y_ticks), fill=(0, 0, 0), font=font)
+  for tick in axes.x_ticks:
+    if axes.log_x or x_lo <= tick <= x_hi:
+      u = axes.u(tick)
+      draw.line([u, height - _BOTTOM, u, height - _BOTTOM + 4], fill=(0, 0, 0))
+      draw.text(
+        (u - 8, height - _BOTTOM + 6),
+        _label(tick, None if axes.log_x else np.asarray(axes.x_ticks)),
+        fill=(0, 0, 0),
+        font=font,
+      )
+
+
+def _save(image: Image.Image, path) -> pathlib.Path:
+  path = pathlib.Path(path)
+  path.parent.mkdir(parents=True, exist_ok=True)
+  image.save(path)
+  return path
+
+
 def line_plot(
   path,
   series: dict[str, tuple[Sequence[float], Sequence[float]]],
@@ -90,73 +175,27 @@ def line_plot(
     dashed: labels drawn with dashed lines.
   """
   width, height = size
-  left, right, top, bottom = 64, 16, 36, 48
   image = Image.new("RGB", size, "white")
   draw = ImageDraw.Draw(image)
   font = ImageFont.load_default()
-  clean = {}
-  for name, (xs, ys) in series.items():
-    xs, ys = np.asarray(xs, np.float64), np.asarray(ys, np.float64)
-    keep = np.isfinite(xs) & np.isfinite(ys) & ((xs > 0) if log_x else True)
-    clean[name] = (xs[keep], ys[keep])
-  all_x = np.concatenate([xs for xs, _ in clean.values()] or [np.zeros(1)])
-  all_y = np.concatenate([ys for _, ys in clean.values()] or [np.zeros(1)])
-  if all_x.size == 0:
-    all_x, all_y = np.zeros(1), np.zeros(1)
-  fx = np.log10 if log_x else (lambda v: np.asarray(v, np.float64))
-  x_lo, x_hi = float(fx(all_x).min()), float(fx(all_x).max())
-  y_ticks = _nice_ticks(float(all_y.min()), float(all_y.max()))
-  y_lo, y_hi = float(min(y_ticks[0], all_y.min())), float(max(y_ticks[-1], all_y.max()))
-  if x_hi - x_lo < 1e-12:
-    x_lo, x_hi = x_lo - 0.5, x_hi + 0.5
-  if y_hi - y_lo < 1e-12:
-    y_lo, y_hi = y_lo - 0.5, y_hi + 0.5
-
-  def to_pixel(x, y):
-    u = left + (fx(x) - x_lo) / (x_hi - x_lo) * (width - left - right)
-    v = height - bottom - (y - y_lo) / (y_hi - y_lo) * (height - top - bottom)
-    return float(u), float(v)
-
-  draw.rectangle([left, top, width - right, height - bottom], outline=(0, 0, 0))
-  for tick in y_ticks:
-    if y_lo <= tick <= y_hi:
-      _, v = to_pixel(all_x[0] if not log_x else 10**x_lo, tick)
-      draw.line([left - 4, v, width - right, v], fill=(225, 225, 225))
-      draw.text((4, v - 5), _label(tick, y_ticks), fill=(0, 0, 0), font=font)
-  x_ticks = (
-    sorted(set(all_x.tolist()))
-    if log_x or len(set(all_x.tolist())) <= 8
-    else _nice_ticks(x_lo, x_hi).tolist()
-  )
-  for tick in x_ticks:
-    if log_x or x_lo <= tick <= x_hi:
-      u, _ = to_pixel(tick, y_lo)
-      draw.line([u, height - bottom, u, height - bottom + 4], fill=(0, 0, 0))
-      draw.text(
-        (u - 8, height - bottom + 6),
-        _label(tick, None if log_x else np.asarray(x_ticks)),
-        fill=(0, 0, 0),
-        font=font,
-      )
-  draw.text((left, 10), title, fill=(0, 0, 0), font=font)
+  clean = _finite_series(series, log_x)
+  axes = _Axes.fit(clean, log_x, size)
+  _draw_axes(draw, axes, font)
+  draw.text((_LEFT, 10), title, fill=(0, 0, 0), font=font)
   draw.text(((width - 6 * len(xlabel)) // 2, height - 18), xlabel, fill=(0, 0, 0), font=font)
-  draw.text((4, top - 16), ylabel, fill=(0, 0, 0), font=font)
-  legend_y = top + 6
+  draw.text((4, _TOP - 16), ylabel, fill=(0, 0, 0), font=font)
+  legend_y = _TOP + 6
   for index, (name, (xs, ys)) in enumerate(clean.items()):
     color = PALETTE[index % len(PALETTE)]
     order = np.argsort(xs)
-    _draw_series(
-      draw, [to_pixel(x, y) for x, y in zip(xs[order], ys[order])], color, dashed=name in dashed
-    )
+    points = [(axes.u(x), axes.v(y)) for x, y in zip(xs[order], ys[order])]
+    _draw_series(draw, points, color, dashed=name in dashed)
     draw.line(
-      [width - right - 150, legend_y + 5, width - right - 130, legend_y + 5], fill=color, width=3
+      [width - _RIGHT - 150, legend_y + 5, width - _RIGHT - 130, legend_y + 5], fill=color, width=3
     )
-    draw.text((width - right - 125, legend_y), name, fill=(0, 0, 0), font=font)
+    draw.text((width - _RIGHT - 125, legend_y), name, fill=(0, 0, 0), font=font)
     legend_y += 14
-  path = pathlib.Path(path)
-  path.parent.mkdir(parents=True, exist_ok=True)
-  image.save(path)
-  return path
+  return _save(image, path)
 
 
 def trajectory_plot(
@@ -204,7 +243,4 @@ def trajectory_plot(
       u, v = track[-1]
       draw.ellipse([u - 2, v - 2, u + 2, v + 2], fill=tuple(int(c) for c in color))
   ImageDraw.Draw(image).text((4, 4), title, fill=(0, 0, 0), font=ImageFont.load_default())
-  path = pathlib.Path(path)
-  path.parent.mkdir(parents=True, exist_ok=True)
-  image.save(path)
-  return path
+  return _save(image, path)

@@ -61,58 +61,84 @@ def spaced_views(num_context: int, gap: int, targets: np.ndarray):
   return views
 
 
+def _row(axis: str, value: int, scores: list[float], seconds: float) -> dict:
+  return {
+    "axis": axis,
+    "value": value,
+    "psnr": float(np.mean(scores)),
+    "seconds_per_scene": seconds,
+  }
+
+
+def _curve(rows: list[dict]) -> tuple[list, list]:
+  """(values, PSNRs) of table rows, for a line plot."""
+  return [row["value"] for row in rows], [row["psnr"] for row in rows]
+
+
+def context_extension_rows(
+  settings: TestTimeScaling, method, scorer: evaluation.Scorer, targets: np.ndarray
+) -> list[dict]:
+  """One row per context size in `settings.views`: the method scored on the same `targets`."""
+  gap = settings.experiment.eval.context_gap
+  rows = []
+  for count in settings.views:
+    examples = held_out(
+      settings.experiment.with_views(count), views=spaced_views(count, gap, targets)
+    )
+    rows.append(_row("input views", count, *psnr_of(method, examples, scorer)))
+  return rows
+
+
+def tuning_rows(
+  settings: TestTimeScaling, params, config, examples, scorer: evaluation.Scorer
+) -> dict[str, list[dict]]:
+  """Tuning target -> one row per step count in `settings.steps` (each its own compilation)."""
+  by_target = {}
+  for target in settings.targets:
+    by_target[target] = []
+    for steps in settings.steps:
+      tuning = TuningConfig(target=target, steps=steps, learning_rate=settings.learning_rate)
+      method = evaluation.tuned(params, config, tuning)
+      by_target[target].append(
+        _row(f"{target} tuning steps", steps, *psnr_of(method, examples, scorer))
+      )
+  return by_target
+
+
+def plot_curves(
+  out: pathlib.Path, view_rows: list[dict], base: dict, by_target: dict[str, list[dict]]
+) -> None:
+  """`views.png` (PSNR vs input views) and `tuning_steps.png` (each target's curve, from the
+  untuned 2-view score at step 0)."""
+  plot.line_plot(
+    out / "views.png",
+    {"TokenGS (feed-forward)": _curve(view_rows)},
+    title="Context extension",
+    xlabel="input views",
+    ylabel="PSNR (dB)",
+  )
+  plot.line_plot(
+    out / "tuning_steps.png",
+    {target: _curve([base, *rows]) for target, rows in by_target.items()},
+    title="Test-time tuning",
+    xlabel="tuning steps",
+    ylabel="PSNR (dB)",
+    dashed=("gaussians",),
+  )
+
+
 def main(settings: TestTimeScaling) -> list[dict]:
   out = pathlib.Path(settings.output_dir) / "test_time_scaling"
   config, params = trained_tokengs(settings)
   e = settings.experiment.eval
   scorer = evaluation.Scorer(lpips=False)
   feed_forward = evaluation.feed_forward(params, config)
-  rows = []
-  view_curve = ([], [])
   targets = shared_targets(settings.views, e.context_gap, e.num_target_views)
-  for count in settings.views:
-    examples = held_out(
-      settings.experiment.with_views(count), views=spaced_views(count, e.context_gap, targets)
-    )
-    scores, seconds = psnr_of(feed_forward, examples, scorer)
-    rows.append(
-      {
-        "axis": "input views",
-        "value": count,
-        "psnr": float(np.mean(scores)),
-        "seconds_per_scene": seconds,
-      }
-    )
-    view_curve[0].append(count)
-    view_curve[1].append(float(np.mean(scores)))
+  view_rows = context_extension_rows(settings, feed_forward, scorer, targets)
   examples = held_out(settings.experiment, views=spaced_views(2, e.context_gap, targets))
-  base, base_seconds = psnr_of(feed_forward, examples, scorer)
-  step_curves = {}
-  for target in settings.targets:
-    xs, ys = [0], [float(np.mean(base))]
-    for steps in settings.steps:
-      tuning = TuningConfig(target=target, steps=steps, learning_rate=settings.learning_rate)
-      scores, seconds = psnr_of(evaluation.tuned(params, config, tuning), examples, scorer)
-      rows.append(
-        {
-          "axis": f"{target} tuning steps",
-          "value": steps,
-          "psnr": float(np.mean(scores)),
-          "seconds_per_scene": seconds,
-        }
-      )
-      xs.append(steps)
-      ys.append(float(np.mean(scores)))
-    step_curves[target] = (xs, ys)
-  rows.insert(
-    len(settings.views),
-    {
-      "axis": "no tuning (2 views)",
-      "value": 0,
-      "psnr": float(np.mean(base)),
-      "seconds_per_scene": base_seconds,
-    },
-  )
+  base = _row("no tuning (2 views)", 0, *psnr_of(feed_forward, examples, scorer))
+  by_target = tuning_rows(settings, params, config, examples, scorer)
+  rows = [*view_rows, base, *(row for target_rows in by_target.values() for row in target_rows)]
   write_table(
     out,
     "test_time_scaling",
@@ -127,21 +153,7 @@ def main(settings: TestTimeScaling) -> list[dict]:
       )
     ],
   )
-  plot.line_plot(
-    out / "views.png",
-    {"TokenGS (feed-forward)": view_curve},
-    title="Context extension",
-    xlabel="input views",
-    ylabel="PSNR (dB)",
-  )
-  plot.line_plot(
-    out / "tuning_steps.png",
-    step_curves,
-    title="Test-time tuning",
-    xlabel="tuning steps",
-    ylabel="PSNR (dB)",
-    dashed=("gaussians",),
-  )
+  plot_curves(out, view_rows, base, by_target)
   return rows
 
 

@@ -12,6 +12,7 @@ it.
 from __future__ import annotations
 
 import base64
+import contextlib
 import itertools
 import json
 import os
@@ -107,6 +108,71 @@ def _devtools_port(profile: pathlib.Path, process: subprocess.Popen, log, deadli
   raise TimeoutError("Chromium did not open its DevTools port")
 
 
+@contextlib.contextmanager
+def _chromium_page(chromium: str, width: int, height: int, deadline: float):
+  """A DevTools session with the blank page of a fresh headless Chromium (own temporary
+  profile); the browser is shut down on exit."""
+  with (
+    tempfile.TemporaryDirectory(prefix="chromium-profile-") as profile,
+    tempfile.TemporaryFile("w+") as log,
+  ):
+    process = subprocess.Popen(
+      [
+        chromium,
+        *_FLAGS,
+        f"--user-data-dir={profile}",
+        f"--window-size={width},{height}",
+        "about:blank",
+      ],
+      stdout=subprocess.DEVNULL,
+      stderr=log,
+      text=True,
+    )
+    try:
+      port = _devtools_port(pathlib.Path(profile), process, log, deadline)
+      with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10) as reply:
+        page = next(t for t in json.load(reply) if t["type"] == "page")
+      devtools = _DevTools(page["webSocketDebuggerUrl"])
+      try:
+        yield devtools
+      finally:
+        devtools.close()
+    finally:
+      process.terminate()
+      try:
+        process.wait(timeout=10)
+      except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+
+
+def _wait_for_text(devtools: _DevTools, text: str, deadline: float) -> bool:
+  """Polls until the page's text contains `text`; False if `deadline` passes first."""
+  while not devtools.evaluate(
+    f"document.body !== null && document.body.innerText.includes({json.dumps(text)})"
+  ):
+    if time.monotonic() > deadline:
+      return False
+    time.sleep(0.2)
+  return True
+
+
+def _settled_capture(devtools: _DevTools, settle_s: float, deadline: float) -> bytes | None:
+  """A PNG of the page once two captures `settle_s` and five animation frames apart are
+  identical (notices closed before each); None if it still changes at `deadline`."""
+  previous = None
+  while True:
+    devtools.evaluate(_CLOSE_NOTICES)
+    image = devtools.capture()
+    if image == previous:
+      return image
+    if time.monotonic() > deadline:
+      return None
+    previous = image
+    time.sleep(settle_s)
+    devtools.evaluate(_FRAMES)
+
+
 def screenshot(
   url: str,
   path,
@@ -132,63 +198,21 @@ def screenshot(
     raise FileNotFoundError("no Chromium found (apt-get install -y chromium, or set $CHROMIUM)")
   deadline = time.monotonic() + timeout_s
   path = pathlib.Path(path)
-  with (
-    tempfile.TemporaryDirectory(prefix="chromium-profile-") as profile,
-    tempfile.TemporaryFile("w+") as log,
-  ):
-    process = subprocess.Popen(
-      [
-        chromium,
-        *_FLAGS,
-        f"--user-data-dir={profile}",
-        f"--window-size={width},{height}",
-        "about:blank",
-      ],
-      stdout=subprocess.DEVNULL,
-      stderr=log,
-      text=True,
+  with _chromium_page(chromium, width, height, deadline) as devtools:
+    devtools("Page.enable")
+    devtools(
+      "Emulation.setDeviceMetricsOverride",
+      width=width,
+      height=height,
+      deviceScaleFactor=1,
+      mobile=False,
     )
-    try:
-      port = _devtools_port(pathlib.Path(profile), process, log, deadline)
-      with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10) as reply:
-        page = next(t for t in json.load(reply) if t["type"] == "page")
-      devtools = _DevTools(page["webSocketDebuggerUrl"])
-      try:
-        devtools("Page.enable")
-        devtools(
-          "Emulation.setDeviceMetricsOverride",
-          width=width,
-          height=height,
-          deviceScaleFactor=1,
-          mobile=False,
-        )
-        devtools("Page.navigate", url=url)
-        while not devtools.evaluate(
-          f"document.body !== null && document.body.innerText.includes({json.dumps(ready_text)})"
-        ):
-          if time.monotonic() > deadline:
-            raise TimeoutError(f"{url} did not show {ready_text!r} within {timeout_s} s")
-          time.sleep(0.2)
-        previous = None
-        while True:
-          devtools.evaluate(_CLOSE_NOTICES)
-          image = devtools.capture()
-          if image == previous:
-            break
-          if time.monotonic() > deadline:
-            raise TimeoutError(f"{url} kept changing for {timeout_s} s")
-          previous = image
-          time.sleep(settle_s)
-          devtools.evaluate(_FRAMES)
-      finally:
-        devtools.close()
-    finally:
-      process.terminate()
-      try:
-        process.wait(timeout=10)
-      except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait()
+    devtools("Page.navigate", url=url)
+    if not _wait_for_text(devtools, ready_text, deadline):
+      raise TimeoutError(f"{url} did not show {ready_text!r} within {timeout_s} s")
+    image = _settled_capture(devtools, settle_s, deadline)
+    if image is None:
+      raise TimeoutError(f"{url} kept changing for {timeout_s} s")
   path.parent.mkdir(parents=True, exist_ok=True)
   path.write_bytes(image)
   return path.resolve()
