@@ -213,31 +213,90 @@ def _tune_once(
   loss_config = losses.LossConfig() if loss_config is None else loss_config
   objective = ObjectiveConfig() if objective is None else objective
   timed = times is not None
-  if timed and not model_config.time_embedding:
-    raise ValueError("times given for a model without time embedding")
-  if output_times is not None:
-    if not timed:
-      raise ValueError("output_times needs the input-view times")
-    check_times("output_times", output_times, (images.shape[0], None), "[B, T]")
+  _check_times(model_config, images.shape[0], times, output_times)
   # The encoder runs once; stop_gradient keeps the loop from differentiating into it.
   encoded = jax.lax.stop_gradient(
     model.encode_views(params, images, c2w, intrinsics, model_config, times=times)
   )
   world_to_camera = invert_rigid(c2w)
+  decode = functools.partial(_decode, params, encoded, model_config)
+  variables, learning_rates, feed_forward = _initial_variables(
+    params, encoded, decode, model_config, tuning, images.shape[0]
+  )
+  gaussians_of = functools.partial(_gaussians_of, decode, feed_forward)
 
-  def decode(tokens=None, latents=None, at_times=None) -> Gaussians:
-    """Gaussians [B] (time-free), or [B, T] at `at_times` [B, T]."""
-    source = encoded if latents is None else model.kv_from_latents(params, latents, model_config)
-    if at_times is None:
-      return Gaussians.from_flat(model.decode(params, source, model_config, tokens=tokens))
-    return decode_at_times(params, source, model_config, at_times, tokens=tokens)
+  # the dynamic auxiliary term as official TTT: the loss of a fresh model, i.e. its base weight
+  with_aux = model_config.num_dynamic_gs_tokens > 0 and model_config.num_gs_tokens > 0
+  per_view = dataclasses.replace(objective, decode_times="per_view")
 
+  def loss_and_overflow(v):
+    """Input-view loss of the variables `v`, and whether its render overflowed ([] bool)."""
+    if timed:
+      loss, terms = time_conditioned_loss(
+        lambda t: gaussians_of(v, t),
+        times,
+        images,
+        world_to_camera,
+        intrinsics,
+        loss_config,
+        render_config,
+        per_view,
+        num_static_gaussians=model_config.num_static_gaussians if with_aux else None,
+      )
+    else:
+      loss, terms = supervision_loss(
+        gaussians_of(v), images, world_to_camera, intrinsics, loss_config, render_config, objective
+      )
+    return loss, terms["render_overflow"] > 0
+
+  variables, step_losses, step_overflows = _adam_scan(
+    loss_and_overflow, variables, learning_rates, tuning
+  )
+  final_loss, final_overflow = loss_and_overflow(variables)
+  if timed:
+    gaussians = gaussians_of(variables, times if output_times is None else output_times)
+  else:
+    gaussians = gaussians_of(variables)
+  return (
+    TuningResult(gaussians=gaussians, losses=jnp.append(step_losses, final_loss)),
+    jnp.any(step_overflows) | final_overflow,
+  )
+
+
+def _check_times(model_config, batch: int, times, output_times) -> None:
+  """Trace-time checks of the input-view `times` [B, V] and `output_times` [B, T]."""
+  if times is not None and not model_config.time_embedding:
+    raise ValueError("times given for a model without time embedding")
+  if output_times is not None:
+    if times is None:
+      raise ValueError("output_times needs the input-view times")
+    check_times("output_times", output_times, (batch, None), "[B, T]")
+
+
+def _decode(params, encoded, model_config, tokens=None, latents=None, at_times=None) -> Gaussians:
+  """Gaussians [B] (time-free), or [B, T] at `at_times` [B, T], of the fixed encoding.
+
+  tokens: [B, T_tok, C] replacing the learnt Gaussian tokens; latents: [B, L, C] scene latents
+  replacing the encoded ones (their keys/values are recomputed).
+  """
+  source = encoded if latents is None else model.kv_from_latents(params, latents, model_config)
+  if at_times is None:
+    return Gaussians.from_flat(model.decode(params, source, model_config, tokens=tokens))
+  return decode_at_times(params, source, model_config, at_times, tokens=tokens)
+
+
+def _initial_variables(params, encoded, decode, model_config, tuning: TuningConfig, batch: int):
+  """What `tuning.target` optimises, at its feed-forward value.
+
+  Returns `(variables, learning_rates, feed_forward)`: variables is a dict with "tokens"
+  [B, T_tok, C] (float32), "latents" [B, L, C] and/or "offsets" (zero Gaussian offsets [B, N]);
+  learning_rates has the same keys; feed_forward is the Gaussians [B] under the offsets (None
+  without offsets).
+  """
   target = tuning.target
-  variables, learning_rates = {}, {}
+  variables, learning_rates, feed_forward = {}, {}, None
   if target in ("tokens", "tokens+gaussians"):
-    variables["tokens"] = model.initial_tokens(params, model_config, images.shape[0]).astype(
-      jnp.float32
-    )
+    variables["tokens"] = model.initial_tokens(params, model_config, batch).astype(jnp.float32)
     learning_rates["tokens"] = tuning.learning_rate
   if target == "latents":
     if encoded.latents is None:
@@ -251,44 +310,29 @@ def _tune_once(
     learning_rates["offsets"] = tuning.gaussian_learning_rate
   if not variables:
     raise ValueError(f"unknown tuning target {target!r}")
+  return variables, learning_rates, feed_forward
 
-  def gaussians_of(v, at_times=None) -> Gaussians:
-    if "offsets" not in v:
-      return decode(tokens=v.get("tokens"), latents=v.get("latents"), at_times=at_times)
-    if "tokens" in v:
-      base = decode(tokens=v["tokens"], at_times=at_times)
-    elif at_times is None:
-      base = feed_forward
-    else:  # the feed-forward Gaussians at these times (forward only)
-      base = jax.lax.stop_gradient(decode(at_times=at_times))
-    offsets = v["offsets"] if at_times is None else jax.tree.map(lambda x: x[:, None], v["offsets"])
-    return _offset(base, offsets)
 
-  # the dynamic auxiliary term as official TTT: the loss of a fresh model, i.e. its base weight
-  with_aux = model_config.num_dynamic_gs_tokens > 0 and model_config.num_gs_tokens > 0
-  per_view = dataclasses.replace(objective, decode_times="per_view")
+def _gaussians_of(decode, feed_forward, v: dict, at_times=None) -> Gaussians:
+  """The Gaussians of the tuned variables `v`: [B], or [B, T] at `at_times` [B, T]."""
+  if "offsets" not in v:
+    return decode(tokens=v.get("tokens"), latents=v.get("latents"), at_times=at_times)
+  if "tokens" in v:
+    base = decode(tokens=v["tokens"], at_times=at_times)
+  elif at_times is None:
+    base = feed_forward
+  else:  # the feed-forward Gaussians at these times (forward only)
+    base = jax.lax.stop_gradient(decode(at_times=at_times))
+  offsets = v["offsets"] if at_times is None else jax.tree.map(lambda x: x[:, None], v["offsets"])
+  return _offset(base, offsets)
 
-  def loss_of(v):
-    if timed:
-      return time_conditioned_loss(
-        lambda t: gaussians_of(v, t),
-        times,
-        images,
-        world_to_camera,
-        intrinsics,
-        loss_config,
-        render_config,
-        per_view,
-        num_static_gaussians=model_config.num_static_gaussians if with_aux else None,
-      )
-    return supervision_loss(
-      gaussians_of(v), images, world_to_camera, intrinsics, loss_config, render_config, objective
-    )
 
-  def loss_and_overflow(v):
-    loss, terms = loss_of(v)
-    return loss, terms["render_overflow"] > 0
+def _adam_scan(loss_and_overflow, variables: dict, learning_rates: dict, tuning: TuningConfig):
+  """`tuning.steps` Adam steps on `variables` (one learning rate per entry) as one `lax.scan`.
 
+  loss_and_overflow: `variables -> ([] loss, [] bool overflow)`.
+  Returns `(variables after the last step, losses [steps] and overflows [steps] before each)`.
+  """
   optimizer = optax.multi_transform(
     {name: optax.adam(rate, b1=tuning.b1, b2=tuning.b2) for name, rate in learning_rates.items()},
     {name: name for name in variables},
@@ -303,12 +347,4 @@ def _tune_once(
   (variables, _), (step_losses, step_overflows) = jax.lax.scan(
     step, (variables, optimizer.init(variables)), None, length=tuning.steps
   )
-  final_loss, final_overflow = loss_and_overflow(variables)
-  if timed:
-    gaussians = gaussians_of(variables, times if output_times is None else output_times)
-  else:
-    gaussians = gaussians_of(variables)
-  return (
-    TuningResult(gaussians=gaussians, losses=jnp.append(step_losses, final_loss)),
-    jnp.any(step_overflows) | final_overflow,
-  )
+  return variables, step_losses, step_overflows

@@ -106,8 +106,7 @@ def bin_gaussians(
   """Builds the per-tile, depth-ordered intersection lists with a fixed budget.
 
   Gaussians are ranked by (depth, index) first and their intersections emitted in rank order, so a
-  budget overflow drops the farthest Gaussians' tiles, never a near one. The sort key packs
-  (tile, rank) into one int32 when it fits (exact order, one single-key sort), else a two-key sort.
+  budget overflow drops the farthest Gaussians' tiles, never a near one.
 
   The budget holds every tile of each radius box (gsplat's rule, what `num_intersections` counts),
   but a box tile where the Gaussian's alpha stays below `alpha_threshold` at every pixel centre
@@ -135,6 +134,69 @@ def bin_gaussians(
   starts = ends - counts_by_rank
   total = ends[-1]
 
+  slot_rank, slot_tile = _slot_tiles(
+    order,
+    counts_by_rank,
+    starts,
+    total,
+    (x0, x1, y0),
+    means2d,
+    conics,
+    opacities,
+    budget=budget,
+    tile_size=tile_size,
+    tiles_x=tiles_x,
+    num_tiles=num_tiles,
+    height=height,
+    width=width,
+    alpha_threshold=alpha_threshold,
+  )
+  sorted_tile, sorted_rank = _sort_pairs(slot_tile, slot_rank, num, num_tiles)
+  gaussian_ids = order[sorted_rank]
+  # Gaussians cut (wholly or partly) by the budget mark every tile of their box truncated.
+  cut = visible & (jnp.zeros(num, ends.dtype).at[order].set(ends) > budget)
+  cut_boxes = _covering_counts(cut, (x0, x1, y0, y1), tiles_x=tiles_x, tiles_y=tiles_y)
+  bounds = jnp.searchsorted(sorted_tile, jnp.arange(num_tiles + 1, dtype=jnp.int32), side="left")
+  return TileBins(
+    gaussian_ids=gaussian_ids.astype(jnp.int32),
+    tile_starts=bounds[:-1].astype(jnp.int32),
+    tile_ends=bounds[1:].astype(jnp.int32),
+    num_intersections=total.astype(jnp.int32),
+    tile_truncated=cut_boxes.reshape(-1) > 0,
+  )
+
+
+def _slot_tiles(
+  order,
+  counts_by_rank,
+  starts,
+  total,
+  box_corner,
+  means2d,
+  conics,
+  opacities,
+  *,
+  budget,
+  tile_size,
+  tiles_x,
+  num_tiles,
+  height,
+  width,
+  alpha_threshold,
+):
+  """Expands the depth-ranked radius boxes into the B budget slots, in rank order.
+
+  Args:
+    order: [N] rank -> Gaussian; counts_by_rank, starts: [N] box tiles and first slot of each
+      rank; total: [] slots needed; box_corner: (x0, x1, y0) [N] int32 of `tile_rectangles`;
+      means2d: [N, 2]; conics: [N, 3]; opacities: [N].
+
+  Returns:
+    `(slot_rank, slot_tile)`: [B] owner rank and tile of each slot; the tile is `num_tiles` (sorted
+    behind every tile) for slots past `total` and tiles the Gaussian's alpha never reaches.
+  """
+  x0, x1, y0 = box_corner
+  num = order.shape[0]
   # Owner rank of each slot: mark every non-empty run's first slot, then a running max fills it.
   slots = jnp.arange(budget, dtype=jnp.int32)
   ranks = jnp.arange(num, dtype=jnp.int32)
@@ -165,26 +227,32 @@ def bin_gaussians(
   slot_tile = jnp.where(
     (slots < total) & touches, tile_y * tiles_x + tile_x, num_tiles
   )  # rest last
+  return slot_rank, slot_tile
 
+
+def _sort_pairs(slot_tile, slot_rank, num, num_tiles):
+  """Slots [B] sorted by (tile, rank): `(sorted_tile, sorted_rank)`, both [B] int32.
+
+  The key packs (tile, rank) into one int32 when it fits (exact order, one single-key sort),
+  else a two-key sort.
+  """
   if (num_tiles + 1) * num <= _INT32_MAX:
     keys = jnp.sort(slot_tile * num + slot_rank)
     sorted_tile = keys // num
     sorted_rank = keys - sorted_tile * num
   else:
     sorted_tile, sorted_rank = jax.lax.sort((slot_tile, slot_rank), num_keys=2)
-  gaussian_ids = order[sorted_rank]
-  # Tiles of every Gaussian cut (wholly or partly) by the budget: +-1 at its box corners, then a 2D
-  # prefix sum counts, per tile, the cut boxes covering it (O(N + T), no per-pair work).
-  cut = visible & (jnp.zeros(num, ends.dtype).at[order].set(ends) > budget)
+  return sorted_tile, sorted_rank
+
+
+def _covering_counts(cut, boxes, *, tiles_x, tiles_y):
+  """Per tile [tiles_y, tiles_x] int32, how many of the `cut` [N] bool boxes cover it.
+
+  boxes: the four [N] int32 arrays of `tile_rectangles`. +-1 at each cut box's corners, then a
+  2D prefix sum: O(N + T), no per-pair work.
+  """
+  x0, x1, y0, y1 = boxes
   corners = jnp.zeros((tiles_y + 1, tiles_x + 1), jnp.int32)
   for row, col, sign in ((y0, x0, 1), (y0, x1, -1), (y1, x0, -1), (y1, x1, 1)):
     corners = corners.at[row, col].add(jnp.where(cut, sign, 0))
-  cut_boxes = jnp.cumsum(jnp.cumsum(corners, axis=0), axis=1)[:tiles_y, :tiles_x]
-  bounds = jnp.searchsorted(sorted_tile, jnp.arange(num_tiles + 1, dtype=jnp.int32), side="left")
-  return TileBins(
-    gaussian_ids=gaussian_ids.astype(jnp.int32),
-    tile_starts=bounds[:-1].astype(jnp.int32),
-    tile_ends=bounds[1:].astype(jnp.int32),
-    num_intersections=total.astype(jnp.int32),
-    tile_truncated=cut_boxes.reshape(-1) > 0,
-  )
+  return jnp.cumsum(jnp.cumsum(corners, axis=0), axis=1)[:tiles_y, :tiles_x]

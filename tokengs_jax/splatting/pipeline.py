@@ -363,23 +363,17 @@ def render(
     background = jnp.zeros((3,), dtype)
   background = jnp.broadcast_to(jnp.asarray(background, dtype), batch + (num_views, 3))
 
-  def flat(x, tail):
-    tail_shape = x.shape[x.ndim - tail :]
-    return jnp.broadcast_to(x, batch + tail_shape).reshape((math.prod(batch),) + tail_shape)
-
-  scenes = Gaussians(
-    means=flat(gaussians.means, 2),
-    opacities=flat(gaussians.opacities, 1),
-    scales=flat(gaussians.scales, 2),
-    quats=flat(gaussians.quats, 2),
-    colors=flat(gaussians.colors, 2),
+  scenes = _flat_scenes(gaussians, batch)
+  cameras = _project_cameras(
+    scenes,
+    _flat(world_to_camera, 3, batch),
+    _flat(intrinsics, 2, batch),
+    near,
+    far,
+    height=height,
+    width=width,
+    config=config,
   )
-  one = functools.partial(_project, height=height, width=width, config=config)
-  per_view = jax.vmap(one, in_axes=(None, 0, 0, None, None))
-  per_scene = jax.vmap(per_view, in_axes=(0, 0, 0, None, None))
-  cameras = per_scene(scenes, flat(world_to_camera, 3), flat(intrinsics, 2), near, far)
-  # [scenes, views] -> one camera axis C for binning and the compositor.
-  cameras = jax.tree.map(lambda x: x.reshape((x.shape[0] * x.shape[1],) + x.shape[2:]), cameras)
   tiles = -(-height // config.tile_size) * -(-width // config.tile_size)
   ladder = config.budget_ladder(scenes.num_gaussians, tiles)
   if scenes.num_gaussians:
@@ -388,7 +382,44 @@ def render(
     )
   composited = _composite(cameras, height=height, width=width, config=config, budget=ladder[-1])
   out = _finish(
-    cameras, *composited, background=flat(background, 2).reshape(-1, 3), budget=ladder[-1]
+    cameras, *composited, background=_flat(background, 2, batch).reshape(-1, 3), budget=ladder[-1]
   )
   out = jax.tree.map(lambda x: x.reshape((math.prod(batch), num_views) + x.shape[1:]), out)
   return jax.tree.map(lambda x: x.reshape(batch + x.shape[1:]), out)
+
+
+def _flat(x: jax.Array, tail: int, batch: tuple[int, ...]) -> jax.Array:
+  """[..., *tail] broadcast to `batch` [...] -> [S, *tail], the batch as one scene axis S."""
+  tail_shape = x.shape[x.ndim - tail :]
+  return jnp.broadcast_to(x, batch + tail_shape).reshape((math.prod(batch),) + tail_shape)
+
+
+def _flat_scenes(gaussians: Gaussians, batch: tuple[int, ...]) -> Gaussians:
+  """Gaussians broadcast to `batch` [...] -> S scenes [S, N]."""
+  return Gaussians(
+    means=_flat(gaussians.means, 2, batch),
+    opacities=_flat(gaussians.opacities, 1, batch),
+    scales=_flat(gaussians.scales, 2, batch),
+    quats=_flat(gaussians.quats, 2, batch),
+    colors=_flat(gaussians.colors, 2, batch),
+  )
+
+
+def _project_cameras(
+  scenes: Gaussians,
+  world_to_camera,
+  intrinsics,
+  near,
+  far,
+  *,
+  height: int,
+  width: int,
+  config: RenderConfig,
+) -> _Camera:
+  """S scenes [S, N] seen by their V views (w2c [S, V, 4, 4], intrinsics [S, V, 4]): `_project`
+  of every (scene, view), on one camera axis C = S * V for binning and the compositor."""
+  one = functools.partial(_project, height=height, width=width, config=config)
+  per_view = jax.vmap(one, in_axes=(None, 0, 0, None, None))
+  per_scene = jax.vmap(per_view, in_axes=(0, 0, 0, None, None))
+  cameras = per_scene(scenes, world_to_camera, intrinsics, near, far)
+  return jax.tree.map(lambda x: x.reshape((x.shape[0] * x.shape[1],) + x.shape[2:]), cameras)

@@ -85,51 +85,18 @@ def project_gaussians(
   # Means2d are wanted (visibility loss) even for culled centres: safe_div keeps them finite.
   means2d = jnp.stack([fx * tmath.safe_div(x, z) + cx, fy * tmath.safe_div(y, z) + cy], axis=-1)
 
-  # Jacobian of the perspective map, with the centre clamped to 1.3x the field of view (gsplat).
   z_safe = jnp.where(in_depth, z, 1.0)
-  inv_z = 1.0 / z_safe
-  lim_x = 0.3 * 0.5 * width / fx
-  lim_y = 0.3 * 0.5 * height / fy
-  tx = z_safe * jnp.clip(x * inv_z, -(cx / fx + lim_x), (width - cx) / fx + lim_x)
-  ty = z_safe * jnp.clip(y * inv_z, -(cy / fy + lim_y), (height - cy) / fy + lim_y)
-  zeros = jnp.zeros_like(z)
-  jac = jnp.stack(
-    [
-      jnp.stack([fx * inv_z, zeros, -fx * tx * inv_z * inv_z], axis=-1),
-      jnp.stack([zeros, fy * inv_z, -fy * ty * inv_z * inv_z], axis=-1),
-    ],
-    axis=-2,
-  )  # [N, 2, 3]
-  cov2d = _matmul(_matmul(jac, cov_cam), jnp.swapaxes(jac, -1, -2)) + eps2d * jnp.eye(
-    2, dtype=means.dtype
-  )
+  cov2d = _blurred_cov2d(x, y, z_safe, cov_cam, (fx, fy, cx, cy), height, width, eps2d, means.dtype)
   a, b, c = cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]
   det = a * c - b * b
   good_det = in_depth & (det > 0)
   det_safe = jnp.where(good_det, det, 1.0)
   conics = jnp.stack([c / det_safe, -b / det_safe, a / det_safe], axis=-1)
 
-  # Opacity-aware extent: beyond sqrt(2 ln(o / threshold)) sigmas alpha is below the threshold.
-  opaque_enough = opacities >= alpha_threshold
-  log_ratio = jnp.log(jnp.where(opaque_enough, opacities / alpha_threshold, 1.0))
-  extent = jnp.minimum(radius_sigmas, jnp.sqrt(2.0 * log_ratio))
-  var_x = jnp.where(good_det, a, 1.0)
-  var_y = jnp.where(good_det, c, 1.0)
-  radii = jax.lax.stop_gradient(jnp.ceil(extent[:, None] * jnp.sqrt(jnp.stack([var_x, var_y], -1))))
-  nonzero_radius = (radii[:, 0] > 0) | (radii[:, 1] > 0)
-  mx, my = jax.lax.stop_gradient(means2d[:, 0]), jax.lax.stop_gradient(means2d[:, 1])
-  in_image = (
-    (mx + radii[:, 0] > 0)
-    & (mx - radii[:, 0] < width)
-    & (my + radii[:, 1] > 0)
-    & (my - radii[:, 1] < height)
+  radii, opaque_enough = _pixel_radii(
+    a, c, good_det, opacities, radius_sigmas=radius_sigmas, alpha_threshold=alpha_threshold
   )
-
-  cull_code = jnp.select(
-    [~in_depth, ~good_det, ~opaque_enough, ~nonzero_radius, ~in_image],
-    [CULLED_DEPTH, CULLED_DEGENERATE, CULLED_OPACITY, CULLED_DEGENERATE, CULLED_FRUSTUM],
-    VISIBLE,
-  ).astype(jnp.int32)
+  cull_code = _cull_codes(in_depth, good_det, opaque_enough, radii, means2d, height, width)
   visible = cull_code == VISIBLE
   return Projected(
     means2d=means2d,
@@ -138,3 +105,66 @@ def project_gaussians(
     radii=jnp.where(visible[:, None], radii, 0.0),
     cull_code=cull_code,
   )
+
+
+def _blurred_cov2d(x, y, z_safe, cov_cam, focal_centre, height, width, eps2d, dtype):
+  """EWA screen covariance J cov J^T + eps2d I ([N, 2, 2]) of camera-space Gaussians.
+
+  x, y: [N] camera coordinates of the centres; z_safe: [N] their depths (a stand-in where culled);
+  cov_cam: [N, 3, 3] camera-space covariances; focal_centre: [] (fx, fy, cx, cy) in pixels;
+  dtype: of the eps2d blur.
+  J is the Jacobian of the perspective map, with the centre clamped to 1.3x the field of view
+  (gsplat), so that Gaussians far outside the image do not blow up to huge footprints.
+  """
+  fx, fy, cx, cy = focal_centre
+  inv_z = 1.0 / z_safe
+  lim_x = 0.3 * 0.5 * width / fx
+  lim_y = 0.3 * 0.5 * height / fy
+  tx = z_safe * jnp.clip(x * inv_z, -(cx / fx + lim_x), (width - cx) / fx + lim_x)
+  ty = z_safe * jnp.clip(y * inv_z, -(cy / fy + lim_y), (height - cy) / fy + lim_y)
+  zeros = jnp.zeros_like(z_safe)
+  jac = jnp.stack(
+    [
+      jnp.stack([fx * inv_z, zeros, -fx * tx * inv_z * inv_z], axis=-1),
+      jnp.stack([zeros, fy * inv_z, -fy * ty * inv_z * inv_z], axis=-1),
+    ],
+    axis=-2,
+  )  # [N, 2, 3]
+  return _matmul(_matmul(jac, cov_cam), jnp.swapaxes(jac, -1, -2)) + eps2d * jnp.eye(2, dtype=dtype)
+
+
+def _pixel_radii(a, c, good_det, opacities, *, radius_sigmas, alpha_threshold):
+  """Integer-valued pixel radii [N, 2] (x, y) of the opacity-aware extent, without gradient.
+
+  a, c: [N] screen variances along x and y; good_det: [N] bool, the 2D covariance is usable;
+  opacities: [N]. Returns `(radii, opaque_enough [N] bool)`: beyond sqrt(2 ln(o / threshold))
+  sigmas alpha is below the threshold, and a Gaussian below the threshold draws nothing.
+  """
+  opaque_enough = opacities >= alpha_threshold
+  log_ratio = jnp.log(jnp.where(opaque_enough, opacities / alpha_threshold, 1.0))
+  extent = jnp.minimum(radius_sigmas, jnp.sqrt(2.0 * log_ratio))
+  var_x = jnp.where(good_det, a, 1.0)
+  var_y = jnp.where(good_det, c, 1.0)
+  radii = jax.lax.stop_gradient(jnp.ceil(extent[:, None] * jnp.sqrt(jnp.stack([var_x, var_y], -1))))
+  return radii, opaque_enough
+
+
+def _cull_codes(in_depth, good_det, opaque_enough, radii, means2d, height, width):
+  """[N] int32: VISIBLE, or the first culling rule that fired, in gsplat's order.
+
+  in_depth, good_det, opaque_enough: [N] bool; radii: [N, 2] pixel radii; means2d: [N, 2] (the
+  radius box must overlap the image).
+  """
+  nonzero_radius = (radii[:, 0] > 0) | (radii[:, 1] > 0)
+  mx, my = jax.lax.stop_gradient(means2d[:, 0]), jax.lax.stop_gradient(means2d[:, 1])
+  in_image = (
+    (mx + radii[:, 0] > 0)
+    & (mx - radii[:, 0] < width)
+    & (my + radii[:, 1] > 0)
+    & (my - radii[:, 1] < height)
+  )
+  return jnp.select(
+    [~in_depth, ~good_det, ~opaque_enough, ~nonzero_radius, ~in_image],
+    [CULLED_DEPTH, CULLED_DEGENERATE, CULLED_OPACITY, CULLED_DEGENERATE, CULLED_FRUSTUM],
+    VISIBLE,
+  ).astype(jnp.int32)

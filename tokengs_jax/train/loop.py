@@ -100,57 +100,17 @@ def train(
   )
   state = init_state(replicate(jax.device_get(params), mesh))
 
-  checkpointer = None
-  if loop_config.checkpoint_dir is not None:
-    checkpointer = Checkpointer(
-      loop_config.checkpoint_dir, loop_config.max_to_keep, loop_config.async_checkpoint
-    )
+  checkpointer = _checkpointer(loop_config)
   # Leaving the block waits for a pending save and closes the manager, also on an error.
   with checkpointer or contextlib.nullcontext():
-    history = []
-    if checkpointer is not None and checkpointer.latest_step() is not None:
-      state, host_state = checkpointer.restore(state)
-      set_iterator_state(batches, host_state["iterator"])
-      history = host_state["history"]
-      print(
-        f"[train] resuming from step {int(jax.device_get(state.step))} ({checkpointer.directory})",
-        flush=True,
-      )
+    state, history = _resume(checkpointer, state, batches)
     train_step = make_train_step(
       loss_fn, optimizer, mesh, precision=Precision() if precision is None else precision
     )
     # A separate buffer: the state (and its rng) is donated to each step.
     key = jnp.copy(state.rng)
-
-    pending = []
     step = int(jax.device_get(state.step))
-    last_saved = checkpointer.latest_step() if checkpointer else None
-    tick = time.perf_counter()
-
-    def drain(step_now: int) -> None:
-      """Fetches pending metrics, stops on a non-finite one, logs their mean."""
-      nonlocal tick
-      if not pending:
-        return
-      fetched = jax.device_get(pending)
-      pending.clear()
-      first = step_now - len(fetched) + 1
-      for offset, metrics in enumerate(fetched):
-        if not metrics["finite"]:
-          raise NonFiniteError(
-            f"non-finite loss or gradient at step {first + offset - 1} (loss "
-            f"{float(metrics['loss'])}, grad_norm {float(metrics['grad_norm'])}); the update was "
-            f"skipped and training stopped. Last good checkpoint: step {last_saved} in "
-            f"{checkpointer.directory if checkpointer else '(checkpointing off)'}."
-          )
-      logged = {k: float(np.mean([m[k] for m in fetched])) for k in fetched[0] if k != "finite"}
-      now = time.perf_counter()
-      logged["steps_per_s"] = len(fetched) / (now - tick)
-      tick = now
-      logged["step"] = step_now
-      history.append(logged)
-      log_fn(step_now, logged)
-
+    log = _MetricsLog(history, log_fn, checkpointer)
     compiled = None
     while step < loop_config.total_steps:
       batch = shard_batch(next(batches), mesh)
@@ -158,20 +118,95 @@ def train(
         compiled = train_step.lower(state, batch, key).compile()
         barrier("tokengs_train_step_compiled")
       state, metrics = compiled(state, batch, key)
-      pending.append(metrics)
+      log.pending.append(metrics)
       step += 1
       is_last = step == loop_config.total_steps
       save_now = checkpointer is not None and (
-        is_last or (loop_config.checkpoint_every and step % loop_config.checkpoint_every == 0)
+        is_last or _every(loop_config.checkpoint_every, step)
       )
       if save_now or is_last or step % loop_config.log_every == 0:
-        drain(step)
+        log.drain(step)
       # Before the save, so the checkpoint's history holds this step's evaluation.
-      if eval_fn is not None and loop_config.eval_every and step % loop_config.eval_every == 0:
-        evaluated = {f"eval/{k}": float(v) for k, v in jax.device_get(eval_fn(state)).items()}
-        history.append({"step": step, **evaluated})
-        log_fn(step, evaluated)
+      if eval_fn is not None and _every(loop_config.eval_every, step):
+        log.evaluation(step, eval_fn(state))
       if save_now:
         checkpointer.save(state, {"iterator": iterator_state(batches), "history": history})
-        last_saved = step
+        log.last_saved = step
     return state, history
+
+
+def _checkpointer(loop_config: LoopConfig) -> Checkpointer | None:
+  """The run's checkpoint manager; None when checkpointing is off (no `checkpoint_dir`)."""
+  if loop_config.checkpoint_dir is None:
+    return None
+  return Checkpointer(
+    loop_config.checkpoint_dir, loop_config.max_to_keep, loop_config.async_checkpoint
+  )
+
+
+def _every(period: int, step: int) -> bool:
+  """Whether a periodic action (period 0: never) falls on `step`."""
+  return bool(period) and step % period == 0
+
+
+def _resume(
+  checkpointer: Checkpointer | None, state: TrainState, batches
+) -> tuple[TrainState, list[dict]]:
+  """`(state, history)` of the latest checkpoint (also restoring the iterator's position), or
+  `(state, [])` unchanged when there is none."""
+  if checkpointer is None or checkpointer.latest_step() is None:
+    return state, []
+  state, host_state = checkpointer.restore(state)
+  set_iterator_state(batches, host_state["iterator"])
+  print(
+    f"[train] resuming from step {int(jax.device_get(state.step))} ({checkpointer.directory})",
+    flush=True,
+  )
+  return state, host_state["history"]
+
+
+class _MetricsLog:
+  """The steps' metrics on their way to the log: kept on device until a `drain` fetches them.
+
+  Attributes:
+    pending: per-step metric dicts of [] device arrays, not fetched yet.
+    history: the logged dicts (each with "step"), appended to in place.
+    last_saved: step of the last checkpoint written (named when training stops on a NaN).
+  """
+
+  def __init__(self, history: list[dict], log_fn, checkpointer: Checkpointer | None):
+    self.pending = []
+    self.history = history
+    self.log_fn = log_fn
+    self.checkpointer = checkpointer
+    self.last_saved = checkpointer.latest_step() if checkpointer else None
+    self.tick = time.perf_counter()
+
+  def drain(self, step_now: int) -> None:
+    """Fetches pending metrics, stops on a non-finite one, logs their mean."""
+    if not self.pending:
+      return
+    fetched = jax.device_get(self.pending)
+    self.pending.clear()
+    first = step_now - len(fetched) + 1
+    for offset, metrics in enumerate(fetched):
+      if not metrics["finite"]:
+        raise NonFiniteError(
+          f"non-finite loss or gradient at step {first + offset - 1} (loss "
+          f"{float(metrics['loss'])}, grad_norm {float(metrics['grad_norm'])}); the update was "
+          f"skipped and training stopped. Last good checkpoint: step {self.last_saved} in "
+          f"{self.checkpointer.directory if self.checkpointer else '(checkpointing off)'}."
+        )
+    logged = {k: float(np.mean([m[k] for m in fetched])) for k in fetched[0] if k != "finite"}
+    now = time.perf_counter()
+    logged["steps_per_s"] = len(fetched) / (now - self.tick)
+    self.tick = now
+    logged["step"] = step_now
+    self.history.append(logged)
+    self.log_fn(step_now, logged)
+
+  def evaluation(self, step: int, results: dict) -> None:
+    """Logs `eval_fn`'s dict of scalars as "eval/..." entries."""
+    evaluated = {f"eval/{k}": float(v) for k, v in jax.device_get(results).items()}
+    self.history.append({"step": step, **evaluated})
+    self.log_fn(step, evaluated)

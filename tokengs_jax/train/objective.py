@@ -21,6 +21,7 @@ and receives the training step as an argument (`loss_fn(params, batch, key, step
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from typing import Literal
 
@@ -168,6 +169,11 @@ def photometric_loss(rgb: jax.Array, images: jax.Array, loss_config, lpips_param
   )
 
 
+def _float32(gaussians: Gaussians) -> Gaussians:
+  """Gaussians with every field in float32 (what the objective renders)."""
+  return jax.tree.map(lambda x: x.astype(jnp.float32), gaussians)
+
+
 def supervision_loss(
   gaussians,
   images,
@@ -197,7 +203,7 @@ def supervision_loss(
   Returns:
     `(loss, terms)`: the loss terms, "psnr", and `render_diagnostics`.
   """
-  gaussians = jax.tree.map(lambda x: x.astype(jnp.float32), gaussians)
+  gaussians = _float32(gaussians)
   height, width = images.shape[-3], images.shape[-2]
   world_to_camera = world_to_camera.astype(jnp.float32)
   intrinsics = intrinsics.astype(jnp.float32)
@@ -310,61 +316,26 @@ def time_conditioned_loss(
   """
   from tokengs_jax import losses
 
-  height, width = images.shape[-3], images.shape[-2]
   world_to_camera = world_to_camera.astype(jnp.float32)
   intrinsics = intrinsics.astype(jnp.float32)
-  with_aux = num_static_gaussians is not None and loss_config.lambda_dyn_aux > 0
   aux_weight = losses.dynamic_aux_weight(step, loss_config)
 
-  def decoded(chunk_times):
-    return jax.tree.map(lambda x: x.astype(jnp.float32), gaussians_at(chunk_times))
-
-  shared = decoded(times[:, :1]) if objective.decode_times == "first" else None
-
-  def scored(gaussians, views):
-    """Loss of Gaussians [B, Vc or 1, N] rendered into the chunk's views [B, Vc]."""
-    rendered = render_views(
-      gaussians,
-      views["world_to_camera"][:, :, None],
-      views["intrinsics"][:, :, None],
-      height,
-      width,
-      render_config,
-      objective,
-    )
-    loss, terms = photometric_loss(
-      rendered.rgb[:, :, 0], views["images"], loss_config, lpips_params
-    )
-    # the Gaussians of each time against every view: [B, Vc or 1]
-    loss, terms = add_visibility(
-      loss,
-      terms,
-      gaussians.means,
-      world_to_camera[:, None],
-      intrinsics[:, None],
-      height,
-      width,
-      loss_config,
-    )
-    return loss, terms, rendered.stats
+  shared = _float32(gaussians_at(times[:, :1])) if objective.decode_times == "first" else None
+  scored = functools.partial(
+    _score_at_times,
+    world_to_camera=world_to_camera,
+    intrinsics=intrinsics,
+    loss_config=loss_config,
+    render_config=render_config,
+    objective=objective,
+    lpips_params=lpips_params,
+  )
 
   def chunk_loss(views):
-    gaussians = decoded(views["times"]) if shared is None else shared
-    loss, terms, stats = scored(gaussians, views)
-    terms.update(render_diagnostics(stats))
-    if with_aux:
-      dynamic = _slice_gaussians(gaussians, num_static_gaussians)
-
-      def dynamic_loss():
-        loss, terms, _ = scored(dynamic, views)
-        return loss, terms["psnr"]
-
-      zero = jnp.zeros((), jnp.float32)
-      # once the schedule has decayed to 0 the second render is skipped, as official
-      dyn_loss, dyn_psnr = jax.lax.cond(aux_weight > 0, dynamic_loss, lambda: (zero, zero))
-      loss, terms = losses.add_dynamic_aux(loss, terms, dyn_loss, step, loss_config)
-      terms["dyn_aux_psnr"] = dyn_psnr
-    return loss, terms
+    gaussians = _float32(gaussians_at(views["times"])) if shared is None else shared
+    return _scored_with_dynamic_aux(
+      scored, gaussians, views, num_static_gaussians, aux_weight, step, loss_config
+    )
 
   views = {
     "world_to_camera": world_to_camera,
@@ -373,6 +344,84 @@ def time_conditioned_loss(
     "times": jnp.asarray(times, jnp.float32),
   }
   return mean_over_view_chunks(chunk_loss, views, objective.view_chunk_size)
+
+
+def _score_at_times(
+  gaussians: Gaussians,
+  views: dict,
+  *,
+  world_to_camera: jax.Array,
+  intrinsics: jax.Array,
+  loss_config,
+  render_config,
+  objective: ObjectiveConfig,
+  lpips_params,
+):
+  """Loss of Gaussians [B, Vc or 1, N] (one set per view time) rendered into a chunk's views.
+
+  views: the chunk's "world_to_camera" [B, Vc, 4, 4], "intrinsics" [B, Vc, 4] and "images"
+  [B, Vc, H, W, 3]; world_to_camera [B, V, 4, 4] / intrinsics [B, V, 4]: all the views, which
+  the visibility term projects every time's Gaussians into.
+  Returns `(loss, terms, render stats [B, Vc, 1])`.
+  """
+  height, width = views["images"].shape[-3], views["images"].shape[-2]
+  rendered = render_views(
+    gaussians,
+    views["world_to_camera"][:, :, None],
+    views["intrinsics"][:, :, None],
+    height,
+    width,
+    render_config,
+    objective,
+  )
+  loss, terms = photometric_loss(rendered.rgb[:, :, 0], views["images"], loss_config, lpips_params)
+  # the Gaussians of each time against every view: [B, Vc or 1]
+  loss, terms = add_visibility(
+    loss,
+    terms,
+    gaussians.means,
+    world_to_camera[:, None],
+    intrinsics[:, None],
+    height,
+    width,
+    loss_config,
+  )
+  return loss, terms, rendered.stats
+
+
+def _scored_with_dynamic_aux(
+  scored: Callable,
+  gaussians: Gaussians,
+  views: dict,
+  num_static_gaussians,
+  aux_weight,
+  step,
+  loss_config,
+):
+  """`scored(gaussians, views)` with `render_diagnostics`, plus the dynamic auxiliary loss.
+
+  The auxiliary loss (`losses.add_dynamic_aux`, and "dyn_aux_psnr") scores the Gaussians
+  [B, Vc or 1, num_static_gaussians:] alone; it is on when `num_static_gaussians` is set and
+  `loss_config.lambda_dyn_aux > 0`. Its render only runs while `aux_weight` ([] float) is
+  positive: once the schedule has decayed to 0 the second render is skipped, as official.
+  """
+  from tokengs_jax import losses
+
+  loss, terms, stats = scored(gaussians, views)
+  terms.update(render_diagnostics(stats))
+  if num_static_gaussians is None or not loss_config.lambda_dyn_aux > 0:
+    return loss, terms
+  dynamic = _slice_gaussians(gaussians, num_static_gaussians)
+
+  def dynamic_loss():
+    loss, terms, _ = scored(dynamic, views)
+    return loss, terms["psnr"]
+
+  zero = jnp.zeros((), jnp.float32)
+  dyn_loss, dyn_psnr = jax.lax.cond(aux_weight > 0, dynamic_loss, lambda: (zero, zero))
+  loss, terms = losses.add_dynamic_aux(loss, terms, dyn_loss, step, loss_config)
+  terms["dyn_aux_psnr"] = dyn_psnr
+  return loss, terms
 
 
 def static_model_loss(
