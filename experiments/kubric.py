@@ -54,7 +54,7 @@ from tokengs_jax.camera import invert_rigid, project_points
 from tokengs_jax.data import DATASET_PRESETS, ExampleConfig, InputPipeline, make_example
 from tokengs_jax.data.kubric import KubricSceneSource, kubric_view_selector, list_kubric_scenes
 from tokengs_jax.gaussians import Gaussians
-from tokengs_jax.train.objective import ObjectiveConfig
+from tokengs_jax.train.supervision import ObjectiveConfig
 
 TRAIN_SUBSET, TEST_SUBSET = "v0", "test"
 

@@ -91,7 +91,7 @@ def reconstruct(
 def loss_fn(config: ModelConfig, loss_config=None, render_config=None, objective=None):
   """The TokenGS training objective with this model in place of TokenGS (same terms, same renders)."""
   from tokengs_jax import losses, splatting
-  from tokengs_jax.train.objective import ObjectiveConfig, supervision_loss
+  from tokengs_jax.train.supervision import ObjectiveConfig, supervision_loss
 
   loss_config = losses.LossConfig() if loss_config is None else loss_config
   render_config = splatting.RenderConfig() if render_config is None else render_config

@@ -14,7 +14,7 @@ from experiments import data, results, training, weights
 from experiments.config import Experiment
 from tokengs_jax import evaluation, model
 from tokengs_jax.data import InputPipeline
-from tokengs_jax.train.objective import ObjectiveConfig
+from tokengs_jax.train.supervision import ObjectiveConfig
 from tokengs_jax.tuning import TuningConfig
 
 Command = Literal["run", "train", "finetune", "eval"]

@@ -270,10 +270,14 @@ def test_gallery_set_reads_back_through_the_evaluation_index(tmp_path):
   from tokengs_jax.data.synthetic.generate import GalleryDatasetConfig, generate_galleries
 
   config = GalleryDatasetConfig(supersample=1, scenes_per_chunk=2)
-  written = generate_galleries(tmp_path, num_scenes=3, height=H, width=W, frames=9, seed=4,
-                               config=config)
+  written = generate_galleries(
+    tmp_path, num_scenes=3, height=H, width=W, frames=9, seed=4, config=config
+  )
   assert sorted(p.name for p in (tmp_path / "test").iterdir()) == [
-    "000000.torch", "000001.torch", "index.json"]
+    "000000.torch",
+    "000001.torch",
+    "index.json",
+  ]
   index = load_evaluation_index(tmp_path / "eval_index.json")
   assert list(index) == list(written) == ["gallery4_000000", "gallery4_000001", "gallery4_000002"]
   source = ChunkedSceneSource(tmp_path / "test", keys=list(index))
@@ -312,7 +316,8 @@ def test_gallery_scene_is_deterministic_and_unlike_the_rooms():
     travel = np.diff(orbit[:, [0, 2], 3], axis=0)
     look = orbit[:-1, [0, 2], 2]
     along = np.abs(np.einsum("fi,fi->f", travel, look)) / (
-      np.linalg.norm(travel, axis=-1) * np.linalg.norm(look, axis=-1))
+      np.linalg.norm(travel, axis=-1) * np.linalg.norm(look, axis=-1)
+    )
     assert np.median(along) < 0.5
   assert rooms_kinds.isdisjoint(gallery_kinds)
   assert len(wall_counts) > 1

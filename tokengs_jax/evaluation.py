@@ -43,7 +43,8 @@ import numpy as np
 from tokengs_jax import metrics, model, splatting, tuning
 from tokengs_jax.camera import invert_rigid
 from tokengs_jax.gaussians import Gaussians
-from tokengs_jax.train.objective import ObjectiveConfig, decode_at_times
+from tokengs_jax.train.objective import decode_at_times
+from tokengs_jax.train.supervision import ObjectiveConfig
 
 Scene = tuple[str, dict]  # (scene key, batch of one in the data contract)
 

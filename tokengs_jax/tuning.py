@@ -42,12 +42,8 @@ from tokengs_jax import losses, model, splatting
 from tokengs_jax.camera import invert_rigid
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.model.inputs import check_times
-from tokengs_jax.train.objective import (
-  ObjectiveConfig,
-  decode_at_times,
-  supervision_loss,
-  time_conditioned_loss,
-)
+from tokengs_jax.train.objective import decode_at_times, time_conditioned_loss
+from tokengs_jax.train.supervision import ObjectiveConfig, supervision_loss
 
 Target = Literal["tokens", "latents", "gaussians", "tokens+gaussians"]
 

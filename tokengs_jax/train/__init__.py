@@ -13,14 +13,8 @@ from tokengs_jax.train.checkpoint import (
 )
 from tokengs_jax.train.distributed import barrier, initialize, make_mesh, replicate, shard_batch
 from tokengs_jax.train.loop import LoopConfig, NonFiniteError, train
-from tokengs_jax.train.objective import (
-  ObjectiveConfig,
-  decode_at_times,
-  mean_over_view_chunks,
-  supervision_loss,
-  time_conditioned_loss,
-  tokengs_loss_fn,
-)
+from tokengs_jax.train.objective import decode_at_times, time_conditioned_loss, tokengs_loss_fn
+from tokengs_jax.train.supervision import ObjectiveConfig, mean_over_view_chunks, supervision_loss
 from tokengs_jax.train.optim import (
   OptimConfig,
   beta1_schedule,

@@ -401,8 +401,11 @@ def sample_gallery_scene(
     [np.cos(elevation) * np.sin(azimuth), np.sin(elevation), np.cos(elevation) * np.cos(azimuth)]
   )
   warmth = rng.uniform(-1.0, 1.0)  # > 0 warm (reddish), < 0 cool (bluish)
-  tint = (1.0, 1.0 - 0.15 * abs(warmth), 1.0 - 0.35 * warmth) if warmth > 0 else (
-    1.0 + 0.3 * warmth, 1.0 + 0.15 * warmth, 1.0)
+  tint = (
+    (1.0, 1.0 - 0.15 * abs(warmth), 1.0 - 0.35 * warmth)
+    if warmth > 0
+    else (1.0 + 0.3 * warmth, 1.0 + 0.15 * warmth, 1.0)
+  )
   scene = Scene(
     planes=planes,
     objects=tuple(objects),

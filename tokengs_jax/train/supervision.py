@@ -1,0 +1,225 @@
+"""Supervision of static renders: the memory-lean mean over target views and the loss terms.
+
+`mean_over_view_chunks` is the JAX form of the official "deferred back-propagation": the views are
+processed `chunk_size` at a time in a `lax.scan` whose body is rematerialised, so the backward pass
+recomputes one chunk's render at a time and peak memory holds one chunk's intermediates instead
+of every view's. The gradient is that of the one-shot mean (up to float summation order).
+
+The terms are small top-level functions (`render_views`, `photometric_loss`, `add_visibility`,
+`render_diagnostics`) composed by `supervision_loss`; `objective` builds the model losses on them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Literal
+
+import jax
+import jax.numpy as jnp
+
+from tokengs_jax.gaussians import Gaussians
+
+
+def mean_over_view_chunks(chunk_loss: Callable, views, chunk_size: int | None):
+  """Mean of `chunk_loss` over chunks of views, rematerialised per chunk.
+
+  Args:
+    chunk_loss: `views_chunk -> (scalar, aux dict of scalars)`, itself a mean over the chunk's
+      views (so that equal-size chunks average to the mean over all views).
+    views: pytree of arrays `[B, V, ...]` (view axis 1).
+    chunk_size: views per chunk (must divide V); None or >= V: one chunk, no scan.
+
+  Returns:
+    `(mean loss, mean aux)`.
+  """
+  num_views = jax.tree.leaves(views)[0].shape[1]
+  if chunk_size is None or chunk_size >= num_views:
+    return chunk_loss(views)
+  if num_views % chunk_size:
+    raise ValueError(f"chunk_size {chunk_size} must divide the {num_views} target views")
+  num_chunks = num_views // chunk_size
+
+  def to_chunks(x):  # [B, V, ...] -> [num_chunks, B, chunk_size, ...]
+    x = x.reshape(x.shape[0], num_chunks, chunk_size, *x.shape[2:])
+    return jnp.moveaxis(x, 1, 0)
+
+  @jax.checkpoint
+  def body(total, chunk):
+    loss, aux = chunk_loss(chunk)
+    return total + loss.astype(jnp.float32), aux
+
+  total, aux = jax.lax.scan(body, jnp.zeros((), jnp.float32), jax.tree.map(to_chunks, views))
+  return total / num_chunks, jax.tree.map(lambda a: jnp.mean(a, axis=0), aux)
+
+
+@dataclasses.dataclass(frozen=True)
+class ObjectiveConfig:
+  """How the TokenGS objective renders its supervision views.
+
+  Attributes:
+    view_chunk_size: target views rendered (and differentiated) together; None: all at once.
+      Time-conditioned models also decode per chunk, so this bounds the decoder's memory too.
+    background: RGB behind the Gaussians (official `bg_color` default "grey" = 0.5).
+    near, far: renderer depth culling (official znear / zfar).
+    decode_times: time-conditioned models only. "per_view": decode the Gaussians at every target
+      view's own time; "first": decode once, at the first target view's time, and render every
+      target view from it (the official `split_data` reads the target time from that one view;
+      identical results, one decode instead of V, when all target views share a time, as the
+      Kubric sampler's do).
+  """
+
+  view_chunk_size: int | None = None
+  background: tuple[float, float, float] = (0.5, 0.5, 0.5)
+  near: float = 0.025
+  far: float = 125.0
+  decode_times: Literal["per_view", "first"] = "per_view"
+
+  def __post_init__(self):
+    if self.decode_times not in ("per_view", "first"):
+      raise ValueError(f"decode_times must be 'per_view' or 'first', got {self.decode_times!r}")
+
+
+def render_views(
+  gaussians: Gaussians,
+  world_to_camera: jax.Array,
+  intrinsics: jax.Array,
+  height: int,
+  width: int,
+  render_config,
+  objective: ObjectiveConfig,
+):
+  """Float32 renders of Gaussians [B(, ...)] into views [B, V(, ...)] (`splatting.render`)."""
+  from tokengs_jax import splatting  # the heavy areas only when this objective is used
+
+  return splatting.render(
+    gaussians,
+    world_to_camera,
+    intrinsics,
+    height=height,
+    width=width,
+    background=jnp.asarray(objective.background, jnp.float32),
+    near=objective.near,
+    far=objective.far,
+    config=render_config,
+  )
+
+
+def render_diagnostics(stats) -> dict:
+  """Logged render health: "render_overflow" (fraction of renders whose tile budget overflowed)
+  and "visible" (mean number of Gaussians drawn per view)."""
+  return {
+    "render_overflow": jnp.mean(stats.overflow.astype(jnp.float32)),
+    "visible": jnp.mean(stats.num_visible.astype(jnp.float32)),
+  }
+
+
+def add_visibility(
+  loss: jax.Array,
+  terms: dict,
+  means: jax.Array,
+  world_to_camera: jax.Array,
+  intrinsics: jax.Array,
+  height: int,
+  width: int,
+  loss_config,
+):
+  """`loss + lambda_vis * visibility` (terms gain "visibility" and the new "loss").
+
+  means: [B, ..., N, 3] projected into every view [B, V] (min over views, as official).
+  The visibility term only projects centres, so it is taken over all views at once even when
+  the photometric terms are chunked (its minimum over views does not split into chunks).
+  """
+  from tokengs_jax import losses
+
+  if loss_config.lambda_vis <= 0:
+    return loss, terms
+  visibility = jnp.mean(
+    losses.visibility_loss(
+      means,
+      world_to_camera,
+      intrinsics,
+      height,
+      width,
+      threshold=loss_config.visibility_threshold,
+      near=loss_config.near,
+    )
+  )
+  loss = loss + loss_config.lambda_vis * visibility
+  return loss, {**terms, "visibility": visibility, "loss": loss}
+
+
+def photometric_loss(rgb: jax.Array, images: jax.Array, loss_config, lpips_params=None):
+  """RGB, SSIM and LPIPS terms of renders against images (`losses.render_loss` without the
+  visibility term, which `add_visibility` adds over all views)."""
+  from tokengs_jax import losses
+
+  return losses.render_loss(
+    rgb, images, dataclasses.replace(loss_config, lambda_vis=0.0), lpips_params=lpips_params
+  )
+
+
+def _float32(gaussians: Gaussians) -> Gaussians:
+  """Gaussians with every field in float32 (what the objective renders)."""
+  return jax.tree.map(lambda x: x.astype(jnp.float32), gaussians)
+
+
+def supervision_loss(
+  gaussians,
+  images,
+  world_to_camera,
+  intrinsics,
+  loss_config,
+  render_config,
+  objective: ObjectiveConfig = ObjectiveConfig(),
+  lpips_params=None,
+):
+  """Loss of Gaussians against supervision views (training targets, or the inputs when tuning).
+
+  The views are rendered in chunks of `objective.view_chunk_size` under remat and scored with
+  `photometric_loss` averaged over chunks, then `add_visibility` over all views. Equals
+  `losses.render_loss` on the one-shot render.
+
+  Args:
+    gaussians: `Gaussians` with batch shape [B] (rendered in float32).
+    images: [B, V, H, W, 3] supervision images in [0, 1].
+    world_to_camera: [B, V, 4, 4].
+    intrinsics: [B, V, 4] in pixels.
+    loss_config: `losses.LossConfig`.
+    render_config: `splatting.RenderConfig`.
+    objective: view chunking, background, near/far.
+    lpips_params: VGG weights when `loss_config.lambda_lpips > 0`.
+
+  Returns:
+    `(loss, terms)`: the loss terms, "psnr", and `render_diagnostics`.
+  """
+  gaussians = _float32(gaussians)
+  height, width = images.shape[-3], images.shape[-2]
+  world_to_camera = world_to_camera.astype(jnp.float32)
+  intrinsics = intrinsics.astype(jnp.float32)
+
+  def chunk_loss(views):
+    rendered = render_views(
+      gaussians,
+      views["world_to_camera"],
+      views["intrinsics"],
+      height,
+      width,
+      render_config,
+      objective,
+    )
+    loss, terms = photometric_loss(rendered.rgb, views["images"], loss_config, lpips_params)
+    return loss, {**terms, **render_diagnostics(rendered.stats)}
+
+  loss, terms = mean_over_view_chunks(
+    chunk_loss,
+    {
+      "world_to_camera": world_to_camera,
+      "intrinsics": intrinsics,
+      "images": images.astype(jnp.float32),
+    },
+    objective.view_chunk_size,
+  )
+  return add_visibility(
+    loss, terms, gaussians.means, world_to_camera, intrinsics, height, width, loss_config
+  )
