@@ -1,0 +1,42 @@
+"""The code-size limits the project keeps (issue 13): no source file over 500 lines outside tests,
+no function over 80 lines, and one evaluation code path."""
+
+import ast
+import pathlib
+import re
+
+REPO = pathlib.Path(__file__).resolve().parent.parent
+SOURCE_DIRS = ("tokengs_jax", "experiments", "benchmarks")
+MAX_FILE_LINES = 500
+MAX_FUNCTION_LINES = 80
+
+
+def _sources():
+  return sorted(p for d in SOURCE_DIRS for p in (REPO / d).rglob("*.py"))
+
+
+def test_no_source_file_is_over_the_line_limit():
+  long = {
+    str(p.relative_to(REPO)): n
+    for p in _sources()
+    if (n := len(p.read_text().splitlines())) > MAX_FILE_LINES
+  }
+  assert not long, f"files over {MAX_FILE_LINES} lines: {long}"
+
+
+def test_no_function_is_over_the_line_limit():
+  long = {}
+  for path in _sources():
+    for node in ast.walk(ast.parse(path.read_text())):
+      if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+        lines = node.end_lineno - node.lineno + 1
+        if lines > MAX_FUNCTION_LINES:
+          long[f"{path.relative_to(REPO)}:{node.name}"] = lines
+  assert not long, f"functions over {MAX_FUNCTION_LINES} lines: {long}"
+
+
+def test_one_evaluation_code_path():
+  """Only `tokengs_jax/evaluation.py` defines an evaluator or a scorer (module level)."""
+  pattern = re.compile(r"^(def evaluate\w*|class Scorer)\b", re.MULTILINE)
+  defining = {str(p.relative_to(REPO)) for p in _sources() if pattern.search(p.read_text())}
+  assert defining == {"tokengs_jax/evaluation.py"}, defining
