@@ -4,6 +4,7 @@ import logging
 import pathlib
 import shutil
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -94,7 +95,7 @@ def test_restore_walks_back_past_a_damaged_latest_step(saved, case, caplog):
     state, data_state = checkpointer.restore(state_at(0))
   checkpointer.close()
   assert int(state.step) == 2 and data_state == {"position": 2}
-  jax.tree.map(np.testing.assert_array_equal, jax.device_get(state), jax.device_get(state_at(2)))
+  chex.assert_trees_all_equal(jax.device_get(state), jax.device_get(state_at(2)))
   skipped = [r.getMessage() for r in caplog.records if "unusable, skipped" in r.getMessage()]
   assert len(skipped) == 1 and "step 4" in skipped[0] and reason in skipped[0], skipped
   # set aside for inspection, invisible to orbax: the step number can be saved again

@@ -4,6 +4,7 @@ import functools
 import json
 import struct
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -493,7 +494,7 @@ def test_encode_views_is_normalise_plucker_encode():
     params, normalize_images(images), plucker_rays(c2w, intrinsics, 8, 8), MICRO
   )
   # one program vs two: equal up to XLA's fusion-dependent rounding
-  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=0, atol=1e-5), encoded, expected)
+  chex.assert_trees_all_close(encoded, expected, rtol=0, atol=1e-5)
 
 
 def _bad_views(change: str):
@@ -586,7 +587,7 @@ def test_remat_changes_nothing_but_memory():
   grad = jax.jit(jax.grad(loss), static_argnums=1)
   plain = grad(params, MICRO)
   remat = grad(params, MICRO.replace(remat=True))
-  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7), plain, remat)
+  chex.assert_trees_all_close(plain, remat, rtol=1e-5, atol=1e-7)
 
 
 def test_latent_bottleneck_encode_exposes_latents():

@@ -9,6 +9,7 @@ import json
 import math
 import pathlib
 
+import chex
 import jax
 import numpy as np
 import pytest
@@ -231,7 +232,7 @@ def test_token_count_retrain_reuses_a_saved_model(smoke_model, tmp_path):
   settings = token_count.TokenCount(experiment=SMOKE, retrain=True)
   config_k, loaded = token_count.model_for(settings, config, params, 2, tmp_path)
   assert config_k.num_gs_tokens == 2
-  assert all(jax.tree.leaves(jax.tree.map(np.array_equal, loaded, saved)))
+  chex.assert_trees_all_equal(loaded, saved)
 
 
 def test_token_colours_are_distinct_and_valid():
@@ -286,7 +287,7 @@ def smoke_study(tmp_path_factory, smoke_model):
 def test_trained_tokengs_loads_saved_weights_without_training(smoke_study, smoke_model):
   config, params = trained_tokengs(smoke_study)
   assert config == smoke_model[0]
-  assert all(jax.tree.leaves(jax.tree.map(np.array_equal, params, smoke_model[1])))
+  chex.assert_trees_all_equal(params, smoke_model[1])
   assert not (pathlib.Path(smoke_study.params).parent / "checkpoints").exists()  # no training
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import functools
 
+import einops
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -50,14 +51,12 @@ def dense(
 
 def split_heads(x: jax.Array, num_heads: int) -> jax.Array:
   """[B, N, heads * d] -> [B, heads, N, d]."""
-  b, n, c = x.shape
-  return x.reshape(b, n, num_heads, c // num_heads).transpose(0, 2, 1, 3)
+  return einops.rearrange(x, "b n (h d) -> b h n d", h=num_heads)
 
 
 def merge_heads(x: jax.Array) -> jax.Array:
   """[B, heads, N, d] -> [B, N, heads * d]."""
-  b, h, n, d = x.shape
-  return x.transpose(0, 2, 1, 3).reshape(b, n, h * d)
+  return einops.rearrange(x, "b h n d -> b n (h d)")
 
 
 # Attention runs in tiles of at most this many logits (4 MB in float32). On XLA:CPU, materialising
@@ -292,11 +291,10 @@ class SelfAttention(nn.Module):
   @nn.compact
   def __call__(self, x: jax.Array, mask: jax.Array | None = None) -> jax.Array:
     """x: [B, N, C]; mask: optional bool [N, N] -> [B, N, C]."""
-    b, n, c = x.shape
-    head_dim = c // self.num_heads
+    c = x.shape[-1]
     qkv = dense(3 * c, self.dtype, name="qkv")(x)
     # Official channel order of qkv: (3, heads, head_dim).
-    qkv = qkv.reshape(b, n, 3, self.num_heads, head_dim).transpose(2, 0, 3, 1, 4)
+    qkv = einops.rearrange(qkv, "b n (three h d) -> three b h n d", three=3, h=self.num_heads)
     queries = layer_norm(self.dtype, "q_norm")(qkv[0])
     keys = layer_norm(self.dtype, "k_norm")(qkv[1])
     out = attend(queries, keys, qkv[2], mask)
@@ -320,12 +318,11 @@ class PatchEmbed(nn.Module):
   @nn.compact
   def __call__(self, images: jax.Array) -> jax.Array:
     """images: [..., H, W, Cin] -> [..., (H/p)*(W/p), C] (row-major patch order)."""
-    *batch, h, w, cin = images.shape
+    h, w = images.shape[-3:-1]
     p = self.patch_size
     if h % p or w % p:
       raise ValueError(f"image size {h}x{w} is not divisible by the patch size {p}")
-    patches = images.reshape(*batch, h // p, p, w // p, p, cin)
-    patches = jnp.swapaxes(patches, -4, -3).reshape(*batch, (h // p) * (w // p), p * p * cin)
+    patches = einops.rearrange(images, "... (hp p) (wp q) c -> ... (hp wp) (p q c)", p=p, q=p)
     init = nn.initializers.zeros if self.zero_init else torch_default_kernel_init
     tokens = nn.Dense(
       self.embed_dim, dtype=self.dtype, param_dtype=jnp.float32, kernel_init=init, name="proj"

@@ -15,6 +15,7 @@ import math
 import os
 import re
 
+import einops
 import jax
 import ml_dtypes
 import numpy as np
@@ -40,8 +41,7 @@ def official_name(path: tuple[str, ...]) -> str:
 
 def _to_torch_layout(path: tuple[str, ...], value: np.ndarray, patch_size: int) -> np.ndarray:
   if _is_patch_embed(path):
-    cin = value.shape[0] // (patch_size * patch_size)
-    return value.reshape(patch_size, patch_size, cin, -1).transpose(3, 2, 0, 1)
+    return einops.rearrange(value, "(p q c) o -> o c p q", p=patch_size, q=patch_size)
   if path[-1] == "kernel":
     return value.T
   return value
@@ -49,8 +49,7 @@ def _to_torch_layout(path: tuple[str, ...], value: np.ndarray, patch_size: int) 
 
 def _from_torch_layout(path: tuple[str, ...], value: np.ndarray) -> np.ndarray:
   if _is_patch_embed(path):
-    out, cin, p, _ = value.shape
-    return value.transpose(2, 3, 1, 0).reshape(p * p * cin, out)
+    return einops.rearrange(value, "o c p q -> (p q c) o")
   if path[-1] == "kernel":
     return value.T
   return value
