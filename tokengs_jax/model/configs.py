@@ -59,6 +59,12 @@ class ModelConfig:
     image_size: (H, W) the preset was trained at (metadata, not architecture).
     num_input_views: context views the preset was trained with (metadata).
     dtype: compute dtype ("float32" or "bfloat16"); parameters always stay float32.
+    matmul_dtype: dtype the operands of the transformer's matmuls/einsums (patch embeds, Dense
+      layers, attention; forward and backward) are rounded to, products accumulated and returned
+      in float32; None: the compute dtype. The Gaussian head's matmul keeps the compute dtype.
+      "bfloat16" with dtype "float32" is the fast mixed-precision mode on CPUs with native bf16
+      dots (about 2x the float32 matmul rate; LayerNorm, softmax, GELU, residuals and parameters
+      stay float32; accuracy in docs/notes/model_speed.md).
     remat: rematerialise each transformer block in the backward pass (saves activation memory).
   """
 
@@ -88,6 +94,7 @@ class ModelConfig:
   image_size: tuple[int, int] = (256, 256)
   num_input_views: int = 2
   dtype: str = "float32"
+  matmul_dtype: str | None = None
   remat: bool = False
 
   def __post_init__(self):
@@ -109,6 +116,10 @@ class ModelConfig:
         )
     if self.dtype not in ("float32", "bfloat16"):
       raise ValueError(f"dtype must be 'float32' or 'bfloat16', got {self.dtype!r}")
+    if self.matmul_dtype not in (None, "float32", "bfloat16"):
+      raise ValueError(
+        f"matmul_dtype must be None, 'float32' or 'bfloat16', got {self.matmul_dtype!r}"
+      )
 
   @property
   def head_dim(self) -> int:
@@ -151,6 +162,13 @@ class ModelConfig:
   @property
   def compute_dtype(self):
     return jnp.dtype(self.dtype)
+
+  @property
+  def matmul_operand_dtype(self):
+    """The modules' `matmul_dtype`: None (plain dots in the compute dtype) unless it differs."""
+    if self.matmul_dtype in (None, self.dtype):
+      return None
+    return jnp.dtype(self.matmul_dtype)
 
   @property
   def encoder_feature_dim(self) -> int:

@@ -33,15 +33,17 @@ class CrossAttention(nn.Module):
 
   num_heads: int
   dtype: jax.typing.DTypeLike
+  matmul_dtype: jax.typing.DTypeLike | None = None  # see `layers.dense` and `layers.attend`
 
   @nn.compact
   def __call__(self, tokens: jax.Array, keys: jax.Array, values: jax.Array) -> jax.Array:
     """tokens: [B, T, C]; keys, values: [B, heads, N, d] -> [B, T, C]."""
     c = tokens.shape[-1]
-    queries = dense(c, self.dtype, name="q_proj")(layer_norm(self.dtype, "gs_token_norm")(tokens))
+    q_proj = dense(c, self.dtype, "q_proj", matmul_dtype=self.matmul_dtype)
+    queries = q_proj(layer_norm(self.dtype, "gs_token_norm")(tokens))
     queries = layer_norm(self.dtype, "q_norm")(split_heads(queries, self.num_heads))
-    out = attend(queries, keys, values.astype(queries.dtype))
-    return dense(c, self.dtype, name="out_proj")(merge_heads(out))
+    out = attend(queries, keys, values.astype(queries.dtype), matmul_dtype=self.matmul_dtype)
+    return dense(c, self.dtype, "out_proj", matmul_dtype=self.matmul_dtype)(merge_heads(out))
 
 
 class _NormedSelfAttention(nn.Module):
@@ -49,11 +51,13 @@ class _NormedSelfAttention(nn.Module):
 
   num_heads: int
   dtype: jax.typing.DTypeLike
+  matmul_dtype: jax.typing.DTypeLike | None = None
 
   @nn.compact
   def __call__(self, tokens: jax.Array, mask: jax.Array | None) -> jax.Array:
     normed = layer_norm(self.dtype, "norm")(tokens)
-    return SelfAttention(self.num_heads, self.dtype, name="gs_self_attn")(normed, mask)
+    attention = SelfAttention(self.num_heads, self.dtype, self.matmul_dtype, name="gs_self_attn")
+    return attention(normed, mask)
 
 
 class _NormedMlp(nn.Module):
@@ -61,10 +65,12 @@ class _NormedMlp(nn.Module):
 
   hidden_dim: int
   dtype: jax.typing.DTypeLike
+  matmul_dtype: jax.typing.DTypeLike | None = None
 
   @nn.compact
   def __call__(self, tokens: jax.Array) -> jax.Array:
-    return Mlp(self.hidden_dim, self.dtype, name="mlp")(layer_norm(self.dtype, "norm")(tokens))
+    mlp = Mlp(self.hidden_dim, self.dtype, self.matmul_dtype, name="mlp")
+    return mlp(layer_norm(self.dtype, "norm")(tokens))
 
 
 class DecoderBlock(nn.Module):
@@ -75,24 +81,30 @@ class DecoderBlock(nn.Module):
     mlp_hidden_dim: MLP hidden width.
     layer_scale: LayerScale init value; None removes the LayerScales (official Identity).
     dtype: compute dtype.
+    matmul_dtype: operand dtype of the matmuls (`ModelConfig.matmul_operand_dtype`).
   """
 
   num_heads: int
   mlp_hidden_dim: int
   layer_scale: float | None
   dtype: jax.typing.DTypeLike
+  matmul_dtype: jax.typing.DTypeLike | None = None
 
   @nn.compact
   def __call__(
     self, tokens: jax.Array, keys: jax.Array, values: jax.Array, mask: jax.Array | None = None
   ) -> jax.Array:
     """tokens: [B, T, C]; keys, values: [B, heads, N, d]; mask: bool [T, T] -> [B, T, C]."""
-    c = tokens.shape[-1]
-    cross = CrossAttention(self.num_heads, self.dtype, name="gs_cross_attn")(tokens, keys, values)
-    tokens = tokens + maybe_layer_scale(c, self.layer_scale, "gs_cross_attn_scale")(cross)
-    attn = _NormedSelfAttention(self.num_heads, self.dtype, name="gs_self_attn")(tokens, mask)
-    tokens = tokens + maybe_layer_scale(c, self.layer_scale, "gs_self_attn_scale")(attn)
-    mlp = _NormedMlp(self.mlp_hidden_dim, self.dtype, name="mlp")(tokens)
+    c, dtype, matmul_dtype = tokens.shape[-1], self.dtype, self.matmul_dtype
+    cross = CrossAttention(self.num_heads, dtype, matmul_dtype, name="gs_cross_attn")
+    tokens = tokens + maybe_layer_scale(c, self.layer_scale, "gs_cross_attn_scale")(
+      cross(tokens, keys, values)
+    )
+    attn = _NormedSelfAttention(self.num_heads, dtype, matmul_dtype, name="gs_self_attn")
+    tokens = tokens + maybe_layer_scale(c, self.layer_scale, "gs_self_attn_scale")(
+      attn(tokens, mask)
+    )
+    mlp = _NormedMlp(self.mlp_hidden_dim, dtype, matmul_dtype, name="mlp")(tokens)
     return tokens + maybe_layer_scale(c, self.layer_scale, "mlp_scale")(mlp)
 
 

@@ -17,11 +17,17 @@ class EncoderBlock(nn.Module):
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
-    cfg, dtype = self.config, self.config.compute_dtype
+    cfg, dtype, matmul_dtype = (
+      self.config,
+      self.config.compute_dtype,
+      self.config.matmul_operand_dtype,
+    )
     c = cfg.enc_embed_dim
-    attn = SelfAttention(cfg.enc_num_heads, dtype, name="attn")(layer_norm(dtype, "norm1")(x))
-    x = x + LayerScale(c, ENCODER_LAYER_SCALE_INIT, name="ls1")(attn)
-    mlp = Mlp(cfg.mlp_hidden_dim, dtype, name="mlp")(layer_norm(dtype, "norm2")(x))
+    attention = SelfAttention(cfg.enc_num_heads, dtype, matmul_dtype, name="attn")
+    x = x + LayerScale(c, ENCODER_LAYER_SCALE_INIT, name="ls1")(
+      attention(layer_norm(dtype, "norm1")(x))
+    )
+    mlp = Mlp(cfg.mlp_hidden_dim, dtype, matmul_dtype, name="mlp")(layer_norm(dtype, "norm2")(x))
     return x + LayerScale(c, ENCODER_LAYER_SCALE_INIT, name="ls2")(mlp)
 
 

@@ -62,7 +62,12 @@ class GaussianHead(nn.Module):
 
   @nn.compact
   def __call__(self, tokens: jax.Array) -> jax.Array:
-    """tokens: [B, T, C] -> raw channels [B, T * p², 14] (Gaussian index = token * p² + k)."""
+    """tokens: [B, T, C] -> raw channels [B, T * p², 14] (Gaussian index = token * p² + k).
+
+    `ModelConfig.matmul_dtype` does not apply here: the raw Gaussian channels come straight out
+    of this matmul, and keeping it in the compute dtype cuts the bf16 mode's Gaussian error about
+    4x for 0.4-4% of the FLOPs (docs/notes/model_speed.md).
+    """
     cfg = self.config
     raw = nn.Dense(
       RAW_CHANNELS * cfg.gaussians_per_token,

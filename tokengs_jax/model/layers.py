@@ -18,6 +18,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from tokengs_jax.model import matmul
 from tokengs_jax.model.configs import LAYER_NORM_EPS
 
 # torch.nn.Linear / Conv2d default weight init: U(-1/sqrt(fan_in), 1/sqrt(fan_in)).
@@ -37,14 +38,17 @@ def dense(
   name: str | None = None,
   use_bias: bool = True,
   kernel_init=torch_default_kernel_init,
+  matmul_dtype=None,
 ) -> nn.Dense:
-  """Linear layer with float32 parameters computing in `dtype`."""
+  """Linear layer with float32 parameters computing in `dtype`; with `matmul_dtype` set, its
+  matmul rounds the operands to it and accumulates in float32 (`model.matmul`)."""
   return nn.Dense(
     features,
     use_bias=use_bias,
     dtype=dtype,
     param_dtype=jnp.float32,
     kernel_init=kernel_init,
+    dot_general=None if matmul_dtype is None else matmul.dense_dot_general(matmul_dtype),
     name=name,
   )
 
@@ -100,9 +104,9 @@ def _from_row_chunks(x: jax.Array, num_rows: int) -> jax.Array:
   return x.reshape(*x.shape[:-3], -1, x.shape[-1])[..., :num_rows, :]
 
 
-def _masked_logits(queries, keys, mask, scale):
+def _masked_logits(queries, keys, mask, scale, operand_dtype):
   """[G, q, d], [G, k, d], bool [q, k] or None -> float32 [G, q, k]."""
-  logits = jnp.einsum("gqd,gkd->gqk", queries, keys, preferred_element_type=jnp.float32) * scale
+  logits = matmul.einsum("gqd,gkd->gqk", queries, keys, operand_dtype) * scale
   return logits if mask is None else jnp.where(mask, logits, -jnp.inf)
 
 
@@ -111,12 +115,12 @@ def _head_groups(x: jax.Array, heads_per_step: int) -> jax.Array:
   return x.reshape(-1, heads_per_step, *x.shape[-2:])
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(4,))
-def _tiled_attention(queries, keys, values, mask, tile):
-  return _tiled_attention_fwd(queries, keys, values, mask, tile)[0]
+@functools.partial(jax.custom_vjp, nondiff_argnums=(4, 5))
+def _tiled_attention(queries, keys, values, mask, tile, operand_dtype):
+  return _tiled_attention_fwd(queries, keys, values, mask, tile, operand_dtype)[0]
 
 
-def _tiled_attention_fwd(queries, keys, values, mask, tile):
+def _tiled_attention_fwd(queries, keys, values, mask, tile, operand_dtype):
   b, h, num_queries, head_dim = queries.shape
   heads_per_step, rows, row_steps = attention_tiling(b * h, num_queries, keys.shape[2], tile)
   scale = head_dim**-0.5
@@ -128,13 +132,12 @@ def _tiled_attention_fwd(queries, keys, values, mask, tile):
 
     def row_chunk(_, chunk):
       chunk_queries, chunk_mask = chunk
-      logits = _masked_logits(chunk_queries, group_keys, chunk_mask, scale)
+      logits = _masked_logits(chunk_queries, group_keys, chunk_mask, scale, operand_dtype)
       row_max = jnp.max(logits, axis=-1, keepdims=True)
       exp = jnp.exp(logits - row_max)
       row_sum = jnp.sum(exp, axis=-1, keepdims=True)
-      weights = (exp / row_sum).astype(group_values.dtype)
-      out = jnp.einsum("gqk,gkd->gqd", weights, group_values)
-      return None, (out, row_max + jnp.log(row_sum))
+      out = matmul.einsum("gqk,gkd->gqd", exp / row_sum, group_values, operand_dtype)
+      return None, (out.astype(group_values.dtype), row_max + jnp.log(row_sum))
 
     _, (out, log_sum_exp) = jax.lax.scan(
       row_chunk, None, (_to_row_chunks(group_queries, row_steps, rows), mask_chunks)
@@ -148,7 +151,7 @@ def _tiled_attention_fwd(queries, keys, values, mask, tile):
   return out, (queries, keys, values, mask, out, log_sum_exp)
 
 
-def _tiled_attention_bwd(tile, residuals, out_grad):
+def _tiled_attention_bwd(tile, operand_dtype, residuals, out_grad):
   """Flash-attention backward: recompute each tile's probabilities from the saved row
   log-sum-exp instead of storing them; dK, dV accumulate over a head group's row chunks."""
   queries, keys, values, mask, out, log_sum_exp = residuals
@@ -167,23 +170,13 @@ def _tiled_attention_bwd(tile, residuals, out_grad):
     def row_chunk(carry, chunk):
       keys_grad, values_grad = carry
       chunk_queries, chunk_out_grad, chunk_out_dot, chunk_lse, chunk_mask = chunk
-      probs = jnp.exp(_masked_logits(chunk_queries, group_keys, chunk_mask, scale) - chunk_lse)
-      values_grad += jnp.einsum(
-        "gqk,gqd->gkd",
-        probs.astype(chunk_out_grad.dtype),
-        chunk_out_grad,
-        preferred_element_type=jnp.float32,
-      )
-      probs_grad = jnp.einsum(
-        "gqd,gkd->gqk", chunk_out_grad, group_values, preferred_element_type=jnp.float32
-      )
-      logits_grad = (probs * (probs_grad - chunk_out_dot) * scale).astype(chunk_queries.dtype)
-      queries_grad = jnp.einsum(
-        "gqk,gkd->gqd", logits_grad, group_keys, preferred_element_type=jnp.float32
-      )
-      keys_grad += jnp.einsum(
-        "gqk,gqd->gkd", logits_grad, chunk_queries, preferred_element_type=jnp.float32
-      )
+      logits = _masked_logits(chunk_queries, group_keys, chunk_mask, scale, operand_dtype)
+      probs = jnp.exp(logits - chunk_lse)
+      values_grad += matmul.einsum("gqk,gqd->gkd", probs, chunk_out_grad, operand_dtype)
+      probs_grad = matmul.einsum("gqd,gkd->gqk", chunk_out_grad, group_values, operand_dtype)
+      logits_grad = probs * (probs_grad - chunk_out_dot) * scale
+      queries_grad = matmul.einsum("gqk,gkd->gqd", logits_grad, group_keys, operand_dtype)
+      keys_grad += matmul.einsum("gqk,gqd->gkd", logits_grad, chunk_queries, operand_dtype)
       return (keys_grad, values_grad), queries_grad.astype(chunk_queries.dtype)
 
     zeros = jnp.zeros(group_keys.shape, jnp.float32)
@@ -225,6 +218,7 @@ def attend(
   values: jax.Array,
   mask: jax.Array | None = None,
   tile: int = ATTENTION_TILE,
+  matmul_dtype=None,
 ) -> jax.Array:
   """Scaled dot-product attention (torch SDPA semantics: scale 1/sqrt(d)), tiled.
 
@@ -240,11 +234,14 @@ def attend(
     values: [B, H, Nk, d].
     mask: optional bool [Nq, Nk], True where attention is allowed.
     tile: logits per step (tests use small tiles to exercise the chunking).
+    matmul_dtype: dtype the operands of every product (forward and backward) are rounded to,
+      products accumulated in float32; None: the queries' dtype.
 
   Returns:
     [B, H, Nq, d] in the values' dtype.
   """
-  return _tiled_attention(queries, keys.astype(queries.dtype), values, mask, tile)
+  operand_dtype = queries.dtype if matmul_dtype is None else jnp.dtype(matmul_dtype)
+  return _tiled_attention(queries, keys.astype(queries.dtype), values, mask, tile, operand_dtype)
 
 
 class LayerScale(nn.Module):
@@ -271,12 +268,13 @@ class Mlp(nn.Module):
 
   hidden_dim: int
   dtype: jnp.dtype = jnp.float32
+  matmul_dtype: jnp.dtype | None = None  # see `dense`
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
-    hidden = dense(self.hidden_dim, self.dtype, name="fc1")(x)
+    hidden = dense(self.hidden_dim, self.dtype, "fc1", matmul_dtype=self.matmul_dtype)(x)
     hidden = jax.nn.gelu(hidden, approximate=False)
-    return dense(x.shape[-1], self.dtype, name="fc2")(hidden)
+    return dense(x.shape[-1], self.dtype, "fc2", matmul_dtype=self.matmul_dtype)(hidden)
 
 
 class SelfAttention(nn.Module):
@@ -287,18 +285,19 @@ class SelfAttention(nn.Module):
 
   num_heads: int
   dtype: jnp.dtype = jnp.float32
+  matmul_dtype: jnp.dtype | None = None  # see `dense` and `attend`
 
   @nn.compact
   def __call__(self, x: jax.Array, mask: jax.Array | None = None) -> jax.Array:
     """x: [B, N, C]; mask: optional bool [N, N] -> [B, N, C]."""
     c = x.shape[-1]
-    qkv = dense(3 * c, self.dtype, name="qkv")(x)
+    qkv = dense(3 * c, self.dtype, "qkv", matmul_dtype=self.matmul_dtype)(x)
     # Official channel order of qkv: (3, heads, head_dim).
     qkv = einops.rearrange(qkv, "b n (three h d) -> three b h n d", three=3, h=self.num_heads)
     queries = layer_norm(self.dtype, "q_norm")(qkv[0])
     keys = layer_norm(self.dtype, "k_norm")(qkv[1])
-    out = attend(queries, keys, qkv[2], mask)
-    return dense(c, self.dtype, name="proj")(merge_heads(out))
+    out = attend(queries, keys, qkv[2], mask, matmul_dtype=self.matmul_dtype)
+    return dense(c, self.dtype, "proj", matmul_dtype=self.matmul_dtype)(merge_heads(out))
 
 
 class PatchEmbed(nn.Module):
@@ -314,6 +313,7 @@ class PatchEmbed(nn.Module):
   use_norm: bool = True
   zero_init: bool = False  # the official time embeds start at exactly zero
   dtype: jnp.dtype = jnp.float32
+  matmul_dtype: jnp.dtype | None = None  # see `dense`
 
   @nn.compact
   def __call__(self, images: jax.Array) -> jax.Array:
@@ -324,8 +324,8 @@ class PatchEmbed(nn.Module):
       raise ValueError(f"image size {h}x{w} is not divisible by the patch size {p}")
     patches = einops.rearrange(images, "... (hp p) (wp q) c -> ... (hp wp) (p q c)", p=p, q=p)
     init = nn.initializers.zeros if self.zero_init else torch_default_kernel_init
-    tokens = nn.Dense(
-      self.embed_dim, dtype=self.dtype, param_dtype=jnp.float32, kernel_init=init, name="proj"
+    tokens = dense(
+      self.embed_dim, self.dtype, "proj", kernel_init=init, matmul_dtype=self.matmul_dtype
     )(patches)
     if self.use_norm:
       tokens = layer_norm(self.dtype, "norm")(tokens)

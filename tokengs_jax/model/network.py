@@ -80,7 +80,11 @@ class EncDecBackbone(nn.Module):
   config: ModelConfig
 
   def setup(self):
-    cfg, dtype = self.config, self.config.compute_dtype
+    cfg, dtype, matmul_dtype = (
+      self.config,
+      self.config.compute_dtype,
+      self.config.matmul_operand_dtype,
+    )
     c = cfg.enc_embed_dim
     self.encoder = [block_class(EncoderBlock, cfg)(cfg) for _ in range(cfg.enc_depth)]
     if cfg.use_multiscale_encoder:
@@ -88,22 +92,26 @@ class EncDecBackbone(nn.Module):
     else:
       self.encoder_norm = layer_norm(dtype)
     if not cfg.use_latent_bottleneck:
-      self.kv_proj = dense(2 * c, dtype)
+      self.kv_proj = dense(2 * c, dtype, matmul_dtype=matmul_dtype)
     self.k_proj_norm = layer_norm(dtype)
     decoder_block = block_class(DecoderBlock, cfg)
     if cfg.use_latent_bottleneck:
       self.latents = self.param(
         "latents", nn.initializers.normal(LATENT_INIT_STD), (cfg.num_latents, c), jnp.float32
       )
-      self.latent_feature_kv_proj = dense(2 * c, dtype)
+      self.latent_feature_kv_proj = dense(2 * c, dtype, matmul_dtype=matmul_dtype)
       self.latent_feature_k_norm = layer_norm(dtype)
       self.latent_blocks = [
-        decoder_block(cfg.enc_num_heads, cfg.mlp_hidden_dim, LATENT_LAYER_SCALE_INIT, dtype)
+        decoder_block(
+          cfg.enc_num_heads, cfg.mlp_hidden_dim, LATENT_LAYER_SCALE_INIT, dtype, matmul_dtype
+        )
         for _ in range(cfg.latent_cross_attn_depth)
       ]
-      self.latent_kv_proj = dense(2 * c, dtype)
+      self.latent_kv_proj = dense(2 * c, dtype, matmul_dtype=matmul_dtype)
     self.decoder_blocks = [
-      decoder_block(cfg.enc_num_heads, cfg.mlp_hidden_dim, cfg.decoder_layer_scale, dtype)
+      decoder_block(
+        cfg.enc_num_heads, cfg.mlp_hidden_dim, cfg.decoder_layer_scale, dtype, matmul_dtype
+      )
       for _ in range(cfg.dec_depth)
     ]
 
@@ -157,14 +165,15 @@ class TokenGS(nn.Module):
   config: ModelConfig
 
   def setup(self):
-    cfg, dtype = self.config, self.config.compute_dtype
+    cfg = self.config
     c, p = cfg.enc_embed_dim, cfg.patch_size
-    self.patch_embed = PatchEmbed(c, p, dtype=dtype)
-    self.patch_plucker_embed = PatchEmbed(c, p, dtype=dtype)
+    dtypes = dict(dtype=cfg.compute_dtype, matmul_dtype=cfg.matmul_operand_dtype)
+    self.patch_embed = PatchEmbed(c, p, **dtypes)
+    self.patch_plucker_embed = PatchEmbed(c, p, **dtypes)
     if cfg.time_embedding:
       # No norm and zero init: a pretrained static model is unchanged until they learn.
-      self.patch_time_embed = PatchEmbed(c, p, use_norm=False, zero_init=True, dtype=dtype)
-      self.patch_time_embed_tgt = PatchEmbed(c, p, use_norm=False, zero_init=True, dtype=dtype)
+      self.patch_time_embed = PatchEmbed(c, p, use_norm=False, zero_init=True, **dtypes)
+      self.patch_time_embed_tgt = PatchEmbed(c, p, use_norm=False, zero_init=True, **dtypes)
     self.enc_dec_backbone = EncDecBackbone(cfg)
     self.activation_head = GaussianHead(cfg)
     token_init = nn.initializers.normal(cfg.gs_token_std)
