@@ -4,6 +4,7 @@
     python benchmarks/model.py --case tiny:8 --repeats 5 --out /tmp/model_bench.json
     python benchmarks/model.py --case tiny:8 --compare-plain-attention   # A/B vs the old attention
     python benchmarks/model.py --case small:1 --case mid:1 --torch --repeats 7   # vs PyTorch
+    python benchmarks/model.py --case small:1 --variant tiled --variant bf16dot   # f32 vs bf16 dots
 
 Each case is PRESET:BATCH[:HxW[:TOKENS]]; views come from the preset (--views overrides),
 resolution and Gaussian-token count from the preset unless given. PRESET is a model preset or
@@ -19,10 +20,16 @@ For each case it times, after compilation (min over --repeats runs):
 FLOPs are XLA's cost analysis of the forward program; the train step is counted as 3x forward
 ("model FLOPs": rematerialised recomputation is not credited). GFLOP/s are compared with a
 float32 matmul peak (--peak-size square matmul) measured inside the same timing rounds: this
-machine is shared, so every round times the matmul (5 times) and then each stage, and each
+machine is shared, so every round times the matmuls (5 times) and then each stage, and each
 figure is the minimum over rounds (train steps take part in the first max(1, repeats // 2) rounds).
---compare-plain-attention also compiles every stage with the plain attention that materialises
-all logits (the implementation before the tiled `attend`) and times it in the same rounds.
+The bf16 x bf16 -> f32 matmul peak is measured in the same rounds.
+Each --variant compiles every stage once and is timed in the same rounds (interleaved A/B):
+  tiled    the default model (float32, tiled attention)
+  plain    the plain attention that materialises all logits (--compare-plain-attention)
+  bf16dot  ModelConfig.matmul_dtype="bfloat16": bf16-operand, float32-result matmuls
+Every variant after the first also reports its accuracy against the first: max |difference| of
+the reconstructed Gaussians and the PSNR between the two Gaussian sets' renders (`render_exact`,
+the first scene's first input camera).
 --torch also times `benchmarks/torch_reference.py` (our own PyTorch forward of the same
 architecture and weights, not the official code; `pip install torch`) against the network
 alone (`predict_gaussians`, stage "network") in the same rounds, after checking that both give
@@ -44,8 +51,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from tokengs_jax.camera import plucker_rays
+from tokengs_jax.metrics import psnr
 from tokengs_jax.model import decoder as model_decoder
 from tokengs_jax.model import layers as model_layers
+from tokengs_jax.model import matmul as model_matmul
 from tokengs_jax.model import (
   ModelConfig,
   count_params,
@@ -57,7 +66,10 @@ from tokengs_jax.model import (
   preset,
   reconstruct,
 )
+from tokengs_jax.splatting import render_exact
 
+# Variant -> the ModelConfig fields it changes ("plain" also swaps the attention, see below).
+VARIANTS = {"tiled": {}, "plain": {}, "bf16dot": {"matmul_dtype": "bfloat16"}}
 
 # The two sizes of issue 11's PyTorch comparison (2 views; head_dim 64 for "small", whose head
 # count the issue does not give).
@@ -124,25 +136,24 @@ def throughput(seconds: float, flops: float, peak_gflops: float) -> dict:
   }
 
 
-def matmul_program(size: int):
-  """A compiled float32 [size, size] @ [size, size] and its operands."""
-  a = jax.random.normal(jax.random.key(0), (size, size), jnp.float32)
-  b = jax.random.normal(jax.random.key(1), (size, size), jnp.float32)
-  return compile_fn(jax.jit(jnp.matmul), a, b), (a, b)
+def matmul_program(size: int, dtype=jnp.float32):
+  """A compiled [size, size] @ [size, size] on `dtype` operands with a float32 result, and its
+  operands."""
+  a = jax.random.normal(jax.random.key(0), (size, size), dtype)
+  b = jax.random.normal(jax.random.key(1), (size, size), dtype)
+  product = functools.partial(jnp.matmul, preferred_element_type=jnp.float32)
+  return compile_fn(jax.jit(product), a, b), (a, b)
 
 
-def plain_attention(queries, keys, values, mask=None):
+def plain_attention(queries, keys, values, mask=None, matmul_dtype=None):
   """The attention before tiling: all [B, H, Nq, Nk] logits at once, autodiff backward."""
-  logits = (
-    jnp.einsum(
-      "bhqd,bhkd->bhqk", queries, keys.astype(queries.dtype), preferred_element_type=jnp.float32
-    )
-    * queries.shape[-1] ** -0.5
-  )
+  operand_dtype = queries.dtype if matmul_dtype is None else matmul_dtype
+  logits = model_matmul.einsum("bhqd,bhkd->bhqk", queries, keys, operand_dtype)
+  logits = logits * queries.shape[-1] ** -0.5
   if mask is not None:
     logits = jnp.where(mask, logits, -jnp.inf)
-  weights = jax.nn.softmax(logits, axis=-1).astype(values.dtype)
-  return jnp.einsum("bhqk,bhkd->bhqd", weights, values)
+  weights = jax.nn.softmax(logits, axis=-1)
+  return model_matmul.einsum("bhqk,bhkd->bhqd", weights, values, operand_dtype).astype(values.dtype)
 
 
 @contextlib.contextmanager
@@ -243,14 +254,15 @@ class Case:
       "network": (self.params, normalised, plucker),
     }
 
-  def stage_functions(self, with_torch: bool) -> dict:
+  def stage_functions(self, with_torch: bool, variant: str = "tiled") -> dict:
     """Fresh jitted functions (jit caches traces per function object, so one set per variant)."""
-    config = self.config
+    variant_case = dataclasses.replace(self, config=self.config.replace(**VARIANTS[variant]))
+    config = variant_case.config
     stages = {
       "encode": jax.jit(functools.partial(encode, config=config)),
       "decode": jax.jit(functools.partial(decode, config=config)),
       "reconstruct": jax.jit(functools.partial(reconstruct, config=config)),
-      "train_step": jax.jit(jax.value_and_grad(lambda p: self.loss(p))),
+      "train_step": jax.jit(jax.value_and_grad(variant_case.loss)),
     }
     if with_torch:  # the network alone, as the PyTorch reference computes it
       stages["network"] = jax.jit(functools.partial(predict_gaussians, config=config))
@@ -288,7 +300,7 @@ def compile_stages(
   for variant in variants:
     results[variant] = {}
     with attention_variant(variant):
-      for stage, fn in case.stage_functions(with_torch).items():
+      for stage, fn in case.stage_functions(with_torch, variant).items():
         args = stage_args[stage]
         compiled = compile_fn(fn, *args)
         temp_gb = compiled.memory_analysis().temp_size_in_bytes / 1e9
@@ -307,19 +319,47 @@ def best_times(programs: list, peak_size: int, repeats: int) -> dict:
   Every round times the matmul and then each program, so that on a shared machine the peak and
   the stages see the same load; train steps take part in the first max(1, repeats // 2) rounds.
   """
-  matmul, matmul_args = matmul_program(peak_size)
+  matmuls = {
+    "peak": matmul_program(peak_size),
+    "peak_bf16": matmul_program(peak_size, jnp.bfloat16),
+  }
   never = np.full(2, np.inf)
-  best = {"peak": never}
+  best = dict.fromkeys(matmuls, never)
   for round_index in range(repeats):
-    # the matmul is cheap: sample it several times per round so that its minimum is as
+    # the matmuls are cheap: sample them several times per round so that their minima are as
     # representative of an unloaded moment as the stages' minima
     for _ in range(5):
-      best["peak"] = np.minimum(best["peak"], timed(matmul, *matmul_args))
+      for name, (matmul, matmul_args) in matmuls.items():
+        best[name] = np.minimum(best[name], timed(matmul, *matmul_args))
     for variant, stage, compiled, args in programs:
       if stage != "train_step" or round_index < max(1, repeats // 2):
         key = (variant, stage)
         best[key] = np.minimum(best.get(key, never), timed(compiled, *args))
   return best
+
+
+def variant_accuracy(case: Case, programs: list) -> dict:
+  """Variant -> {max |difference| of its reconstructed Gaussians from the first variant's, PSNR
+  (dB) between the two sets' renders}, for every variant after the first."""
+  outputs = {v: c(*args) for v, stage, c, args in programs if stage == "reconstruct"}
+  if len(outputs) < 2:
+    return {}
+  _, _, height, width, _ = case.images.shape
+  camera = (jnp.linalg.inv(case.c2w[0, :1]), case.intrinsics[0, :1])  # [1, 4, 4], [1, 4]
+
+  def image(gaussians):
+    first_scene = jax.tree.map(lambda x: x[0], gaussians)
+    return render_exact(first_scene, *camera, height=height, width=width).rgb[0]
+
+  (first, reference), *others = outputs.items()
+  return {
+    variant: {
+      "max_abs_deviation": float(jnp.abs(gaussians.to_flat() - reference.to_flat()).max()),
+      "render_psnr_db": float(psnr(image(gaussians), image(reference))),
+      "against": first,
+    }
+    for variant, gaussians in others
+  }
 
 
 def run_case(
@@ -346,8 +386,10 @@ def run_case(
     row["torch"] = {
       "network": {"gflop": flops["network"] / 1e9, "temp_gb": 0.0, "max_abs_deviation": deviation}
     }
+  row["accuracy"] = variant_accuracy(setup, programs)
   best = best_times(programs, peak_size, repeats)
   row["matmul_peak_gflops"] = peak = 2 * peak_size**3 / best["peak"][0] / 1e9
+  row["matmul_peak_bf16_gflops"] = 2 * peak_size**3 / best["peak_bf16"][0] / 1e9
   row["matmul_peak_cpu_ms"] = best["peak"][1] * 1e3
   for variant, stage, _, _ in programs:
     wall, cpu = best[(variant, stage)]
@@ -356,15 +398,16 @@ def run_case(
 
 
 def print_case(row: dict, variants: tuple[str, ...], peak_size: int, with_torch: bool) -> None:
-  """The case's sizes and matmul peak, a line per (attention variant, stage), the PyTorch ratio."""
+  """The case's sizes and matmul peaks, a line per (variant, stage), accuracy, PyTorch ratios."""
   print(
     f"\n{row['preset']}  B={row['batch']} V={row['views']} {row['height']}x{row['width']} "
     f"{row['dtype']}  {row['params_m']:.1f} M params, {row['image_tokens']} image tokens "
     f"-> {row['gaussians']} Gaussians;  matmul peak ({peak_size}^3 f32, same rounds): "
-    f"{row['matmul_peak_gflops']:.1f} GFLOP/s"
+    f"{row['matmul_peak_gflops']:.1f} GFLOP/s (bf16 x bf16 -> f32: "
+    f"{row['matmul_peak_bf16_gflops']:.1f})"
   )
   print(
-    f"  {'attention':<10}{'stage':<12}{'ms':>10}{'GFLOP':>10}{'GFLOP/s':>10}{'of peak':>9}"
+    f"  {'variant':<10}{'stage':<12}{'ms':>10}{'GFLOP':>10}{'GFLOP/s':>10}{'of peak':>9}"
     f"{'temp GB':>9}{'CPU ms':>9}  (matmul peak CPU ms {row['matmul_peak_cpu_ms']:.1f})"
   )
   for variant in (*variants, "torch") if with_torch else variants:
@@ -380,12 +423,18 @@ def print_case(row: dict, variants: tuple[str, ...], peak_size: int, with_torch:
         f"{s['gflops_per_s']:>10.1f}{s['fraction_of_peak']:>9.0%}{s['temp_gb']:>9.2f}"
         f"{s['cpu_ms']:>9.1f}"
       )
-  if with_torch:
-    torch_row, ours = row["torch"]["network"], row[variants[0]]["network"]
+  for variant, accuracy in row["accuracy"].items():
     print(
-      f"  network: PyTorch reference / ours = {torch_row['ms'] / ours['ms']:.2f}x wall, "
+      f"  {variant} vs {accuracy['against']}: Gaussians max |difference| "
+      f"{accuracy['max_abs_deviation']:.1e}, render PSNR {accuracy['render_psnr_db']:.1f} dB"
+    )
+  for variant in variants if with_torch else ():
+    torch_row, ours = row["torch"]["network"], row[variant]["network"]
+    print(
+      f"  network: PyTorch reference / {variant} = {torch_row['ms'] / ours['ms']:.2f}x wall, "
       f"{torch_row['cpu_ms'] / ours['cpu_ms']:.2f}x CPU time "
-      f"(max |difference| of the Gaussians {torch_row['max_abs_deviation']:.1e})"
+      f"(reference vs {variants[0]}: Gaussians max |difference| "
+      f"{torch_row['max_abs_deviation']:.1e})"
     )
 
 
@@ -400,7 +449,10 @@ def main():
   parser.add_argument(
     "--compare-plain-attention",
     action="store_true",
-    help="also time every stage with the untiled attention (A/B)",
+    help="also time every stage with the untiled attention (A/B); same as --variant plain",
+  )
+  parser.add_argument(
+    "--variant", action="append", choices=list(VARIANTS), help="variants to time (repeatable)"
   )
   parser.add_argument(
     "--torch",
@@ -410,7 +462,8 @@ def main():
   parser.add_argument("--out", default=None, help="write the results as JSON here")
   args = parser.parse_args()
   cases = args.case or ["tiny:8", "dl3dv_2view:1", "dl3dv_2view:1:128x224:1024"]
-  variants = ("tiled", "plain") if args.compare_plain_attention else ("tiled",)
+  variants = tuple(args.variant or ["tiled"])
+  variants += ("plain",) if args.compare_plain_attention and "plain" not in variants else ()
 
   results = {"device": jax.devices()[0].device_kind, "cases": []}
   print(f"device: {results['device']}")

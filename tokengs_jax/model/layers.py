@@ -17,6 +17,7 @@ import einops
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from tokengs_jax.model import matmul
 from tokengs_jax.model.configs import LAYER_NORM_EPS
@@ -104,9 +105,9 @@ def _from_row_chunks(x: jax.Array, num_rows: int) -> jax.Array:
   return x.reshape(*x.shape[:-3], -1, x.shape[-1])[..., :num_rows, :]
 
 
-def _masked_logits(queries, keys, mask, scale, operand_dtype):
+def _masked_logits(queries, keys, mask, operand_dtype):
   """[G, q, d], [G, k, d], bool [q, k] or None -> float32 [G, q, k]."""
-  logits = matmul.einsum("gqd,gkd->gqk", queries, keys, operand_dtype) * scale
+  logits = matmul.einsum("gqd,gkd->gqk", queries, keys, operand_dtype)
   return logits if mask is None else jnp.where(mask, logits, -jnp.inf)
 
 
@@ -117,13 +118,13 @@ def _head_groups(x: jax.Array, heads_per_step: int) -> jax.Array:
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(4, 5))
 def _tiled_attention(queries, keys, values, mask, tile, operand_dtype):
+  """softmax(queries keys^T) values (no 1/sqrt(d): `attend` scales the queries)."""
   return _tiled_attention_fwd(queries, keys, values, mask, tile, operand_dtype)[0]
 
 
 def _tiled_attention_fwd(queries, keys, values, mask, tile, operand_dtype):
-  b, h, num_queries, head_dim = queries.shape
+  b, h, num_queries, _ = queries.shape
   heads_per_step, rows, row_steps = attention_tiling(b * h, num_queries, keys.shape[2], tile)
-  scale = head_dim**-0.5
   # Padded query rows attend everywhere so that their (discarded) softmax stays finite.
   mask_chunks = None if mask is None else _to_row_chunks(mask, row_steps, rows, True)
 
@@ -132,7 +133,7 @@ def _tiled_attention_fwd(queries, keys, values, mask, tile, operand_dtype):
 
     def row_chunk(_, chunk):
       chunk_queries, chunk_mask = chunk
-      logits = _masked_logits(chunk_queries, group_keys, chunk_mask, scale, operand_dtype)
+      logits = _masked_logits(chunk_queries, group_keys, chunk_mask, operand_dtype)
       row_max = jnp.max(logits, axis=-1, keepdims=True)
       exp = jnp.exp(logits - row_max)
       row_sum = jnp.sum(exp, axis=-1, keepdims=True)
@@ -155,9 +156,8 @@ def _tiled_attention_bwd(tile, operand_dtype, residuals, out_grad):
   """Flash-attention backward: recompute each tile's probabilities from the saved row
   log-sum-exp instead of storing them; dK, dV accumulate over a head group's row chunks."""
   queries, keys, values, mask, out, log_sum_exp = residuals
-  b, h, num_queries, head_dim = queries.shape
+  b, h, num_queries, _ = queries.shape
   heads_per_step, rows, row_steps = attention_tiling(b * h, num_queries, keys.shape[2], tile)
-  scale = head_dim**-0.5
   # d softmax: dlogits = p * (dp - sum_k p dp) and sum_k p dp = sum_d out * dout.
   out_dot_grad = jnp.sum(
     out.astype(jnp.float32) * out_grad.astype(jnp.float32), axis=-1, keepdims=True
@@ -170,11 +170,11 @@ def _tiled_attention_bwd(tile, operand_dtype, residuals, out_grad):
     def row_chunk(carry, chunk):
       keys_grad, values_grad = carry
       chunk_queries, chunk_out_grad, chunk_out_dot, chunk_lse, chunk_mask = chunk
-      logits = _masked_logits(chunk_queries, group_keys, chunk_mask, scale, operand_dtype)
+      logits = _masked_logits(chunk_queries, group_keys, chunk_mask, operand_dtype)
       probs = jnp.exp(logits - chunk_lse)
       values_grad += matmul.einsum("gqk,gqd->gkd", probs, chunk_out_grad, operand_dtype)
       probs_grad = matmul.einsum("gqd,gkd->gqk", chunk_out_grad, group_values, operand_dtype)
-      logits_grad = probs * (probs_grad - chunk_out_dot) * scale
+      logits_grad = probs * (probs_grad - chunk_out_dot)
       queries_grad = matmul.einsum("gqk,gkd->gqd", logits_grad, group_keys, operand_dtype)
       keys_grad += matmul.einsum("gqk,gqd->gkd", logits_grad, chunk_queries, operand_dtype)
       return (keys_grad, values_grad), queries_grad.astype(chunk_queries.dtype)
@@ -241,7 +241,11 @@ def attend(
     [B, H, Nq, d] in the values' dtype.
   """
   operand_dtype = queries.dtype if matmul_dtype is None else jnp.dtype(matmul_dtype)
-  return _tiled_attention(queries, keys.astype(queries.dtype), values, mask, tile, operand_dtype)
+  # Scaling the [.., Nq, d] queries rather than the [.., Nq, Nk] logits saves a pass over every
+  # logits tile in the forward and in the backward.
+  scaled_queries = queries * queries.shape[-1] ** -0.5
+  keys = keys.astype(queries.dtype)
+  return _tiled_attention(scaled_queries, keys, values, mask, tile, operand_dtype)
 
 
 class LayerScale(nn.Module):
@@ -263,6 +267,13 @@ def maybe_layer_scale(dim: int, init_value: float | None, name: str):
   return LayerScale(dim, init_value, name=name)
 
 
+def gelu(x: jax.Array) -> jax.Array:
+  """Exact GELU x Phi(x) written with erf, as torch's nn.GELU(): within 2e-6 of
+  `jax.nn.gelu(approximate=False)`, whose erfc form costs an exponential more (2.8x slower
+  forward, 1.3x slower forward+backward on XLA:CPU)."""
+  return 0.5 * x * (1.0 + jax.lax.erf(x * np.sqrt(0.5).astype(x.dtype)))
+
+
 class Mlp(nn.Module):
   """fc1 -> exact (erf) GELU -> fc2, as torch nn.GELU()."""
 
@@ -273,7 +284,7 @@ class Mlp(nn.Module):
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
     hidden = dense(self.hidden_dim, self.dtype, "fc1", matmul_dtype=self.matmul_dtype)(x)
-    hidden = jax.nn.gelu(hidden, approximate=False)
+    hidden = gelu(hidden)
     return dense(x.shape[-1], self.dtype, "fc2", matmul_dtype=self.matmul_dtype)(hidden)
 
 
