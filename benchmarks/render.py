@@ -111,7 +111,8 @@ def measure(gaussians, height, width, config, repeats):
 
 
 def stage_times(gaussians, height, width, config, repeats):
-  """Times of each stage under jit: projection + binning, compositing, compositing fwd+bwd."""
+  """Times of each stage under jit: projection + binning (+ sub-tile split), compositing, and
+  compositing fwd+bwd."""
   w2c, intr = make_camera(height, width)
   tiles = -(-height // config.tile_size) * -(-width // config.tile_size)
   ladder = config.budget_ladder(gaussians.num_gaussians, tiles)
@@ -132,9 +133,9 @@ def stage_times(gaussians, height, width, config, repeats):
   tiling = rasterize.Tiling(
     height,
     width,
-    config.tile_size,
-    -(-width // config.tile_size),
-    -(-height // config.tile_size),
+    config.subtile_size,
+    -(-width // config.subtile_size),
+    -(-height // config.subtile_size),
     1,
     config.chunk_size,
     config.tiles_per_step,
@@ -193,7 +194,9 @@ def knob_variants(sweep: bool) -> list[tuple[str, RenderConfig]]:
   variants = [("default", default)]
   if sweep:
     variants += [(f"chunk={c}", RenderConfig(chunk_size=c)) for c in (16, 64)]
-    variants += [(f"tiles/step={t}", RenderConfig(tiles_per_step=t)) for t in (32, 128)]
+    variants += [(f"tiles/step={t}", RenderConfig(tiles_per_step=t)) for t in (64, 256)]
+    variants += [(f"subtile={s}", RenderConfig(subtile_size=s)) for s in (4, 16)]
+    variants += [("subtile=16 s32", RenderConfig(subtile_size=16, tiles_per_step=32))]
     variants += [
       (f"isect/gauss={b}", RenderConfig(intersections_per_gaussian=b)) for b in (32, 8, 4, 2)
     ]

@@ -65,15 +65,16 @@ def min_sigma_over_tile(means2d, conics, tile_x, tile_y, *, tile_size, height, w
   (clipped to the image): 0 if the mean is inside, else the least of the four edge minima.
 
   Args:
-    means2d: [M, 2]; conics: [M, 3] (positive definite); tile_x, tile_y: [M] int32.
+    means2d: [..., 2]; conics: [..., 3] (positive definite); tile_x, tile_y: [...] int32 (all
+      broadcast together).
   Returns:
-    [M] minimum sigma.
+    [...] minimum sigma.
   """
-  a, b, c = conics[:, 0], conics[:, 1], conics[:, 2]
+  a, b, c = conics[..., 0], conics[..., 1], conics[..., 2]
   left = tile_x * tile_size + 0.5
   top = tile_y * tile_size + 0.5
-  x0, x1 = left - means2d[:, 0], jnp.minimum(left + tile_size - 1, width - 0.5) - means2d[:, 0]
-  y0, y1 = top - means2d[:, 1], jnp.minimum(top + tile_size - 1, height - 0.5) - means2d[:, 1]
+  x0, x1 = left - means2d[..., 0], jnp.minimum(left + tile_size - 1, width - 0.5) - means2d[..., 0]
+  y0, y1 = top - means2d[..., 1], jnp.minimum(top + tile_size - 1, height - 0.5) - means2d[..., 1]
 
   def sigma(dx, dy):
     return 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
@@ -85,6 +86,24 @@ def min_sigma_over_tile(means2d, conics, tile_x, tile_y, *, tile_size, height, w
   return jnp.where(
     inside, 0.0, jnp.minimum(jnp.minimum(edges[0], edges[1]), jnp.minimum(edges[2], edges[3]))
   )
+
+
+def reaches_tile(
+  means2d, conics, opacities, tile_x, tile_y, *, tile_size, height, width, alpha_threshold
+):
+  """Whether a Gaussian's alpha may reach `alpha_threshold` at a pixel centre of a tile.
+
+  Conservative: False only when min sigma over the tile exceeds ln(opacity / threshold), so the
+  compositor would skip the Gaussian at every pixel of the tile.
+  means2d: [..., 2]; conics: [..., 3]; opacities, tile_x, tile_y: [...] -> [...] bool.
+  """
+  sigma_floor = min_sigma_over_tile(
+    means2d, conics, tile_x, tile_y, tile_size=tile_size, height=height, width=width
+  )
+  # Slack far above float rounding: a kept pair only costs work, a wrongly dropped one changes
+  # pixels. Written as "not beyond" so that a NaN bound (a conic entry underflowing to 0) keeps it.
+  reach = jnp.log(jnp.maximum(opacities, alpha_threshold) / alpha_threshold)
+  return ~(sigma_floor > reach * (1.0 + 1e-3) + 1e-3)
 
 
 def bin_gaussians(
@@ -211,19 +230,17 @@ def _slot_tiles(
   box_width = jnp.maximum(x1 - x0, 1)[slot_gauss]
   tile_x = x0[slot_gauss] + local % box_width
   tile_y = y0[slot_gauss] + local // box_width
-  sigma_floor = min_sigma_over_tile(
+  touches = reaches_tile(
     means2d[slot_gauss],
     conics[slot_gauss],
+    opacities[slot_gauss],
     tile_x,
     tile_y,
     tile_size=tile_size,
     height=height,
     width=width,
+    alpha_threshold=alpha_threshold,
   )
-  # Slack far above float rounding: a kept pair only costs work, a wrongly dropped one changes
-  # pixels. Written as "not beyond" so that a NaN bound (a conic entry underflowing to 0) keeps it.
-  reach = jnp.log(jnp.maximum(opacities[slot_gauss], alpha_threshold) / alpha_threshold)
-  touches = ~(sigma_floor > reach * (1.0 + 1e-3) + 1e-3)
   slot_tile = jnp.where(
     (slots < total) & touches, tile_y * tiles_x + tile_x, num_tiles
   )  # rest last
@@ -256,3 +273,91 @@ def _covering_counts(cut, boxes, *, tiles_x, tiles_y):
   for row, col, sign in ((y0, x0, 1), (y0, x1, -1), (y1, x0, -1), (y1, x1, 1)):
     corners = corners.at[row, col].add(jnp.where(cut, sign, 0))
   return jnp.cumsum(jnp.cumsum(corners, axis=0), axis=1)[:tiles_y, :tiles_x]
+
+
+def split_tiles(
+  bins: TileBins,
+  means2d,
+  conics,
+  opacities,
+  *,
+  tile_size,
+  subtile_size,
+  tiles_x,
+  tiles_y,
+  height,
+  width,
+  alpha_threshold,
+) -> TileBins:
+  """Splits every tile's list into the lists of its f x f sub-tiles (f = tile / subtile size).
+
+  A sub-tile keeps, in its tile's front-to-back order, the Gaussians that may reach one of its
+  pixels (`reaches_tile`): the image is the same, the compositor evaluates fewer (pixel,
+  Gaussian) pairs. No sort: an entry's place in a sub-list is a running count of the entries
+  before it. Sub-tile q of tile t owns the slots from f² start_t + q len_t of a buffer f² times
+  the tile buffer (a sub-list is never longer than its tile's), so the split cuts nothing.
+
+  Args:
+    bins: one camera's TileBins over tiles of `tile_size` (the buffer, length L, unpadded).
+    means2d: [N, 2]; conics: [N, 3]; opacities: [N]; the rest: tiling and the skip rule.
+
+  Returns:
+    TileBins over the row-major grid of ceil(H / s) x ceil(W / s) sub-tiles (s = subtile_size),
+    buffer f² L; `num_intersections` stays the tile-level count the budget is made of, and a
+    sub-tile is truncated where its tile is.
+  """
+  f = tile_size // subtile_size
+  parts, length = f * f, bins.gaussian_ids.shape[0]
+  ids = bins.gaussian_ids
+  entry = jnp.arange(length, dtype=jnp.int32)
+  tile = jnp.searchsorted(bins.tile_ends, entry, side="right")  # tiles_x * tiles_y: unlisted
+  listed = tile < tiles_x * tiles_y
+  tile = jnp.minimum(tile, tiles_x * tiles_y - 1)
+  part = jnp.arange(parts, dtype=jnp.int32)
+  sub_x = (tile % tiles_x)[:, None] * f + part % f  # [L, parts]
+  sub_y = (tile // tiles_x)[:, None] * f + part // f
+  means2d, conics, opacities = jax.lax.stop_gradient((means2d[ids], conics[ids], opacities[ids]))
+  touch = (
+    listed[:, None]
+    & (sub_x * subtile_size < width)
+    & (sub_y * subtile_size < height)
+    & reaches_tile(
+      means2d[:, None],
+      conics[:, None],
+      opacities[:, None],
+      sub_x,
+      sub_y,
+      tile_size=subtile_size,
+      height=height,
+      width=width,
+      alpha_threshold=alpha_threshold,
+    )
+  )
+  # running[i, q]: entries before i that touch part q (a [L + 1, parts] exclusive count)
+  running = jnp.cumsum(jnp.pad(touch, ((1, 0), (0, 0))), axis=0, dtype=jnp.int32)
+  starts, ends = bins.tile_starts, bins.tile_ends
+  sub_starts = parts * starts[:, None] + part * (ends - starts)[:, None]  # [T, parts]
+  sub_ends = sub_starts + running[ends] - running[starts]
+  slot = sub_starts[tile] + running[:-1] - running[starts][tile]
+  # Skipped entries go to distinct slots past the buffer (dropped): the indices stay unique.
+  slot = jnp.where(touch, slot, parts * length + entry[:, None] * parts + part)
+  sub_ids = (
+    jnp.zeros(parts * length, ids.dtype)
+    .at[slot.reshape(-1)]
+    .set(jnp.repeat(ids, parts), mode="drop", unique_indices=True)
+  )
+  parent, which = _subtile_parents(f, subtile_size, tiles_x=tiles_x, height=height, width=width)
+  return TileBins(
+    gaussian_ids=sub_ids,
+    tile_starts=sub_starts[parent, which],
+    tile_ends=sub_ends[parent, which],
+    num_intersections=bins.num_intersections,
+    tile_truncated=bins.tile_truncated[parent],
+  )
+
+
+def _subtile_parents(f, subtile_size, *, tiles_x, height, width):
+  """(tile, part) [G] of each sub-tile of the row-major sub-tile grid, part = f row + column."""
+  sub_x = -(-width // subtile_size)
+  grid_y, grid_x = jnp.divmod(jnp.arange(-(-height // subtile_size) * sub_x), sub_x)
+  return (grid_y // f) * tiles_x + grid_x // f, (grid_y % f) * f + grid_x % f

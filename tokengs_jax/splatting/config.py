@@ -21,15 +21,20 @@ class RenderConfig:
   official TokenGS renderer calls it.
 
   Attributes:
-    tile_size: tile edge in pixels.
+    tile_size: tile edge in pixels: the unit of binning, of the (Gaussian, tile) budget and of
+      `stats.num_intersections` (gsplat's tile).
+    subtile_size: edge in pixels of the blocks the compositor works on; must divide `tile_size`.
+      Each tile's list is split, without a sort, into the lists of its sub-tiles (the Gaussians
+      that may reach one of their pixels, see `binning.split_tiles`): the image is the same, and
+      small Gaussians cost fewer pixel evaluations. `tile_size` turns the split off.
     eps2d: added to both diagonal entries of every 2D covariance (low-pass filter).
     radius_sigmas: upper bound of the radius in standard deviations (gsplat's 3.33).
     max_alpha: per-Gaussian alpha cap.
     alpha_threshold: a Gaussian is skipped at a pixel whose alpha is below this.
     transmittance_stop: a pixel stops before the Gaussian that would bring T to <= this.
-    chunk_size: Gaussians composited per tile per loop step; memory of a step is
-      tiles_per_step x tile_size^2 x chunk_size.
-    tiles_per_step: tiles composited per loop step, taken from a compacted list of the tiles that
+    chunk_size: Gaussians composited per (sub-)tile per loop step; memory of a step is
+      tiles_per_step x subtile_size^2 x chunk_size.
+    tiles_per_step: (sub-)tiles composited per loop step, taken from a compacted list of the tiles that
       still have work (finished and empty tiles cost nothing); capped at the number of tiles.
     intersections_per_gaussian: the (Gaussian, tile) budget is this times N (at least
       `min_intersections`); a scene needing more has its farthest Gaussians' tiles cut, which sets
@@ -41,22 +46,27 @@ class RenderConfig:
   """
 
   tile_size: int = 16
+  subtile_size: int = 8
   eps2d: float = 0.3
   radius_sigmas: float = 3.33
   max_alpha: float = 0.999
   alpha_threshold: float = 1.0 / 255.0
   transmittance_stop: float = 1e-4
   chunk_size: int = 32
-  tiles_per_step: int = 32
+  tiles_per_step: int = 128
   intersections_per_gaussian: float = 16.0
   min_intersections: int = 4096
   max_intersections: int | None = None
 
   def __post_init__(self):
-    for name in ("tile_size", "chunk_size", "tiles_per_step"):
+    for name in ("tile_size", "subtile_size", "chunk_size", "tiles_per_step"):
       value = getattr(self, name)
       if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value <= 0:
         raise ValueError(f"RenderConfig.{name} must be a positive int, got {value!r}")
+    if self.tile_size % self.subtile_size:
+      raise ValueError(
+        f"RenderConfig.subtile_size ({self.subtile_size}) must divide tile_size ({self.tile_size})"
+      )
     if not self.intersections_per_gaussian > 0:
       raise ValueError(
         "RenderConfig.intersections_per_gaussian must be > 0, got "

@@ -123,10 +123,31 @@ def _bin(
   """Tile lists of C cameras [C, ...], sorted at the smallest ladder size that holds them all.
 
   Sorting dominates binning and grows with the buffer, so a scene needing few pairs sorts a small
-  buffer; the lists are then padded to the full budget (the compositor never reads the padding).
+  buffer; the lists are then split into sub-tiles (`config.subtile_size`) and padded to the full
+  budget (times the sub-tiles per tile; the compositor never reads the padding).
   Under `jax.vmap(render)` the switch turns into running every size (correct, slower).
   """
   budget = ladder[-1]
+  tiling = dict(
+    tiles_x=-(-width // config.tile_size),
+    tiles_y=-(-height // config.tile_size),
+    height=height,
+    width=width,
+    alpha_threshold=config.alpha_threshold,
+  )
+
+  def split_one(camera, bins):
+    proj = camera.proj
+    opacities = camera.attrs[:, rasterize.OPACITY]
+    return binning.split_tiles(
+      bins,
+      proj.means2d,
+      proj.conics,
+      opacities,
+      tile_size=config.tile_size,
+      subtile_size=config.subtile_size,
+      **tiling,
+    )
 
   def bin_at(size):
     def bin_one(camera):
@@ -139,18 +160,16 @@ def _bin(
         proj.conics,
         camera.attrs[:, rasterize.OPACITY],
         tile_size=config.tile_size,
-        tiles_x=-(-width // config.tile_size),
-        tiles_y=-(-height // config.tile_size),
-        height=height,
-        width=width,
-        alpha_threshold=config.alpha_threshold,
         budget=size,
+        **tiling,
       )
 
     def run(cameras):
       bins = jax.vmap(bin_one)(cameras)
-      ids = jnp.pad(bins.gaussian_ids, ((0, 0), (0, budget - size)))
-      return dataclasses.replace(bins, gaussian_ids=ids)
+      if config.subtile_size != config.tile_size:
+        bins = jax.vmap(split_one)(cameras, bins)
+      pad = (budget - size) * bins.gaussian_ids.shape[-1] // size
+      return dataclasses.replace(bins, gaussian_ids=jnp.pad(bins.gaussian_ids, ((0, 0), (0, pad))))
 
     return run
 
@@ -162,7 +181,7 @@ def _bin(
   return jax.lax.switch(step, branches, cameras)
 
 
-def _composite(cameras: _Camera, *, height: int, width: int, config: RenderConfig, budget: int):
+def _composite(cameras: _Camera, *, height: int, width: int, config: RenderConfig):
   """Composites C cameras at once: their tile lists are concatenated into one flat tile axis.
 
   One compositor call (rather than a vmap over cameras) keeps the while loops unbatched: a
@@ -173,12 +192,12 @@ def _composite(cameras: _Camera, *, height: int, width: int, config: RenderConfi
   [C]: some tile lost pairs to the budget and did not saturate before its list ran out).
   """
   num_cameras, num = cameras.attrs.shape[:2]
-  tiles_x, tiles_y = -(-width // config.tile_size), -(-height // config.tile_size)
+  tiles_x, tiles_y = -(-width // config.subtile_size), -(-height // config.subtile_size)
   num_tiles = tiles_x * tiles_y
   tiling = rasterize.Tiling(
     height,
     width,
-    config.tile_size,
+    config.subtile_size,
     tiles_x,
     tiles_y,
     num_cameras,
@@ -198,11 +217,12 @@ def _composite(cameras: _Camera, *, height: int, width: int, config: RenderConfi
     )
   camera = jnp.arange(num_cameras, dtype=jnp.int32)[:, None]
   bins = cameras.bins
+  length = bins.gaussian_ids.shape[-1]
   accum, transmittance, chunks, saturated = rasterize.rasterize_tiles(
     cameras.attrs.reshape(num_cameras * num, -1),
     (bins.gaussian_ids + camera * num).reshape(-1),
-    (bins.tile_starts + camera * budget).reshape(-1),
-    (bins.tile_ends + camera * budget).reshape(-1),
+    (bins.tile_starts + camera * length).reshape(-1),
+    (bins.tile_ends + camera * length).reshape(-1),
     tiling,
   )
   split = lambda x: x.reshape((num_cameras, num_tiles) + x.shape[1:])
@@ -380,7 +400,7 @@ def render(
     cameras = cameras._replace(
       bins=_bin(cameras, height=height, width=width, config=config, ladder=ladder)
     )
-  composited = _composite(cameras, height=height, width=width, config=config, budget=ladder[-1])
+  composited = _composite(cameras, height=height, width=width, config=config)
   out = _finish(
     cameras, *composited, background=_flat(background, 2, batch).reshape(-1, 3), budget=ladder[-1]
   )

@@ -1,0 +1,133 @@
+"""Sub-tile lists (`binning.split_tiles`): same lists as a brute-force filter, same renders."""
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from tokengs_jax.gaussians import Gaussians
+from tokengs_jax.splatting import RenderConfig, binning, pipeline, render
+
+HEIGHT, WIDTH, NUM = 40, 56, 64  # not tile multiples: sub-tiles of edge tiles lie outside
+W2C = np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3.0], [0, 0, 0, 1]], np.float32)
+INTR = np.array([44.0, 47.0, 27.0, 21.0], np.float32)
+
+
+def _scene(seed, num=NUM):
+  rng = np.random.default_rng(seed)
+  return Gaussians(
+    means=rng.uniform([-1.2, -1.0, -1.0], [1.2, 1.0, 1.0], (num, 3)).astype(np.float32),
+    opacities=rng.uniform(0.05, 1.0, num).astype(np.float32),
+    scales=np.exp(rng.uniform(np.log(0.01), np.log(0.3), (num, 3))).astype(np.float32),
+    quats=rng.normal(size=(num, 4)).astype(np.float32),
+    colors=rng.uniform(0, 1, (num, 3)).astype(np.float32),
+  )
+
+
+def _tile_and_split_bins(g, subtile_size):
+  config = RenderConfig(subtile_size=subtile_size, min_intersections=2048)
+  camera = pipeline._project(g, W2C, INTR, 0.025, 125.0, height=HEIGHT, width=WIDTH, config=config)
+  proj = camera.proj
+  tiling = dict(
+    tiles_x=-(-WIDTH // 16),
+    tiles_y=-(-HEIGHT // 16),
+    height=HEIGHT,
+    width=WIDTH,
+    alpha_threshold=config.alpha_threshold,
+  )
+  bins = binning.bin_gaussians(
+    proj.means2d,
+    proj.radii,
+    proj.depths,
+    proj.cull_code == 0,
+    proj.conics,
+    g.opacities,
+    tile_size=16,
+    budget=2048,
+    **tiling,
+  )
+  split = binning.split_tiles(
+    bins, proj.means2d, proj.conics, g.opacities, tile_size=16, subtile_size=subtile_size, **tiling
+  )
+  return proj, bins, split, tiling
+
+
+@pytest.mark.parametrize("subtile_size", [8, 4])
+def test_split_lists_are_each_tile_list_filtered_in_order(subtile_size):
+  g = _scene(0)
+  proj, bins, split, tiling = _tile_and_split_bins(g, subtile_size)
+  f = 16 // subtile_size
+  sub_x = -(-WIDTH // subtile_size)
+  assert split.gaussian_ids.shape == (f * f * bins.gaussian_ids.shape[0],)
+  ids, starts, ends = map(np.asarray, (bins.gaussian_ids, bins.tile_starts, bins.tile_ends))
+  sub_ids, sub_starts, sub_ends = map(
+    np.asarray, (split.gaussian_ids, split.tile_starts, split.tile_ends)
+  )
+  assert sub_starts.shape == (-(-HEIGHT // subtile_size) * sub_x,)
+  kept = 0
+  for index in range(sub_starts.shape[0]):
+    grid_y, grid_x = divmod(index, sub_x)
+    parent = (grid_y // f) * tiling["tiles_x"] + grid_x // f
+    listed = ids[starts[parent] : ends[parent]]
+    reaches = binning.reaches_tile(
+      proj.means2d[listed],
+      proj.conics[listed],
+      g.opacities[listed],
+      jnp.full(listed.shape, grid_x),
+      jnp.full(listed.shape, grid_y),
+      tile_size=subtile_size,
+      height=HEIGHT,
+      width=WIDTH,
+      alpha_threshold=tiling["alpha_threshold"],
+    )
+    expected = listed[np.asarray(reaches)]
+    np.testing.assert_array_equal(sub_ids[sub_starts[index] : sub_ends[index]], expected)
+    kept += expected.size
+    assert bool(split.tile_truncated[index]) == bool(bins.tile_truncated[parent])
+  # the scene is small enough that some pairs do not reach a sub-tile: the split does cut work
+  assert 0 < kept < f * f * (ends[-1] - starts[0])
+  assert int(split.num_intersections) == int(bins.num_intersections)
+
+
+@functools.partial(jax.jit, static_argnames="config")
+def _loss_and_grad(g, weights, config):
+  def loss(g):
+    out = render(g, W2C[None], INTR[None], height=HEIGHT, width=WIDTH, config=config)
+    image = jnp.concatenate([out.rgb[0], out.alpha[0], out.depth[0]], axis=-1)
+    return jnp.sum(image * weights), out
+
+  return jax.value_and_grad(loss, has_aux=True)(g)
+
+
+@pytest.mark.parametrize("budget", [None, 96])
+def test_sub_tiles_render_what_whole_tiles_render(budget):
+  """Images, gradients and the overflow flag equal those of the unsplit tiles (float noise)."""
+  g = _scene(1)
+  weights = np.random.default_rng(2).uniform(0, 1, (HEIGHT, WIDTH, 5)).astype(np.float32)
+  base = RenderConfig(chunk_size=8, tiles_per_step=5, max_intersections=budget)
+  (_, whole), whole_grads = _loss_and_grad(g, weights, dataclasses.replace(base, subtile_size=16))
+  for subtile_size in (8, 4):
+    config = dataclasses.replace(base, subtile_size=subtile_size)
+    (_, out), grads = _loss_and_grad(g, weights, config)
+    for name in ("rgb", "alpha", "depth"):
+      np.testing.assert_allclose(getattr(out, name), getattr(whole, name), atol=2e-5, rtol=0)
+    for name in ("means", "scales", "quats", "opacities", "colors"):
+      ref = np.asarray(getattr(whole_grads, name))
+      np.testing.assert_allclose(
+        getattr(grads, name), ref, rtol=1e-4, atol=1e-5 * np.abs(ref).max(), err_msg=name
+      )
+    for name in ("truncated", "overflow", "num_intersections", "budget"):
+      np.testing.assert_array_equal(getattr(out.stats, name), getattr(whole.stats, name))
+  if budget is not None:  # the tight budget does cut this scene, and the flag says so
+    assert bool(whole.stats.truncated[0]) and bool(whole.stats.overflow[0])
+
+
+def test_render_config_refuses_a_subtile_that_does_not_divide_the_tile():
+  with pytest.raises(ValueError, match="subtile_size"):
+    RenderConfig(subtile_size=6)
+  with pytest.raises(ValueError, match="subtile_size"):
+    RenderConfig(subtile_size=0)
+  assert RenderConfig(tile_size=8).subtile_size == 8  # the default fits gsplat's and 8-px tiles
