@@ -158,8 +158,8 @@ def plain_attention(queries, keys, values, mask=None, matmul_dtype=None):
 
 @contextlib.contextmanager
 def attention_variant(name: str):
-  """Traces the model with the tiled `attend` ("tiled") or with `plain_attention` ("plain")."""
-  if name == "tiled":
+  """Traces the model with `plain_attention` for variant "plain", with the tiled `attend` else."""
+  if name != "plain":
     yield
     return
   with (
