@@ -1,0 +1,141 @@
+"""Steps per second of the default experiment's training (`python -m experiments.re10k`).
+
+Builds exactly what the default run trains (its model, objective, optimiser, data pipeline and
+sharded step), compiles the step once, then times `--rounds` steps on a few real batches: wall
+and process-CPU milliseconds per step (CPU time is the robust figure on a shared machine; on
+an idle one wall ~ CPU / threads busy). `--profile` also attributes the step's CPU time to the
+renderer, the model, the SSIM filter and the rest, from a `jax.profiler` trace matched to the
+compiled HLO's op names.
+
+    python benchmarks/default_step.py                       # this checkout
+    python benchmarks/default_step.py --profile
+    git worktree add /tmp/old b32f2ed && PYTHONPATH=/tmp/old python benchmarks/default_step.py
+        # the session-3 start (issue 11's "now"): its experiments package was one module
+
+The data set is generated under `--data` when missing (as the default run does).
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import glob
+import gzip
+import json
+import re
+import tempfile
+import time
+
+import jax
+import numpy as np
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from tokengs_jax.train import (
+  Precision,
+  create_train_state,
+  make_mesh,
+  make_optimizer,
+  make_train_step,
+  replicate,
+  shard_batch,
+)
+
+
+def default_training(data_dir: str):
+  """(params, loss_fn, optimiser config, batch iterator) of the default experiment."""
+  try:
+    from experiments import tasks, weights
+    from experiments.config import Experiment, optim_config
+  except ImportError:  # b32f2ed and earlier: everything lived in experiments/common.py
+    from experiments import common
+
+    experiment = common.Experiment(synthetic_dir=data_dir, output_dir=tempfile.mkdtemp())
+    config, task = common.model_config(experiment), common.Task()
+    task.prepare(experiment)
+    params = common.initial_params(experiment, config, finetune=False)
+    batches = iter(task.training_batches(experiment))
+    return params, task.loss_fn(experiment, config), common.optim_config(experiment), batches
+  experiment = Experiment(synthetic_dir=data_dir, output_dir=tempfile.mkdtemp())
+  task = tasks.Task()
+  task.prepare(experiment)
+  params = weights.initial_params(experiment, finetune=False)
+  batches = iter(task.training_batches(experiment))
+  return params, task.loss_fn(experiment, experiment.model), optim_config(experiment), batches
+
+
+def _category(op_name: str) -> str:
+  if "render" in op_name:
+    return "renderer"
+  if "hvc" in op_name or "ssim" in op_name or "conv_general" in op_name:
+    return "ssim filter"
+  return (
+    "model"
+    if any(k in op_name for k in ("encode", "decode", "attention", "reconstruct"))
+    else "rest"
+  )
+
+
+def attribute(trace_dir: str, hlo_text: str, steps: int) -> dict[str, float]:
+  """CPU ms per step by category, from the newest perfetto trace under `trace_dir`."""
+  op_names = dict(
+    (m.group(1), m.group(2))
+    for m in re.finditer(r'^\s*(?:ROOT )?%([\w.\-]+) = .*?op_name="([^"]*)"', hlo_text, re.M)
+  )
+  path = sorted(glob.glob(f"{trace_dir}/plugins/profile/*/perfetto_trace.json.gz"))[-1]
+  trace = json.load(gzip.open(path))
+  events = trace["traceEvents"] if isinstance(trace, dict) else trace
+  totals = collections.Counter()
+  for event in events:
+    op = event.get("args", {}).get("hlo_op") if event.get("ph") == "X" else None
+    if op and not op.startswith("while"):  # a while's time is its body's ops
+      totals[_category(op_names.get(op, ""))] += event["dur"] / 1e3 / steps
+  return dict(totals.most_common())
+
+
+def main() -> None:
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument("--data", default="outputs/synthetic_re10k")
+  parser.add_argument("--rounds", type=int, default=40)
+  parser.add_argument("--profile", action="store_true")
+  args = parser.parse_args()
+
+  params, loss_fn, optim, batches = default_training(args.data)
+  optimizer, mesh = make_optimizer(optim), make_mesh()
+  state = jax.jit(
+    lambda p: create_train_state(p, optimizer, 0), out_shardings=NamedSharding(mesh, P())
+  )(replicate(params, mesh))
+  step = make_train_step(loss_fn, optimizer, mesh, precision=Precision())
+  examples = [shard_batch(next(batches), mesh) for _ in range(4)]
+  key = jax.random.key(0)
+  compiled = step.lower(state, examples[0], key).compile()
+
+  def run(rounds):
+    nonlocal state
+    wall, cpu = [], []
+    for r in range(rounds):
+      start, start_cpu = time.perf_counter(), time.process_time()
+      state, _ = compiled(state, examples[r % len(examples)], key)
+      jax.block_until_ready(state)
+      wall.append(time.perf_counter() - start)
+      cpu.append(time.process_time() - start_cpu)
+    return 1e3 * np.asarray(wall), 1e3 * np.asarray(cpu)
+
+  run(5)
+  wall, cpu = run(args.rounds)
+  print(
+    f"default train step: wall ms min {wall.min():.1f} median {np.median(wall):.1f} "
+    f"({1e3 / np.median(wall):.2f} steps/s) | CPU ms min {cpu.min():.1f} "
+    f"median {np.median(cpu):.1f}"
+  )
+  if args.profile:
+    trace_dir = tempfile.mkdtemp()
+    jax.profiler.start_trace(trace_dir, create_perfetto_trace=True)
+    run(10)
+    jax.profiler.stop_trace()
+    for name, ms in attribute(trace_dir, compiled.as_text(), 10).items():
+      print(f"  {name:12s} {ms:7.1f} CPU ms / step")
+
+
+if __name__ == "__main__":
+  main()
