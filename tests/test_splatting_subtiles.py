@@ -102,9 +102,12 @@ def _loss_and_grad(g, weights, config):
   return jax.value_and_grad(loss, has_aux=True)(g)
 
 
+@pytest.mark.parametrize("split_below", [0, 10**6])  # every sub-tile shares / splits its list
 @pytest.mark.parametrize("budget", [None, 96])
-def test_sub_tiles_render_what_whole_tiles_render(budget):
+def test_sub_tiles_render_what_whole_tiles_render(budget, split_below, monkeypatch):
   """Images, gradients and the overflow flag equal those of the unsplit tiles (float noise)."""
+  monkeypatch.setattr(pipeline, "_SPLIT_MAX_PAIRS_PER_GAUSSIAN", split_below)
+  jax.clear_caches()  # the constant is read at trace time
   g = _scene(1)
   weights = np.random.default_rng(2).uniform(0, 1, (HEIGHT, WIDTH, 5)).astype(np.float32)
   base = RenderConfig(chunk_size=8, tiles_per_step=5, max_intersections=budget)

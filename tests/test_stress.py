@@ -283,7 +283,7 @@ def test_saturated_tiles_stop_early():
   g = _crowd(200, (18.0, 12.0), 3.0)  # each covers the whole image: 6 tiles each
   out = _render_and_grad(g, CROWD_CONFIG)
   assert int(out.stats.num_intersections) == 200 * 6
-  # Without early stop this would be 1200 / 8 = 150 (tile, chunk) blocks.
+  # Without early stop this would be at least 1200 / 8 = 150 (sub-tile, chunk) blocks.
   assert int(out.stats.tile_chunks) <= 30
 
 

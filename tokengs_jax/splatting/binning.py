@@ -356,6 +356,23 @@ def split_tiles(
   )
 
 
+def share_tiles(bins: TileBins, *, tile_size, subtile_size, tiles_x, height, width) -> TileBins:
+  """`split_tiles` without the filter: every sub-tile reads its whole tile's list, in place.
+
+  No per-pair work; the compositor does what it would on whole tiles. For scenes of Gaussians
+  large against a tile, which reach nearly every sub-tile they are listed in.
+  """
+  f = tile_size // subtile_size
+  parent, _ = _subtile_parents(f, subtile_size, tiles_x=tiles_x, height=height, width=width)
+  return TileBins(
+    gaussian_ids=bins.gaussian_ids,
+    tile_starts=bins.tile_starts[parent],
+    tile_ends=bins.tile_ends[parent],
+    num_intersections=bins.num_intersections,
+    tile_truncated=bins.tile_truncated[parent],
+  )
+
+
 def _subtile_parents(f, subtile_size, *, tiles_x, height, width):
   """(tile, part) [G] of each sub-tile of the row-major sub-tile grid, part = f row + column."""
   sub_x = -(-width // subtile_size)

@@ -16,6 +16,10 @@ from tokengs_jax.splatting import binning, projection, rasterize
 from tokengs_jax.splatting.config import RenderConfig, RenderResult, RenderStats
 
 _DEPTH_ALPHA_FLOOR = 1e-10  # gsplat's clamp in D / alpha for "ED" depth
+# Sub-tile lists pay when Gaussians are small against a tile; with many (Gaussian, tile) pairs per
+# Gaussian they reach nearly every sub-tile and the split is pure cost (65k at 256², loaded: -40%
+# CPU fwd+bwd at 2.8 pairs per Gaussian, +25% at 11.3; docs/notes/renderer_speed.md).
+_SPLIT_MAX_PAIRS_PER_GAUSSIAN = 6
 
 
 def compute_dtype(dtype) -> jnp.dtype:
@@ -123,11 +127,12 @@ def _bin(
   """Tile lists of C cameras [C, ...], sorted at the smallest ladder size that holds them all.
 
   Sorting dominates binning and grows with the buffer, so a scene needing few pairs sorts a small
-  buffer; the lists are then split into sub-tiles (`config.subtile_size`) and padded to the full
-  budget (times the sub-tiles per tile; the compositor never reads the padding).
+  buffer; the lists are then split into sub-tiles (`config.subtile_size`) when the Gaussians are
+  small against a tile, else each sub-tile reads its tile's list, and padded to the full budget
+  (times the sub-tiles per tile; the compositor never reads the padding).
   Under `jax.vmap(render)` the switch turns into running every size (correct, slower).
   """
-  budget = ladder[-1]
+  budget, num = ladder[-1], cameras.attrs.shape[1]
   tiling = dict(
     tiles_x=-(-width // config.tile_size),
     tiles_y=-(-height // config.tile_size),
@@ -135,6 +140,8 @@ def _bin(
     width=width,
     alpha_threshold=config.alpha_threshold,
   )
+
+  parts = (config.tile_size // config.subtile_size) ** 2
 
   def split_one(camera, bins):
     proj = camera.proj
@@ -148,6 +155,19 @@ def _bin(
       subtile_size=config.subtile_size,
       **tiling,
     )
+
+  def share_one(camera, bins):
+    del camera
+    shared = binning.share_tiles(
+      bins,
+      tile_size=config.tile_size,
+      subtile_size=config.subtile_size,
+      tiles_x=tiling["tiles_x"],
+      height=height,
+      width=width,
+    )
+    ids = jnp.pad(shared.gaussian_ids, (0, (parts - 1) * shared.gaussian_ids.shape[0]))
+    return dataclasses.replace(shared, gaussian_ids=ids)
 
   def bin_at(size):
     def bin_one(camera):
@@ -166,9 +186,11 @@ def _bin(
 
     def run(cameras):
       bins = jax.vmap(bin_one)(cameras)
-      if config.subtile_size != config.tile_size:
-        bins = jax.vmap(split_one)(cameras, bins)
-      pad = (budget - size) * bins.gaussian_ids.shape[-1] // size
+      if parts > 1:
+        num_pairs, num_gaussians = jnp.sum(cameras.box_pairs), cameras.attrs.shape[0] * num
+        small = num_pairs <= _SPLIT_MAX_PAIRS_PER_GAUSSIAN * num_gaussians
+        bins = jax.lax.cond(small, jax.vmap(split_one), jax.vmap(share_one), cameras, bins)
+      pad = parts * budget - bins.gaussian_ids.shape[-1]
       return dataclasses.replace(bins, gaussian_ids=jnp.pad(bins.gaussian_ids, ((0, 0), (0, pad))))
 
     return run
