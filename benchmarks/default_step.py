@@ -9,6 +9,7 @@ compiled HLO's op names.
 
     python benchmarks/default_step.py                       # this checkout
     python benchmarks/default_step.py --profile
+    python benchmarks/default_step.py --model matmul_dtype=bfloat16
     git worktree add /tmp/old b32f2ed && PYTHONPATH=/tmp/old python benchmarks/default_step.py
         # the session-3 start (issue 11's "now"): its experiments package was one module
 
@@ -18,6 +19,7 @@ The data set is generated under `--data` when missing (as the default run does).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import collections
 import glob
 import gzip
@@ -42,8 +44,9 @@ from tokengs_jax.train import (
 )
 
 
-def default_training(data_dir: str):
-  """(params, loss_fn, optimiser config, batch iterator) of the default experiment."""
+def default_training(data_dir: str, model_overrides: dict):
+  """(params, loss_fn, optimiser config, batch iterator) of the default experiment, with
+  `model_overrides` (ModelConfig fields) applied."""
   try:
     from experiments import tasks, weights
     from experiments.config import Experiment, optim_config
@@ -51,12 +54,14 @@ def default_training(data_dir: str):
     from experiments import common
 
     experiment = common.Experiment(synthetic_dir=data_dir, output_dir=tempfile.mkdtemp())
+    assert not model_overrides, "model overrides need this checkout's experiments package"
     config, task = common.model_config(experiment), common.Task()
     task.prepare(experiment)
     params = common.initial_params(experiment, config, finetune=False)
     batches = iter(task.training_batches(experiment))
     return params, task.loss_fn(experiment, config), common.optim_config(experiment), batches
   experiment = Experiment(synthetic_dir=data_dir, output_dir=tempfile.mkdtemp())
+  experiment = dataclasses.replace(experiment, model=experiment.model.replace(**model_overrides))
   task = tasks.Task()
   task.prepare(experiment)
   params = weights.initial_params(experiment, finetune=False)
@@ -98,9 +103,13 @@ def main() -> None:
   parser.add_argument("--data", default="outputs/synthetic_re10k")
   parser.add_argument("--rounds", type=int, default=40)
   parser.add_argument("--profile", action="store_true")
+  parser.add_argument(
+    "--model", nargs="*", default=[], help="ModelConfig overrides, e.g. matmul_dtype=bfloat16"
+  )
   args = parser.parse_args()
 
-  params, loss_fn, optim, batches = default_training(args.data)
+  overrides = dict(item.split("=", 1) for item in args.model)
+  params, loss_fn, optim, batches = default_training(args.data, overrides)
   optimizer, mesh = make_optimizer(optim), make_mesh()
   state = jax.jit(
     lambda p: create_train_state(p, optimizer, 0), out_shardings=NamedSharding(mesh, P())

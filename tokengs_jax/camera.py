@@ -69,7 +69,9 @@ def ray_directions(c2w: jax.Array, intrinsics: jax.Array, height: int, width: in
   dirs_cam = jnp.stack([x, y, jnp.ones_like(x)], axis=-1)  # [..., H, W, 3]
   dirs_cam = dirs_cam / jnp.linalg.norm(dirs_cam, axis=-1, keepdims=True)
   rot = c2w[..., None, None, :3, :3]
-  return jnp.einsum("...ij,...j->...i", rot, dirs_cam)
+  # A 3x3 product per pixel: elementwise multiply-add, which XLA:CPU fuses (as a batched dot it
+  # cost 2x more, 3-6 ms of the default train step), and which is exact float32 on every backend.
+  return jnp.sum(rot * dirs_cam[..., None, :], axis=-1)
 
 
 def plucker_rays(c2w: jax.Array, intrinsics: jax.Array, height: int, width: int) -> jax.Array:
