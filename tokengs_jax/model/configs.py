@@ -64,7 +64,7 @@ class ModelConfig:
       in float32; None: the compute dtype. The Gaussian head's matmul keeps the compute dtype.
       "bfloat16" with dtype "float32" is the fast mixed-precision mode on CPUs with native bf16
       dots (about 2x the float32 matmul rate; LayerNorm, softmax, GELU, residuals and parameters
-      stay float32; accuracy in docs/notes/model_speed.md).
+      stay float32; accuracy in docs/benchmarks.md, "Model").
     remat: rematerialise each transformer block in the backward pass (saves activation memory).
   """
 

@@ -66,7 +66,7 @@ class GaussianHead(nn.Module):
 
     `ModelConfig.matmul_dtype` does not apply here: the raw Gaussian channels come straight out
     of this matmul, and keeping it in the compute dtype cuts the bf16 mode's Gaussian error about
-    4x for 0.4-4% of the FLOPs (docs/notes/model_speed.md).
+    4x for 0.4-4% of the FLOPs (docs/benchmarks.md, "Model").
     """
     cfg = self.config
     raw = nn.Dense(

@@ -3,7 +3,7 @@ in float32, in the forward and in the backward pass.
 
 Why: on a CPU with native bfloat16 dot instructions (avx512_bf16) XLA:CPU runs a bfloat16 x
 bfloat16 -> float32 dot about twice as fast as a float32 one, but a bfloat16 -> bfloat16 dot no
-faster than float32 (docs/notes/model_speed.md has the figures). `ModelConfig.matmul_dtype`
+faster than float32 (docs/benchmarks.md, "Model" has the figures). `ModelConfig.matmul_dtype`
 selects this mode; everything else (parameters, LayerNorm, softmax, GELU, residuals) stays in
 the compute dtype.
 

@@ -18,7 +18,7 @@ from tokengs_jax.splatting.config import RenderConfig, RenderResult, RenderStats
 _DEPTH_ALPHA_FLOOR = 1e-10  # gsplat's clamp in D / alpha for "ED" depth
 # Sub-tile lists pay when Gaussians are small against a tile; with many (Gaussian, tile) pairs per
 # Gaussian they reach nearly every sub-tile and the split is pure cost (65k at 256², loaded: -40%
-# CPU fwd+bwd at 2.8 pairs per Gaussian, +25% at 11.3; docs/notes/renderer_speed.md).
+# CPU fwd+bwd at 2.8 pairs per Gaussian, +25% at 11.3; docs/benchmarks.md, "Renderer").
 _SPLIT_MAX_PAIRS_PER_GAUSSIAN = 6
 
 
