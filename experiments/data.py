@@ -50,12 +50,41 @@ def _publish(root: pathlib.Path, parts: tuple[str, ...], write: Callable[[pathli
   shutil.rmtree(staging, ignore_errors=True)
 
 
+def _generator_settings(experiment: Experiment) -> dict:
+  """What the synthetic set's content depends on (`generator.json` beside `train/`, `test/`)."""
+  s = experiment.synthetic
+  return {
+    "num_train": s.num_train,
+    "num_test": s.num_test,
+    "frames": s.frames,
+    "walk": dataclasses.asdict(s.walk),
+    "image_size": list(experiment.image_size),
+    "seed": experiment.seed,
+  }
+
+
 def ensure_synthetic(experiment: Experiment) -> pathlib.Path:
-  """Writes the synthetic RE10K-format set unless it is already there; returns its root."""
+  """Writes the synthetic RE10K-format set unless it is already there; returns its root.
+
+  Raises ValueError if `synthetic_dir` holds a set written with other settings (or by a version
+  that did not record them): training on it would silently not be the experiment asked for.
+  """
   root = pathlib.Path(experiment.synthetic_dir)
+  wanted = json.loads(json.dumps(_generator_settings(experiment)))  # tuples -> lists
   if all((root / split / "index.json").exists() for split in ("train", "test")):
+    stamp = root / "generator.json"
+    found = json.loads(stamp.read_text()) if stamp.exists() else None
+    if found != wanted:
+      raise ValueError(
+        f"{root} holds a synthetic set written with other settings ({found or 'not recorded'}; "
+        f"this experiment needs {wanted}): delete it or pass another --synthetic-dir"
+      )
     return root
-  from tokengs_jax.data.synthetic import generate_re10k_like  # only needed to write the set
+  from tokengs_jax.data.synthetic import (  # only needed to write the set
+    Re10kLikeConfig,
+    RoomConfig,
+    generate_re10k_like,
+  )
 
   s = experiment.synthetic
   print(
@@ -64,19 +93,21 @@ def ensure_synthetic(experiment: Experiment) -> pathlib.Path:
     flush=True,
   )
   start = time.perf_counter()
-  _publish(
-    root,
-    ("train", "test"),
-    lambda staging: generate_re10k_like(
+
+  def write(staging: pathlib.Path):
+    generate_re10k_like(
       staging,
       s.num_train,
       s.num_test,
       *experiment.image_size,
       frames=s.frames,
       seed=experiment.seed,
+      config=Re10kLikeConfig(room=RoomConfig(walk=s.walk)),
       workers=s.workers,
-    ),
-  )
+    )
+    (staging / "generator.json").write_text(json.dumps(wanted, indent=1))
+
+  _publish(root, ("generator.json", "train", "test"), write)
   print(f"[data] written in {time.perf_counter() - start:.1f} s", flush=True)
   return root
 

@@ -7,6 +7,9 @@ activations are TokenGS's own (`tokengs_jax.model` layers, `head.activate`), the
 `enc_depth + dec_depth` blocks of the same width, so the two models differ in what the paper
 contrasts: Gaussians tied to pixel rays versus free Gaussians decoded from learnt tokens.
 
+With `gaussian_colours="inputs"` its Gaussians read their colours from the input views exactly as
+TokenGS's do (`tokengs_jax.model.colours`).
+
 Not part of the library: it exists so that `experiments/studies/camera_noise.py` can train it with
 exactly the data, loss, optimiser and loop the TokenGS model gets.
 """
@@ -22,6 +25,7 @@ import jax.numpy as jnp
 from tokengs_jax.camera import invert_rigid, plucker_rays, ray_directions
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.model import ModelConfig, normalize_images
+from tokengs_jax.model.colours import InputViews, with_input_colours
 from tokengs_jax.model.encoder import EncoderBlock
 from tokengs_jax.model.head import RAW_CHANNELS, activate
 from tokengs_jax.model.layers import PatchEmbed, layer_norm
@@ -85,7 +89,10 @@ def reconstruct(
   origins = c2w[..., None, None, :3, 3]
   means = origins + depth * ray_directions(c2w, intrinsics, height, width)
   flat = jnp.concatenate([means, flat[..., 3:]], axis=-1)
-  return Gaussians.from_flat(flat.reshape(flat.shape[0], -1, flat.shape[-1]))
+  flat = flat.reshape(flat.shape[0], -1, flat.shape[-1])
+  if config.gaussian_colours == "inputs":  # the same colour source as the TokenGS it is set beside
+    flat = with_input_colours(flat, InputViews(images, invert_rigid(c2w), intrinsics))
+  return Gaussians.from_flat(flat)
 
 
 def loss_fn(config: ModelConfig, loss_config=None, render_config=None, objective=None):

@@ -67,6 +67,7 @@ PRESETS = {
       enc_num_heads=2,
       num_gs_tokens=4,
       dec_patch_size=4,
+      gaussian_colours="inputs",
     ),
     synthetic=SyntheticSettings(num_train=4, num_test=2, frames=10, num_ood=2, workers=1),
     train=TrainSettings(

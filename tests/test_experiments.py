@@ -394,6 +394,29 @@ def test_evaluation_examples_read_a_list_format_index(tmp_path):
     data.evaluation_scenes(dataclasses.replace(experiment, eval_index=str(index)).with_views(3))
 
 
+def test_a_synthetic_set_written_with_other_settings_is_not_reused(tmp_path):
+  smoke = re10k.PRESETS["smoke"]
+  experiment = dataclasses.replace(
+    smoke,
+    synthetic_dir=str(tmp_path / "data"),
+    synthetic=dataclasses.replace(smoke.synthetic, num_train=1, num_test=1, workers=1),
+  )
+  root = data.ensure_synthetic(experiment)
+  assert data.ensure_synthetic(experiment) == root  # same settings: reused
+  other_walk = dataclasses.replace(
+    experiment.synthetic, walk=dataclasses.replace(experiment.synthetic.walk, pitch=(0.0, 0.0))
+  )
+  for changed in (
+    dataclasses.replace(experiment, synthetic=other_walk),
+    dataclasses.replace(experiment, seed=1),
+  ):
+    with pytest.raises(ValueError, match="other settings.*another --synthetic-dir"):
+      data.ensure_synthetic(changed)
+  (root / "generator.json").unlink()  # a set from before the settings were recorded
+  with pytest.raises(ValueError, match="not recorded"):
+    data.ensure_synthetic(experiment)
+
+
 def test_an_index_matching_no_scene_fails_before_any_work_and_lists_unknown_keys(tmp_path):
   smoke = re10k.PRESETS["smoke"]
   experiment = dataclasses.replace(

@@ -166,3 +166,21 @@ def test_training_loss_has_finite_nonzero_gradients(baseline):
   for name in ("rgb_embed", "ray_embed", "block_0", "block_1", "unpatchify"):
     norm = sum(float(jnp.sum(g**2)) for g in jax.tree.leaves(grads[name]))
     assert norm > 0, name
+
+
+def test_colours_come_from_the_input_views_like_tokengs(baseline, scene, gaussians):
+  """The smoke model reads colours from the inputs (`gaussian_colours="inputs"`); with the
+  official head colours the same weights give other colours."""
+  from tokengs_jax.model.colours import InputViews, input_colours
+
+  config, params = baseline
+  assert config.gaussian_colours == "inputs"
+  images, c2w, intrinsics = scene
+  expected, seen = input_colours(
+    jnp.asarray(gaussians.means), InputViews(images, invert_rigid(c2w), intrinsics)
+  )
+  assert bool(jnp.all(seen))  # every Gaussian lies on a ray of its own view
+  np.testing.assert_allclose(gaussians.colors, expected, atol=1e-5)
+  head = pixel_baseline.jitted_reconstruct(params, *scene, config.replace(gaussian_colours="head"))
+  np.testing.assert_allclose(head.means, gaussians.means, atol=1e-6)
+  assert np.abs(np.asarray(head.colors) - expected).max() > 0.1

@@ -275,7 +275,10 @@ def _decode(params, encoded, model_config, tokens=None, latents=None, at_times=N
   tokens: [B, T_tok, C] replacing the learnt Gaussian tokens; latents: [B, L, C] scene latents
   replacing the encoded ones (their keys/values are recomputed).
   """
-  source = encoded if latents is None else model.kv_from_latents(params, latents, model_config)
+  if latents is None:
+    source = encoded
+  else:
+    source = model.kv_from_latents(params, latents, model_config).replace(views=encoded.views)
   if at_times is None:
     return Gaussians.from_flat(model.decode(params, source, model_config, tokens=tokens))
   return decode_at_times(params, source, model_config, at_times, tokens=tokens)

@@ -23,8 +23,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tokengs_jax.camera import plucker_rays
+from tokengs_jax.camera import invert_rigid, plucker_rays
 from tokengs_jax.gaussians import Gaussians
+from tokengs_jax.model.colours import InputViews
 from tokengs_jax.model.configs import IMAGE_MEAN, IMAGE_STD, ModelConfig
 from tokengs_jax.model.inputs import check_times, check_views
 from tokengs_jax.model.network import EncoderOutput, TokenGS
@@ -56,8 +57,10 @@ def init_params(key: jax.Array, config: ModelConfig) -> Params:
 
 @functools.partial(jax.jit, static_argnums=1)
 def _jitted_init(key: jax.Array, config: ModelConfig) -> Params:
-  # One compiled program instead of hundreds of eagerly dispatched initialiser ops.
-  return TokenGS(config).init(key, **_dummy_inputs(config))["params"]
+  # One compiled program instead of hundreds of eagerly dispatched initialiser ops. The colour
+  # source adds no parameters, and the dummy forward pass has no cameras to read colours with.
+  network = TokenGS(config.replace(gaussian_colours="head"))
+  return network.init(key, **_dummy_inputs(config))["params"]
 
 
 def param_shapes(config: ModelConfig) -> Params:
@@ -216,12 +219,19 @@ def encode_views(
     times: [B, V] normalised input-view times (time-embedding models only; required there).
 
   Returns:
-    EncoderOutput (keys/values [B, heads, V * H * W / p², head_dim]; latents if any).
+    EncoderOutput (keys/values [B, heads, V * H * W / p², head_dim]; latents if any; the views
+    if the model reads its colours from them).
   """
   check_views(images, c2w, intrinsics, config, times)
   height, width = images.shape[-3:-1]
   plucker = plucker_rays(c2w, intrinsics, height, width)
-  return encode(params, normalize_images(images), plucker, config, times)
+  encoded = encode(params, normalize_images(images), plucker, config, times)
+  if config.gaussian_colours == "inputs":
+    rgb = jnp.asarray(images, jnp.float32)
+    if jnp.result_type(images) == jnp.uint8:
+      rgb = rgb / 255.0
+    encoded = encoded.replace(views=InputViews(rgb, invert_rigid(c2w), intrinsics))
+  return encoded
 
 
 def reconstruct(

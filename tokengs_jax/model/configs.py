@@ -66,6 +66,10 @@ class ModelConfig:
       dots (about 2x the float32 matmul rate; LayerNorm, softmax, GELU, residuals and parameters
       stay float32; accuracy in docs/benchmarks.md, "Model").
     remat: rematerialise each transformer block in the backward pass (saves activation memory).
+    gaussian_colours: "head" (official): RGB regressed by the head; "inputs": RGB read from the
+      input views at each Gaussian's projection (`model.colours`; not in the paper), the head's
+      RGB kept only where no view sees the Gaussian. Needs the views: `encode_views` /
+      `reconstruct` carry them, `predict_gaussians` cannot.
   """
 
   patch_size: int = 8
@@ -96,6 +100,7 @@ class ModelConfig:
   dtype: str = "float32"
   matmul_dtype: str | None = None
   remat: bool = False
+  gaussian_colours: str = "head"
 
   def __post_init__(self):
     if self.enc_embed_dim % self.enc_num_heads:
@@ -116,6 +121,10 @@ class ModelConfig:
         )
     if self.dtype not in ("float32", "bfloat16"):
       raise ValueError(f"dtype must be 'float32' or 'bfloat16', got {self.dtype!r}")
+    if self.gaussian_colours not in ("head", "inputs"):
+      raise ValueError(
+        f"gaussian_colours must be 'head' or 'inputs', got {self.gaussian_colours!r}"
+      )
     if self.matmul_dtype not in (None, "float32", "bfloat16"):
       raise ValueError(
         f"matmul_dtype must be None, 'float32' or 'bfloat16', got {self.matmul_dtype!r}"

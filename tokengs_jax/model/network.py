@@ -22,6 +22,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
+from tokengs_jax.model.colours import InputViews, with_input_colours
 from tokengs_jax.model.configs import LATENT_INIT_STD, LATENT_LAYER_SCALE_INIT, ModelConfig
 from tokengs_jax.model.decoder import DecoderBlock, block_causal_mask
 from tokengs_jax.model.encoder import EncoderBlock, block_class
@@ -38,11 +39,14 @@ class EncoderOutput:
     values: [B, heads, N, head_dim] shared values.
     latents: [B, num_latents, C] scene latents the keys/values came from (latent-bottleneck
       models only, else None); `kv_from_latents` recomputes keys/values after tuning them.
+    views: the input views, for models that read Gaussian colours from them
+      (`gaussian_colours="inputs"`; set by `api.encode_views`), else None.
   """
 
   keys: jax.Array
   values: jax.Array
   latents: jax.Array | None = None
+  views: InputViews | None = None
 
 
 def timestep_embedding(times: jax.Array, dim: int, max_period: float = 10000.0) -> jax.Array:
@@ -282,7 +286,15 @@ class TokenGS(nn.Module):
   ) -> jax.Array:
     """Flat Gaussians [B, T * p², 14] (see `decode_tokens` for the arguments)."""
     raw = self.activation_head(self.decode_tokens(encoded, tokens, target_times))
-    return activate(raw, self.config)
+    flat = activate(raw, self.config)
+    if self.config.gaussian_colours == "inputs":
+      if encoded.views is None:
+        raise ValueError(
+          'gaussian_colours="inputs" reads colours from the input views: encode with '
+          "`encode_views` / `reconstruct` (they carry the views), not `encode`"
+        )
+      flat = with_input_colours(flat, encoded.views)
+    return flat
 
   def __call__(
     self,

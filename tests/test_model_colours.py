@@ -1,0 +1,159 @@
+"""Gaussian colours read from the input views (`tokengs_jax.model.colours`)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from tokengs_jax import model
+from tokengs_jax.camera import invert_rigid, project_points
+from tokengs_jax.model.colours import InputViews, bilinear_sample, input_colours
+
+H, W = 6, 8
+
+
+def _numpy_bilinear(image, u, v):
+  """Reference: pixel centres at +0.5, coordinates clamped to the outermost centres."""
+  x = np.clip(u - 0.5, 0, W - 1)
+  y = np.clip(v - 0.5, 0, H - 1)
+  x0, y0 = int(np.floor(x)), int(np.floor(y))
+  x1, y1 = min(x0 + 1, W - 1), min(y0 + 1, H - 1)
+  fx, fy = x - x0, y - y0
+  top = image[y0, x0] * (1 - fx) + image[y0, x1] * fx
+  bottom = image[y1, x0] * (1 - fx) + image[y1, x1] * fx
+  return top * (1 - fy) + bottom * fy
+
+
+def test_bilinear_sample_matches_a_per_point_reference():
+  rng = np.random.default_rng(0)
+  images = rng.random((1, 2, H, W, 3)).astype(np.float32)
+  # pixel centres, points between them, the image border and outside it (clamped)
+  uv = np.array([[0.5, 0.5], [7.5, 5.5], [3.25, 2.75], [0.0, 0.0], [8.0, 6.0], [-3.0, 9.0]])
+  uv = np.broadcast_to(uv, (1, 2, len(uv), 2)).astype(np.float32)
+  got = np.asarray(bilinear_sample(jnp.asarray(images), jnp.asarray(uv)))
+  for view in range(2):
+    for n, (u, v) in enumerate(uv[0, view]):
+      np.testing.assert_allclose(got[0, view, n], _numpy_bilinear(images[0, view], u, v), atol=1e-6)
+  np.testing.assert_allclose(got[0, 0, 0], images[0, 0, 0, 0], atol=1e-7)  # exact at a centre
+
+
+def _two_views():
+  """Two cameras looking down +z, the second 0.2 along +x; images constant 0.2 and 0.8."""
+  c2w = np.tile(np.eye(4, dtype=np.float32), (1, 2, 1, 1))
+  c2w[0, 1, 0, 3] = 0.2
+  intrinsics = np.tile(np.array([8.0, 8.0, W / 2, H / 2], np.float32), (1, 2, 1))
+  images = np.zeros((1, 2, H, W, 3), np.float32)
+  images[0, 0] = 0.2
+  images[0, 1] = 0.8
+  return InputViews(jnp.asarray(images), invert_rigid(jnp.asarray(c2w)), jnp.asarray(intrinsics))
+
+
+def test_input_colours_average_the_views_that_see_the_point():
+  views = _two_views()
+  means = jnp.array(
+    [
+      [
+        [0.0, 0.0, 2.0],  # both views see it: the mean of 0.2 and 0.8
+        [-1.6, 0.0, 2.0],  # u = 8 * -0.8 + 4 < 0 in view 0 (and further left in view 1): no one
+        [0.0, 0.0, -1.0],  # behind both cameras
+        [1.1, 0.0, 2.0],  # view 0: u = 8.4 > W, view 1: u = 7.6: only view 1
+      ]
+    ]
+  )
+  colours, seen = input_colours(means, views)
+  np.testing.assert_array_equal(np.asarray(seen), [[True, False, False, True]])
+  np.testing.assert_allclose(np.asarray(colours[0, 0]), 0.5, atol=1e-6)
+  np.testing.assert_allclose(np.asarray(colours[0, 3]), 0.8, atol=1e-6)
+
+
+def _plane_views(depth=2.0, size=(24, 32)):
+  """Two cameras 0.3 apart along +x photographing the plane z = `depth` textured 0.5 + 0.4 sin 3x
+  (each pixel the texture where its centre's ray meets the plane)."""
+  h, w = size
+  intrinsics = np.tile(np.array([20.0, 20.0, w / 2, h / 2], np.float32), (1, 2, 1))
+  c2w = np.tile(np.eye(4, dtype=np.float32), (1, 2, 1, 1))
+  c2w[0, 1, 0, 3] = 0.3
+  u = np.arange(w) + 0.5
+  images = np.zeros((1, 2, h, w, 3), np.float32)
+  for view in range(2):
+    x = (u - w / 2) / 20.0 * depth + c2w[0, view, 0, 3]
+    images[0, view] = (0.5 + 0.4 * np.sin(3 * x))[None, :, None]
+  return InputViews(jnp.asarray(images), invert_rigid(jnp.asarray(c2w)), jnp.asarray(intrinsics))
+
+
+def _view_disagreement(means, views):
+  uv, _ = project_points(means, views.world_to_camera, views.intrinsics)
+  samples = bilinear_sample(views.images, uv)  # [1, 2, N, 3]
+  return jnp.sum((samples[:, 0] - samples[:, 1]) ** 2)
+
+
+def test_points_on_the_photographed_surface_read_one_colour_from_both_views():
+  """Checks the projection and the +0.5 pixel-centre convention end to end: on the surface both
+  views give the texture's colour; off it they disagree."""
+  views = _plane_views()
+  xs = np.linspace(-0.4, 0.6, 9, dtype=np.float32)
+  on = jnp.asarray(np.stack([xs, np.zeros_like(xs), np.full_like(xs, 2.0)], -1)[None])
+  colours, seen = input_colours(on, views)
+  assert bool(jnp.all(seen))
+  np.testing.assert_allclose(np.asarray(colours[0, :, 0]), 0.5 + 0.4 * np.sin(3 * xs), atol=6e-3)
+  off = on.at[..., 2].multiply(0.7)
+  assert float(_view_disagreement(on, views)) < 0.02 * float(_view_disagreement(off, views))
+
+
+def test_the_disagreement_gradient_points_along_the_ray_to_the_surface():
+  """What trains geometry through the colours: at a wrong depth, descending the views'
+  disagreement moves the point along its view-0 ray toward the photographed surface."""
+  views = _plane_views()
+  ray = jnp.array([0.1, 0.0, 1.0])
+  slope = jax.grad(lambda d: _view_disagreement((d * ray)[None, None], views))
+  assert float(slope(1.7)) < 0 < float(slope(2.3))
+
+
+def test_reconstruct_reads_colours_from_the_inputs_and_differentiates(tiny_inputs_model):
+  config, params = tiny_inputs_model
+  rng = np.random.default_rng(0)
+  images = jnp.asarray(rng.random((1, 2, 32, 32, 3)), jnp.float32)
+  c2w = np.tile(np.eye(4, dtype=np.float32), (1, 2, 1, 1))
+  c2w[0, 1, 0, 3] = 0.1
+  intrinsics = jnp.asarray(np.tile(np.array([30, 30, 16, 16], np.float32), (1, 2, 1)))
+  gaussians = model.reconstruct(params, images, jnp.asarray(c2w), intrinsics, config=config)
+  views = InputViews(images, invert_rigid(jnp.asarray(c2w)), intrinsics)
+  expected, seen = input_colours(gaussians.means, views)
+  assert bool(jnp.any(seen))
+  np.testing.assert_allclose(
+    np.asarray(gaussians.colors)[np.asarray(seen)], np.asarray(expected)[np.asarray(seen)]
+  )
+  # uint8 inputs read the same colours
+  as_uint8 = jnp.round(images * 255).astype(jnp.uint8)
+  again = model.reconstruct(params, as_uint8, jnp.asarray(c2w), intrinsics, config=config)
+  np.testing.assert_allclose(np.asarray(again.colors), np.asarray(gaussians.colors), atol=3e-3)
+
+  def colour_sum(p):
+    g = model.reconstruct(p, images, jnp.asarray(c2w), intrinsics, config=config)
+    return jnp.sum(g.colors * g.means[..., :1])
+
+  grads = jax.jit(jax.grad(colour_sum))(params)
+  leaves = jax.tree_util.tree_leaves(grads)
+  assert all(bool(jnp.all(jnp.isfinite(g))) for g in leaves)
+  assert float(jnp.abs(grads["activation_head"]["deconv"]["kernel"]).max()) > 0
+
+
+def test_the_low_level_forward_cannot_read_colours(tiny_inputs_model):
+  config, params = tiny_inputs_model
+  with pytest.raises(ValueError, match="encode_views"):
+    model.predict_gaussians(
+      params, jnp.zeros((1, 2, 32, 32, 3)), jnp.zeros((1, 2, 32, 32, 6)), config
+    )
+
+
+@pytest.fixture(scope="module")
+def tiny_inputs_model():
+  config = model.preset(
+    "tiny",
+    image_size=(32, 32),
+    num_gs_tokens=16,
+    dec_patch_size=2,
+    clip_head_readout_std=0.3,
+    gaussian_colours="inputs",
+  )
+  return config, model.init_params(jax.random.key(0), config)
