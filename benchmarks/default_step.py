@@ -10,6 +10,8 @@ compiled HLO's op names.
     python benchmarks/default_step.py                       # this checkout
     python benchmarks/default_step.py --profile
     python benchmarks/default_step.py --model matmul_dtype=bfloat16
+    python benchmarks/default_step.py --model dec_patch_size=2 gaussian_colours=head
+        # the session-3/4 default model (512 Gaussians, head colours): issue 11's comparison
     git worktree add /tmp/old b32f2ed && PYTHONPATH=/tmp/old python benchmarks/default_step.py
         # the session-3 start (issue 11's "now"): its experiments package was one module
 
@@ -19,6 +21,7 @@ The data set is generated under `--data` when missing (as the default run does).
 from __future__ import annotations
 
 import argparse
+import ast
 import dataclasses
 import collections
 import glob
@@ -42,6 +45,14 @@ from tokengs_jax.train import (
   replicate,
   shard_batch,
 )
+
+
+def _value(text: str):
+  """A `--model` override value: a Python literal (2, 0.3, None) or else the string itself."""
+  try:
+    return ast.literal_eval(text)
+  except (ValueError, SyntaxError):
+    return text
 
 
 def default_training(data_dir: str, model_overrides: dict):
@@ -108,7 +119,7 @@ def main() -> None:
   )
   args = parser.parse_args()
 
-  overrides = dict(item.split("=", 1) for item in args.model)
+  overrides = {key: _value(text) for key, text in (item.split("=", 1) for item in args.model)}
   params, loss_fn, optim, batches = default_training(args.data, overrides)
   optimizer, mesh = make_optimizer(optim), make_mesh()
   state = jax.jit(

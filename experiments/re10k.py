@@ -10,10 +10,12 @@
 
 Presets:
 - `synthetic-tiny` (default): writes `outputs/synthetic_re10k` when missing (48 + 8 rooms, 24
-  frames, 32x32), trains the `tiny` model with 128 tokens x 4 Gaussians (`num_gs_tokens=128`,
-  `dec_patch_size=2`: 512 Gaussians, 4x cheaper renders than the preset's 2048 on a 2-core CPU)
-  and a 150x larger head initialisation (`clip_head_readout_std=0.3`: the official 0.002 starts
-  every Gaussian in one clump, which a few CPU minutes cannot spread over a room) for 1500 steps
+  frames, 32x32, filmed along a randomised walk: `experiments.config.RANDOMISED_WALK`), trains the
+  `tiny` model with 128 tokens x 16 Gaussians (`num_gs_tokens=128`, `dec_patch_size=4`: the
+  preset's 2048 Gaussians), a 150x larger head
+  initialisation (`clip_head_readout_std=0.3`: the official 0.002 starts every Gaussian in one
+  clump, which a few CPU minutes cannot spread over a room) and Gaussian colours read from the
+  input views (`gaussian_colours="inputs"`, not in the paper; docs/generalisation.md) for 1500 steps
   (batch 4, 2 context + 2 target views, lr 3e-3 cosine, 100 warm-up) and scores the baselines
   (mean colour, input-view average, nearest input view) / untrained / trained / trained + 50-step
   token tuning (lr 1e-4, the paper's) on the 8 test rooms (3 targets each, never an input frame)

@@ -157,3 +157,31 @@ def tiny_inputs_model():
     gaussian_colours="inputs",
   )
   return config, model.init_params(jax.random.key(0), config)
+
+
+def test_tuned_scene_latents_keep_reading_colours_from_the_views():
+  """Scene-latent tuning rebuilds the encoder output from the latents; the views must survive."""
+  from tokengs_jax.tuning import _decode
+
+  config = model.preset(
+    "tiny",
+    use_latent_bottleneck=True,
+    num_latents=8,
+    latent_cross_attn_depth=1,
+    num_gs_tokens=8,
+    dec_patch_size=2,
+    clip_head_readout_std=0.3,
+    gaussian_colours="inputs",
+  )
+  params = model.init_params(jax.random.key(0), config)
+  views = _plane_views(size=(16, 16))
+  c2w = invert_rigid(views.world_to_camera)
+  encoded = model.encode_views(params, views.images, c2w, views.intrinsics, config)
+  gaussians = _decode(params, encoded, config, latents=encoded.latents * 1.5)
+  expected, seen = input_colours(gaussians.means, views)
+  assert bool(jnp.any(seen))
+  np.testing.assert_allclose(
+    np.asarray(gaussians.colors)[np.asarray(seen)],
+    np.asarray(expected)[np.asarray(seen)],
+    atol=1e-6,
+  )
