@@ -66,6 +66,16 @@ def test_input_colours_average_the_views_that_see_the_point():
   np.testing.assert_allclose(np.asarray(colours[0, 3]), 0.8, atol=1e-6)
 
 
+def test_a_non_finite_centre_is_unseen_with_a_zero_gradient():
+  views = _two_views()
+  means = jnp.array([[[0.0, 0.0, 2.0], [jnp.nan, 0.0, 2.0], [jnp.inf, 1.0, 2.0]]])
+  colours, seen = input_colours(means, views)
+  np.testing.assert_array_equal(np.asarray(seen), [[True, False, False]])
+  assert bool(jnp.all(jnp.isfinite(colours)))
+  grad = jax.grad(lambda m: jnp.sum(input_colours(m, views)[0]))(means)
+  np.testing.assert_array_equal(np.asarray(grad[0, 1:]), 0.0)
+
+
 def _plane_views(depth=2.0, size=(24, 32)):
   """Two cameras 0.3 apart along +x photographing the plane z = `depth` textured 0.5 + 0.4 sin 3x
   (each pixel the texture where its centre's ray meets the plane)."""

@@ -74,12 +74,16 @@ def input_colours(means: jax.Array, views: InputViews) -> tuple[jax.Array, jax.A
 
   Returns:
     (colours [B, N, 3] float32: the average over the views whose image contains the projection,
-    seen [B, N] bool: at least one view does).
+    seen [B, N] bool: at least one view does). A non-finite centre is seen by no view and gets
+    a zero gradient here, as the renderer culls it (design.md §8), instead of a NaN one.
   """
   h, w = views.images.shape[-3:-1]
+  finite = jnp.all(jnp.isfinite(means), axis=-1)  # [B, N]
+  means = jnp.where(finite[..., None], means, 0.0)
   uv, depth = project_points(means, views.world_to_camera, views.intrinsics)  # [B,V,N,2], [B,V,N]
   inside = (
-    (depth > NEAR)
+    finite[:, None]
+    & (depth > NEAR)
     & (uv[..., 0] >= 0.0)
     & (uv[..., 0] <= w)
     & (uv[..., 1] >= 0.0)
