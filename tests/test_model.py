@@ -195,6 +195,40 @@ def test_tiled_attention_values_and_gradients_match_plain_attention(tile, masked
   assert heads_per_step * rows * num_keys <= max(tile, num_keys) and rows * row_steps >= num_queries
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.bfloat16])
+def test_layer_norm_matches_flax_two_pass_layer_norm_and_its_gradients(dtype):
+  from flax import linen as nn
+
+  from tokengs_jax.model.layers import layer_norm
+
+  rng = np.random.default_rng(0)
+  # An offset far from zero: the variance must be the two-pass one to stay accurate.
+  x = jnp.asarray(rng.normal(3.0, 0.5, (2, 5, 48)), dtype)
+  weights = jnp.asarray(rng.normal(size=(2, 5, 48)), jnp.float32)
+  ours = layer_norm(dtype)
+  flax_norm = nn.LayerNorm(epsilon=1e-5, use_fast_variance=False, dtype=dtype)
+  params = {
+    "params": {
+      "scale": jnp.asarray(rng.normal(1.0, 0.2, 48), jnp.float32),
+      "bias": jnp.asarray(rng.normal(0.0, 0.2, 48), jnp.float32),
+    }
+  }
+
+  def loss(module, params, x):
+    return jnp.sum(module.apply(params, x).astype(jnp.float32) * weights)
+
+  assert ours.apply(params, x).dtype == dtype
+  value, grads = jax.value_and_grad(functools.partial(loss, ours), argnums=(0, 1))(params, x)
+  ref_value, ref_grads = jax.value_and_grad(functools.partial(loss, flax_norm), argnums=(0, 1))(
+    params, x
+  )
+  tol = 1e-5 if dtype == jnp.float32 else 2e-2
+  np.testing.assert_allclose(value, ref_value, rtol=tol)
+  for got, ref in zip(jax.tree.leaves(grads), jax.tree.leaves(ref_grads)):
+    got, ref = np.asarray(got, np.float32), np.asarray(ref, np.float32)
+    np.testing.assert_allclose(got, ref, rtol=0, atol=tol * np.abs(ref).max())
+
+
 def test_attention_tiling_splits_big_problems():
   assert attention_tiling(32, 128, 128) == (32, 128, 1)  # tiny preset: a single step
   assert attention_tiling(16, 896, 896) == (1, 896, 1)  # one head at a time

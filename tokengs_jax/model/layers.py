@@ -26,11 +26,60 @@ from tokengs_jax.model.configs import LAYER_NORM_EPS
 torch_default_kernel_init = nn.initializers.variance_scaling(1.0 / 3.0, "fan_in", "uniform")
 
 
-def layer_norm(dtype, name: str | None = None) -> nn.LayerNorm:
-  """LayerNorm with torch's eps (1e-5, Flax defaults to 1e-6) and the two-pass variance."""
-  return nn.LayerNorm(
-    epsilon=LAYER_NORM_EPS, use_fast_variance=False, dtype=dtype, param_dtype=jnp.float32, name=name
+@functools.partial(jax.custom_vjp, nondiff_argnums=(3,))
+def _normalize(x: jax.Array, scale: jax.Array, bias: jax.Array, eps: float) -> jax.Array:
+  """(x - mean) / sqrt(var + eps) * scale + bias over the last axis, in float32.
+
+  A hand-written VJP: autodiff of the two-pass formula leaves XLA:CPU about twice as many
+  separate reductions and broadcasts per LayerNorm (17 ops forward+backward in the tiny train
+  step), and the model has one to three LayerNorms per matmul.
+  """
+  return _normalize_fwd(x, scale, bias, eps)[0]
+
+
+def _normalize_fwd(x, scale, bias, eps):
+  x = x.astype(jnp.float32)
+  centred = x - jnp.mean(x, axis=-1, keepdims=True)
+  inv_std = jax.lax.rsqrt(jnp.mean(jnp.square(centred), axis=-1, keepdims=True) + eps)
+  normalized = centred * inv_std
+  return normalized * scale + bias, (normalized, inv_std, scale)
+
+
+def _normalize_bwd(eps, residuals, out_grad):
+  del eps
+  normalized, inv_std, scale = residuals
+  out_grad = out_grad.astype(jnp.float32)
+  leading = tuple(range(out_grad.ndim - 1))
+  scale_grad = jnp.sum(out_grad * normalized, axis=leading)
+  bias_grad = jnp.sum(out_grad, axis=leading)
+  normalized_grad = out_grad * scale
+  x_grad = inv_std * (
+    normalized_grad
+    - jnp.mean(normalized_grad, axis=-1, keepdims=True)
+    - normalized * jnp.mean(normalized_grad * normalized, axis=-1, keepdims=True)
   )
+  return x_grad, scale_grad, bias_grad
+
+
+_normalize.defvjp(_normalize_fwd, _normalize_bwd)
+
+
+class LayerNorm(nn.Module):
+  """torch.nn.LayerNorm over the last axis: eps 1e-5 (Flax defaults to 1e-6), the two-pass
+  variance, statistics in float32, parameters `scale` / `bias` as Flax's `nn.LayerNorm`."""
+
+  dtype: jnp.dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    features = x.shape[-1]
+    scale = self.param("scale", nn.initializers.ones, (features,), jnp.float32)
+    bias = self.param("bias", nn.initializers.zeros, (features,), jnp.float32)
+    return _normalize(x, scale, bias, LAYER_NORM_EPS).astype(self.dtype)
+
+
+def layer_norm(dtype, name: str | None = None) -> LayerNorm:
+  return LayerNorm(dtype=dtype, name=name)
 
 
 def dense(
@@ -154,7 +203,13 @@ def _tiled_attention_fwd(queries, keys, values, mask, tile, operand_dtype):
 
 def _tiled_attention_bwd(tile, operand_dtype, residuals, out_grad):
   """Flash-attention backward: recompute each tile's probabilities from the saved row
-  log-sum-exp instead of storing them; dK, dV accumulate over a head group's row chunks."""
+  log-sum-exp instead of storing them; dK, dV accumulate over a head group's row chunks.
+
+  The tile is recomputed transposed, [keys, queries]: then dV = P^T dO and dK = dS^T Q are plain
+  products, and only dQ = dS K contracts the tile's leading axis. XLA:CPU runs a batched product
+  that contracts both operands' row axis in its generic dot at a third of the speed of the library
+  dots (docs/benchmarks.md), and the untransposed tile needs two of them.
+  """
   queries, keys, values, mask, out, log_sum_exp = residuals
   b, h, num_queries, _ = queries.shape
   heads_per_step, rows, row_steps = attention_tiling(b * h, num_queries, keys.shape[2], tile)
@@ -170,13 +225,15 @@ def _tiled_attention_bwd(tile, operand_dtype, residuals, out_grad):
     def row_chunk(carry, chunk):
       keys_grad, values_grad = carry
       chunk_queries, chunk_out_grad, chunk_out_dot, chunk_lse, chunk_mask = chunk
-      logits = _masked_logits(chunk_queries, group_keys, chunk_mask, operand_dtype)
-      probs = jnp.exp(logits - chunk_lse)
-      values_grad += matmul.einsum("gqk,gqd->gkd", probs, chunk_out_grad, operand_dtype)
-      probs_grad = matmul.einsum("gqd,gkd->gqk", chunk_out_grad, group_values, operand_dtype)
-      logits_grad = probs * (probs_grad - chunk_out_dot)
-      queries_grad = matmul.einsum("gqk,gkd->gqd", logits_grad, group_keys, operand_dtype)
-      keys_grad += matmul.einsum("gqk,gqd->gkd", logits_grad, chunk_queries, operand_dtype)
+      logits_t = matmul.einsum("gkd,gqd->gkq", group_keys, chunk_queries, operand_dtype)
+      if chunk_mask is not None:
+        logits_t = jnp.where(chunk_mask.T, logits_t, -jnp.inf)
+      probs_t = jnp.exp(logits_t - jnp.swapaxes(chunk_lse, -1, -2))
+      values_grad += matmul.einsum("gkq,gqd->gkd", probs_t, chunk_out_grad, operand_dtype)
+      probs_grad_t = matmul.einsum("gkd,gqd->gkq", group_values, chunk_out_grad, operand_dtype)
+      logits_grad_t = probs_t * (probs_grad_t - jnp.swapaxes(chunk_out_dot, -1, -2))
+      queries_grad = matmul.einsum("gkq,gkd->gqd", logits_grad_t, group_keys, operand_dtype)
+      keys_grad += matmul.einsum("gkq,gqd->gkd", logits_grad_t, chunk_queries, operand_dtype)
       return (keys_grad, values_grad), queries_grad.astype(chunk_queries.dtype)
 
     zeros = jnp.zeros(group_keys.shape, jnp.float32)

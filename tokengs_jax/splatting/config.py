@@ -35,7 +35,9 @@ class RenderConfig:
     chunk_size: Gaussians composited per (sub-)tile per loop step; memory of a step is
       tiles_per_step x subtile_size^2 x chunk_size.
     tiles_per_step: (sub-)tiles composited per loop step, taken from a compacted list of the tiles that
-      still have work (finished and empty tiles cost nothing); capped at the number of tiles.
+      still have work (finished and empty tiles cost nothing); capped at the number of tiles. A
+      step with fewer active tiles runs a smaller block from the ladder tiles_per_step / 2, / 4,
+      ... (down to 8), so the tail of a few long lists does not pay for the padding.
     intersections_per_gaussian: the (Gaussian, tile) budget is this times N (at least
       `min_intersections`); a scene needing more has its farthest Gaussians' tiles cut, which sets
       `stats.truncated`, and `stats.overflow` where that can change a pixel (see RenderStats).

@@ -82,16 +82,21 @@ def train_step_fn(
 
     (loss, aux), grads = jax.value_and_grad(compute_loss, has_aux=True)(state.params)
     finite = jnp.isfinite(loss) & all_finite(grads)
-    updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
-    stepped = state.replace(
-      params=optax.apply_updates(state.params, updates), opt_state=opt_state, step=state.step + 1
-    )
-    new_state = jax.tree.map(lambda new, old: jnp.where(finite, new, old), stepped, state)
+
+    def apply_update(state):
+      updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
+      return state.replace(
+        params=optax.apply_updates(state.params, updates), opt_state=opt_state, step=state.step + 1
+      )
+
+    # A branch rather than a select per leaf: the update runs only when it is kept, and the
+    # state is written in place (a select keeps both versions alive, so XLA copied the params).
+    new_state = jax.lax.cond(finite, apply_update, lambda state: state, state)
     metrics = {
       "loss": loss,
       "grad_norm": optax.tree.norm(grads),
       "finite": finite,
-      "learning_rate": current_learning_rate(opt_state),
+      "learning_rate": current_learning_rate(new_state.opt_state),
       **aux,
     }
     return new_state, metrics
