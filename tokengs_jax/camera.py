@@ -71,7 +71,8 @@ def ray_directions(c2w: jax.Array, intrinsics: jax.Array, height: int, width: in
   # R @ (x, y, 1) / |(x, y, 1)| written out column by column: one elementwise fusion. As a batched
   # dot it cost 3-6 ms of the default train step; as a multiply-reduce over the size-3 axis, XLA:CPU
   # hands the reduction to a library call that the patch embedding's transpose cannot fuse with.
-  return (rot[..., 0] * x[..., None] + rot[..., 1] * y[..., None] + rot[..., 2]) * inv_norm[..., None]
+  x, y, inv_norm = x[..., None], y[..., None], inv_norm[..., None]
+  return (rot[..., 0] * x + rot[..., 1] * y + rot[..., 2]) * inv_norm
 
 
 def plucker_rays(c2w: jax.Array, intrinsics: jax.Array, height: int, width: int) -> jax.Array:
