@@ -50,16 +50,6 @@ def cast_floating(tree, dtype):
   return jax.tree.map(cast, tree)
 
 
-def all_finite(tree) -> jax.Array:
-  """True iff no floating leaf of `tree` holds a NaN or an infinity (bool scalar)."""
-  checks = [
-    jnp.all(jnp.isfinite(leaf))
-    for leaf in jax.tree.leaves(tree)
-    if jnp.issubdtype(jnp.result_type(leaf), jnp.floating)
-  ]
-  return jnp.all(jnp.stack(checks)) if checks else jnp.array(True)
-
-
 def train_step_fn(
   loss_fn: LossFn, optimizer: optax.GradientTransformation, precision: Precision = Precision()
 ):
@@ -67,8 +57,9 @@ def train_step_fn(
 
   The loss is called as `loss_fn(params, batch, fold_in(key, state.step), state.step)`: the step
   is passed explicitly for step-scheduled terms (the dynamic auxiliary weight). When the loss or
-  any gradient is non-finite the returned state is the input state (update skipped, step not
-  advanced) and `metrics["finite"]` is False; the loop turns that into a loud stop.
+  the gradient's global norm is non-finite (a NaN or infinity in any gradient, or a norm that
+  overflows float32) the returned state is the input state (update skipped, step not advanced)
+  and `metrics["finite"]` is False; the loop turns that into a loud stop.
   """
 
   def step(state: TrainState, batch: dict, key: jax.Array):
@@ -81,7 +72,10 @@ def train_step_fn(
       return loss.astype(jnp.float32), aux
 
     (loss, aux), grads = jax.value_and_grad(compute_loss, has_aux=True)(state.params)
-    finite = jnp.isfinite(loss) & all_finite(grads)
+    # One reduction over every gradient serves the metric and the check: a NaN or an infinity
+    # anywhere makes the norm non-finite (a test per leaf cost ~200 small ops per step).
+    grad_norm = optax.tree.norm(grads)
+    finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
 
     def apply_update(state):
       updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
@@ -94,7 +88,7 @@ def train_step_fn(
     new_state = jax.lax.cond(finite, apply_update, lambda state: state, state)
     metrics = {
       "loss": loss,
-      "grad_norm": optax.tree.norm(grads),
+      "grad_norm": grad_norm,
       "finite": finite,
       "learning_rate": current_learning_rate(new_state.opt_state),
       **aux,
