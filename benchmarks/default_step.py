@@ -12,7 +12,7 @@ compiled HLO's op names.
     python benchmarks/default_step.py --model matmul_dtype=bfloat16
     python benchmarks/default_step.py --model dec_patch_size=2 gaussian_colours=head
         # the session-3/4 default model (512 Gaussians, head colours): issue 11's comparison
-    git worktree add /tmp/old b32f2ed && PYTHONPATH=/tmp/old python benchmarks/default_step.py
+    git worktree add /tmp/old b32f2ed && python benchmarks/default_step.py --checkout /tmp/old
         # the session-3 start (issue 11's "now"): its experiments package was one module
 
 The data set is generated under `--data` when missing (as the default run does).
@@ -31,20 +31,20 @@ import re
 import tempfile
 import time
 
+import sys
+
 import jax
 import numpy as np
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from tokengs_jax.train import (
-  Precision,
-  create_train_state,
-  make_mesh,
-  make_optimizer,
-  make_train_step,
-  replicate,
-  shard_batch,
-)
+
+def use_checkout(path: str) -> None:
+  """Imports `tokengs_jax` and `experiments` from the checkout at `path` rather than the installed
+  one. An editable install resolves them through an import hook that outranks `PYTHONPATH`, so
+  that hook is removed; call this before anything imports either package."""
+  sys.meta_path[:] = [f for f in sys.meta_path if "editable" not in repr(f).lower()]
+  sys.path.insert(0, path)
 
 
 def _value(text: str):
@@ -58,6 +58,7 @@ def _value(text: str):
 def default_training(data_dir: str, model_overrides: dict):
   """(params, loss_fn, optimiser config, batch iterator) of the default experiment, with
   `model_overrides` (ModelConfig fields) applied."""
+  # Imported here, not at the top, so that `--checkout` can choose where they come from.
   try:
     from experiments import tasks, weights
     from experiments.config import Experiment, optim_config
@@ -117,7 +118,19 @@ def main() -> None:
   parser.add_argument(
     "--model", nargs="*", default=[], help="ModelConfig overrides, e.g. matmul_dtype=bfloat16"
   )
+  parser.add_argument("--checkout", default=None, help="time the code of this git checkout")
   args = parser.parse_args()
+  if args.checkout:
+    use_checkout(args.checkout)
+  from tokengs_jax.train import (
+    Precision,
+    create_train_state,
+    make_mesh,
+    make_optimizer,
+    make_train_step,
+    replicate,
+    shard_batch,
+  )
 
   overrides = {key: _value(text) for key, text in (item.split("=", 1) for item in args.model)}
   params, loss_fn, optim, batches = default_training(args.data, overrides)

@@ -370,7 +370,8 @@ def render(
   Differentiable w.r.t. every Gaussian field (and the cameras); jit-compiled (height, width and
   config are static). Batch through the leading dimensions rather than `jax.vmap(render)`: all
   cameras then share one unbatched compositor loop, while a vmap turns its while loops into
-  batched ones that copy their whole state every step (measured 2x slower forward+backward).
+  batched ones that copy their whole state every step (measured 2x slower forward+backward) and
+  its per-step choice of block size into running every size.
   Inputs in bf16/f16 are computed in float32, float64 stays float64 (x64), and
   the outputs come in that compute dtype. Matmuls run at full float32 precision (`PRECISION`).
 
