@@ -176,6 +176,48 @@ def test_loss_receives_the_step_and_the_batch_unchanged():
   assert seen[0] == ["x", "y"]
 
 
+@jax.custom_vjp
+def _scale_gradient(x, factor):
+  return x
+
+
+_scale_gradient.defvjp(lambda x, factor: (x, factor), lambda factor, g: (g * factor, 0.0 * factor))
+
+
+@pytest.mark.parametrize("poison", [np.nan, np.inf, 1e30])
+def test_a_step_with_a_non_finite_gradient_changes_nothing(poison):
+  """A NaN or an infinity in one gradient leaf, or a finite gradient whose norm overflows
+  float32, skips the update (the loss itself stays finite): the state comes back unchanged and
+  `finite` is False. The next good step updates as usual."""
+
+  def loss_fn(params, batch, key, step):
+    factor = jnp.where(batch["poison"][0], poison, 1.0).astype(jnp.float32)
+    dense2 = {**params["dense2"], "bias": _scale_gradient(params["dense2"]["bias"], factor)}
+    return noiseless_loss({**params, "dense2": dense2}, batch, key, step)
+
+  mesh = make_mesh(devices=jax.devices()[:1])
+  optimizer = make_optimizer(OptimConfig(learning_rate=1e-2, schedule="constant"))
+  state = jax.jit(
+    lambda p: create_train_state(p, optimizer, 0), out_shardings=NamedSharding(mesh, P())
+  )(toy_params())
+  before = jax.device_get(state)
+  step = make_train_step(loss_fn, optimizer, mesh, donate=False)
+  key = jax.random.PRNGKey(7)
+
+  bad = {**toy_batch(0), "poison": np.ones(8, bool)}
+  after_bad, metrics = step(state, shard_batch(bad, mesh), key)
+  assert np.isfinite(metrics["loss"]) and not bool(metrics["finite"])
+  unchanged = jax.tree.map(np.array_equal, jax.device_get(after_bad), before)
+  assert all(jax.tree.leaves(unchanged)), unchanged
+
+  good = {**toy_batch(0), "poison": np.zeros(8, bool)}
+  after_good, metrics = step(after_bad, shard_batch(good, mesh), key)
+  assert bool(metrics["finite"]) and int(after_good.step) == 1
+  assert not np.array_equal(
+    after_good.params["dense1"]["kernel"], before.params["dense1"]["kernel"]
+  )
+
+
 def test_accumulation_equals_full_batch():
   """Two accumulated half batches make the same update as one step on the full batch."""
   full = toy_batch(0, 8)
