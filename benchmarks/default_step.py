@@ -28,10 +28,9 @@ import glob
 import gzip
 import json
 import re
+import sys
 import tempfile
 import time
-
-import sys
 
 import jax
 import numpy as np

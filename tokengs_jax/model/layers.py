@@ -78,6 +78,7 @@ class LayerNorm(nn.Module):
 
 
 def layer_norm(dtype, name: str | None = None) -> LayerNorm:
+  """The model's LayerNorm computing in float32 and returning `dtype`."""
   return LayerNorm(dtype=dtype, name=name)
 
 

@@ -2,8 +2,9 @@
 
 Tiles advance one chunk of `chunk_size` sorted Gaussians per loop step; a step takes the first S
 tiles that still have work (a compacted list; S from a halving ladder of block sizes, the
-smallest that holds them all) and evaluates [S, tile pixels, chunk] alphas, turns them into transmittances with a prefix sum of
-log(1 - alpha) (a small triangular matmul), and composites with one batched matmul. The loop stops
+smallest that holds them all) and evaluates [S, tile pixels, chunk] alphas, turns them into
+transmittances with a prefix sum of log(1 - alpha) (a small triangular matmul), and composites
+with one batched matmul. The loop stops
 as soon as no tile has both Gaussians left and a pixel that is not saturated, so empty tiles cost
 nothing beyond the first step and saturated scenes stop after a few chunks.
 
