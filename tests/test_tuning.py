@@ -172,9 +172,13 @@ def test_overflowing_tuning_renders_are_redone_with_a_larger_budget(tiny):
   ample = larger_budget(tight, config.num_gaussians, HEIGHT, WIDTH)
   assert ample.max_intersections == 4 * config.num_gaussians  # no scene can overflow it
   kwargs = dict(model_config=config, tuning=settings)
-  cut, overflowed = _tune_once(params, *scene(), render_config=tight, **kwargs)
-  full, full_overflowed = _tune_once(params, *scene(), render_config=ample, **kwargs)
-  assert bool(overflowed) and not bool(full_overflowed)
+  cut, overflowed, needed = _tune_once(params, *scene(), render_config=tight, **kwargs)
+  assert bool(overflowed) and tight.max_intersections < needed <= ample.max_intersections
+  # The retry is sized by what the renders reported needing, not by a blind 4x.
+  sized = larger_budget(tight, config.num_gaussians, HEIGHT, WIDTH, needed=int(needed))
+  assert needed <= sized.max_intersections <= ample.max_intersections
+  full, full_overflowed, _ = _tune_once(params, *scene(), render_config=sized, **kwargs)
+  assert not bool(full_overflowed)
   # the truncated renders steered the tuning elsewhere
   assert np.abs(np.asarray(cut.gaussians.means - full.gaussians.means)).max() > 1e-5
   result = tune(params, *scene(), render_config=tight, **kwargs)

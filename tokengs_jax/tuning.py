@@ -137,8 +137,9 @@ def tune(
   time-conditioned model decodes time-free (no target-time embedding).
 
   Never computed from a truncated render: if any render inside the tuning loop overflowed its
-  tile budget (`stats.overflow`), the whole run is repeated with a larger budget
-  (`splatting.larger_budget`, 4x each time) until none did. Call it outside jit.
+  tile budget (`stats.overflow`), the whole run is repeated with a budget that holds the most pairs
+  any of its renders needed (`splatting.larger_budget(..., needed=)`; the retried trajectory can
+  need more, so this repeats until no render overflowed). Call it outside jit.
 
   Args:
     params: network parameters (read only).
@@ -160,7 +161,7 @@ def tune(
   """
   render_config = splatting.RenderConfig() if render_config is None else render_config
   while True:
-    result, overflowed = _tune_once(
+    result, overflowed, pairs_needed = _tune_once(
       params,
       images,
       c2w,
@@ -180,7 +181,11 @@ def tune(
     if not bool(overflowed):
       return result
     render_config = splatting.larger_budget(
-      render_config, result.gaussians.num_gaussians, images.shape[-3], images.shape[-2]
+      render_config,
+      result.gaussians.num_gaussians,
+      images.shape[-3],
+      images.shape[-2],
+      needed=int(pairs_needed),
     )
     logging.info(
       "tune: a render overflowed its tile budget; tuning again with max_intersections=%d",
@@ -205,7 +210,8 @@ def _tune_once(
   times: jax.Array | None = None,
   output_times: jax.Array | None = None,
 ) -> tuple[TuningResult, jax.Array]:
-  """`tune` at one render budget; also returns whether any of its renders overflowed ([] bool)."""
+  """`tune` at one render budget; also returns whether any of its renders overflowed ([] bool)
+  and the most (Gaussian, tile) pairs one of their views needed ([] float32)."""
   loss_config = losses.LossConfig() if loss_config is None else loss_config
   objective = ObjectiveConfig() if objective is None else objective
   timed = times is not None
@@ -225,8 +231,9 @@ def _tune_once(
   with_aux = model_config.num_dynamic_gs_tokens > 0 and model_config.num_gs_tokens > 0
   per_view = dataclasses.replace(objective, decode_times="per_view")
 
-  def loss_and_overflow(v):
-    """Input-view loss of the variables `v`, and whether its render overflowed ([] bool)."""
+  def loss_and_budget(v):
+    """Input-view loss of the variables `v`, and (whether its render overflowed, the pairs its
+    views needed)."""
     if timed:
       loss, terms = time_conditioned_loss(
         lambda t: gaussians_of(v, t),
@@ -243,12 +250,12 @@ def _tune_once(
       loss, terms = supervision_loss(
         gaussians_of(v), images, world_to_camera, intrinsics, loss_config, render_config, objective
       )
-    return loss, terms["render_overflow"] > 0
+    return loss, (terms["render_overflow"] > 0, terms["render_pairs_needed"])
 
-  variables, step_losses, step_overflows = _adam_scan(
-    loss_and_overflow, variables, learning_rates, tuning
+  variables, step_losses, (step_overflows, step_needs) = _adam_scan(
+    loss_and_budget, variables, learning_rates, tuning
   )
-  final_loss, final_overflow = loss_and_overflow(variables)
+  final_loss, (final_overflow, final_need) = loss_and_budget(variables)
   if timed:
     gaussians = gaussians_of(variables, times if output_times is None else output_times)
   else:
@@ -256,6 +263,7 @@ def _tune_once(
   return (
     TuningResult(gaussians=gaussians, losses=jnp.append(step_losses, final_loss)),
     jnp.any(step_overflows) | final_overflow,
+    jnp.maximum(jnp.max(step_needs, initial=0.0), final_need),
   )
 
 
@@ -326,11 +334,11 @@ def _gaussians_of(decode, feed_forward, v: dict, at_times=None) -> Gaussians:
   return _offset(base, offsets)
 
 
-def _adam_scan(loss_and_overflow, variables: dict, learning_rates: dict, tuning: TuningConfig):
+def _adam_scan(loss_and_aux, variables: dict, learning_rates: dict, tuning: TuningConfig):
   """`tuning.steps` Adam steps on `variables` (one learning rate per entry) as one `lax.scan`.
 
-  loss_and_overflow: `variables -> ([] loss, [] bool overflow)`.
-  Returns `(variables after the last step, losses [steps] and overflows [steps] before each)`.
+  loss_and_aux: `variables -> ([] loss, aux pytree)`.
+  Returns `(variables after the last step, losses [steps] and aux [steps, ...] before each)`.
   """
   optimizer = optax.multi_transform(
     {name: optax.adam(rate, b1=tuning.b1, b2=tuning.b2) for name, rate in learning_rates.items()},
@@ -339,11 +347,11 @@ def _adam_scan(loss_and_overflow, variables: dict, learning_rates: dict, tuning:
 
   def step(carry, _):
     v, opt_state = carry
-    (loss, overflowed), grads = jax.value_and_grad(loss_and_overflow, has_aux=True)(v)
+    (loss, aux), grads = jax.value_and_grad(loss_and_aux, has_aux=True)(v)
     updates, opt_state = optimizer.update(grads, opt_state, v)
-    return (optax.apply_updates(v, updates), opt_state), (loss, overflowed)
+    return (optax.apply_updates(v, updates), opt_state), (loss, aux)
 
-  (variables, _), (step_losses, step_overflows) = jax.lax.scan(
+  (variables, _), (step_losses, step_aux) = jax.lax.scan(
     step, (variables, optimizer.init(variables)), None, length=tuning.steps
   )
-  return variables, step_losses, step_overflows
+  return variables, step_losses, step_aux
