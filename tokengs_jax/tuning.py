@@ -209,7 +209,7 @@ def _tune_once(
   objective: ObjectiveConfig | None = None,
   times: jax.Array | None = None,
   output_times: jax.Array | None = None,
-) -> tuple[TuningResult, jax.Array]:
+) -> tuple[TuningResult, jax.Array, jax.Array]:
   """`tune` at one render budget; also returns whether any of its renders overflowed ([] bool)
   and the most (Gaussian, tile) pairs one of their views needed ([] float32)."""
   loss_config = losses.LossConfig() if loss_config is None else loss_config

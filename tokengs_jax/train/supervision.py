@@ -108,8 +108,8 @@ def render_views(
 def render_diagnostics(stats) -> dict:
   """Logged render health: "render_overflow" (fraction of renders whose tile budget overflowed),
   "render_pairs_needed" (the most (Gaussian, tile) pairs any view needed: the budget that would
-  have held them, `splatting.larger_budget(..., needed=)`) and "visible" (mean number of
-  Gaussians drawn per view)."""
+  have held them, `splatting.larger_budget(..., needed=)`; under view chunks the mean of the
+  chunks' maxima, a lower bound) and "visible" (mean number of Gaussians drawn per view)."""
   return {
     "render_overflow": jnp.mean(stats.overflow.astype(jnp.float32)),
     "render_pairs_needed": jnp.max(stats.num_intersections).astype(jnp.float32),
