@@ -22,6 +22,7 @@ import tyro
 
 from experiments.config import Experiment
 from experiments.tasks import COMMANDS, Command, Task, execute
+from tokengs_jax import host_memory
 
 
 def _invocation_type(presets: Mapping[str, Experiment], default_preset: str):
@@ -90,6 +91,7 @@ def main(
   argv = sys.argv[1:] if argv is None else list(argv)
   command, experiment = parse(argv, presets, default_preset, prog)
   enable_compile_cache()
+  host_memory.retain_freed_memory()
   return execute(command, experiment, task, invocation=" ".join([prog] + argv))
 
 

@@ -43,6 +43,7 @@ _SUBMODULES = (
   "tuning",
   "evaluation",
   "export",
+  "host_memory",
 )
 
 __all__ = sorted(_PUBLIC) + list(_SUBMODULES)

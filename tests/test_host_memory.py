@@ -1,0 +1,67 @@
+"""`host_memory.retain_freed_memory`: a repeated XLA:CPU run stops page-faulting its temporaries.
+
+Each case runs in a fresh interpreter: the policy is process-wide and must precede the first
+computation, and this test process has long since run many.
+"""
+
+import json
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+_PROBE = textwrap.dedent(
+  """
+  import json, resource, sys
+  import jax, jax.numpy as jnp
+  from tokengs_jax import host_memory
+
+  applied = host_memory.retain_freed_memory() if sys.argv[1] == "retain" else None
+  # sin(x) feeds a dot, so XLA materialises it: a 64 MB temporary buffer per run.
+  program = jax.jit(lambda x: jnp.sin(x) @ jnp.ones((x.shape[1],), x.dtype))
+  x = jnp.full((4096, 4096), 0.5, jnp.float32)
+  temp_mb = program.lower(x).compile().memory_analysis().temp_size_in_bytes / 2**20
+  for _ in range(4):
+    program(x).block_until_ready()
+  before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+  program(x).block_until_ready()
+  faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+  print(json.dumps(dict(applied=applied, temp_mb=temp_mb, faults=faults)))
+  """
+)
+
+
+def _probe(mode: str) -> dict:
+  done = subprocess.run(
+    [sys.executable, "-c", _PROBE, mode], capture_output=True, text=True, timeout=300, check=True
+  )
+  return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt is Linux-only")
+def test_a_repeated_run_reuses_its_temporary_buffer():
+  default, retained = _probe("default"), _probe("retain")
+  assert default["temp_mb"] >= 64 and retained["temp_mb"] >= 64
+  # 64 MB of 4 kB pages is 16,384 faults; with transparent huge pages it can be as few as 32.
+  assert default["faults"] >= 32, default
+  assert retained["applied"] is True
+  assert retained["faults"] < 16, retained
+
+
+def test_a_late_call_says_the_dispatch_setting_cannot_apply():
+  late = textwrap.dedent(
+    """
+    import warnings
+    import jax.numpy as jnp
+    from tokengs_jax import host_memory
+
+    jnp.zeros(1).block_until_ready()  # creates the CPU client
+    with warnings.catch_warnings(record=True) as caught:
+      warnings.simplefilter("always")
+      host_memory.retain_freed_memory()
+    print([str(w.message) for w in caught])
+    """
+  )
+  done = subprocess.run([sys.executable, "-c", late], capture_output=True, text=True, check=True)
+  assert "after the first JAX computation" in done.stdout

@@ -1,0 +1,61 @@
+"""Host memory policy for XLA:CPU: reuse each run's temporary buffer instead of faulting it in.
+
+An XLA:CPU executable allocates its temporaries as one buffer per run (the `tiny` preset's train
+step: 59 MB) and frees it at the end. glibc serves a block that large with fresh `mmap` pages and
+unmaps them on free, so every step first-touches its whole temporary buffer again: ~15,000 page
+faults, 15-20 ms of a 65 ms train step on the development CPU (docs/benchmarks.md, "Host
+memory"). `retain_freed_memory` stops that in two settings:
+
+- glibc's `mallopt`: no `mmap` for blocks of any size and no trimming of the heap's free top, so a
+  freed buffer stays resident and the next run's equal-sized request reuses it;
+- JAX's CPU client runs single-device computations inline (`jax_cpu_enable_async_dispatch`
+  off), so their temporaries come from the calling thread's heap. A dispatch thread's glibc arena
+  cannot grow a heap past 64 MB and, depending on what else lives in it, `mmap`s blocks far
+  smaller: measured, the train step still faulted on one process in four without this.
+
+The cost is resident memory (the process keeps its heap's high-water mark) and that Python waits
+for each single-device computation instead of queueing the next (the training loop's data
+pipeline runs in its own threads, so steps are back to back anyway). Multi-device computations are
+still dispatched asynchronously. Accelerators are not affected.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import sys
+import warnings
+
+import jax
+from jax._src import xla_bridge  # private, as jax.distributed uses it: do JAX's clients exist yet
+
+# glibc <malloc.h> mallopt parameters.
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_MAX = -4
+_NEVER_TRIM = (1 << 31) - 1  # bytes of free heap top kept: the largest C int mallopt takes
+
+
+def retain_freed_memory() -> bool:
+  """Makes this process reuse freed host memory for XLA:CPU temporaries (see the module doc).
+
+  Call once, before the first JAX computation (the CPU client reads the dispatch setting when it is
+  created); the experiments' entry points do. Process-wide and not undone.
+
+  Returns:
+    True when glibc's allocator was set; False where there is no glibc `mallopt` (not Linux, or
+    another C library such as musl): then only the dispatch setting applies.
+  """
+  if xla_bridge.backends_are_initialized():
+    warnings.warn(
+      "retain_freed_memory() after the first JAX computation: the CPU client already exists and "
+      "keeps dispatching asynchronously; only the allocator setting applies",
+      stacklevel=2,
+    )
+  jax.config.update("jax_cpu_enable_async_dispatch", False)
+  if not sys.platform.startswith("linux"):
+    return False
+  try:
+    mallopt = ctypes.CDLL("libc.so.6").mallopt
+  except (OSError, AttributeError):
+    return False
+  mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
+  return mallopt(_M_MMAP_MAX, 0) == 1 and mallopt(_M_TRIM_THRESHOLD, _NEVER_TRIM) == 1
