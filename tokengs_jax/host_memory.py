@@ -7,7 +7,9 @@ faults, 15-20 ms of a 65 ms train step on the development CPU (docs/benchmarks.m
 memory"). `retain_freed_memory` stops that in two settings:
 
 - glibc's `mallopt`: no `mmap` for blocks of any size and no trimming of the heap's free top, so a
-  freed buffer stays resident and the next run's equal-sized request reuses it;
+  freed buffer stays resident and the next run's equal-sized request reuses it (most runs: a
+  repeated 64 MB program still got fresh pages in about one run in ten, apparently when it
+  allocated before the previous run's buffer was back in the heap; the heap then grows once);
 - JAX's CPU client runs single-device computations inline (`jax_cpu_enable_async_dispatch`
   off), so their temporaries come from the calling thread's heap. A dispatch thread's glibc arena
   cannot grow a heap past 64 MB and, depending on what else lives in it, `mmap`s blocks far

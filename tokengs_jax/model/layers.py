@@ -165,6 +165,21 @@ def _head_groups(x: jax.Array, heads_per_step: int) -> jax.Array:
   return x.reshape(-1, heads_per_step, *x.shape[-2:])
 
 
+def _tile_transposed_product(tile_t, right, operand_dtype):
+  """tile_t [G, k, q], right [G, k, d] -> tile_t^T right [G, q, d].
+
+  With several heads in the group (G > 1), XLA:CPU runs this batched product, which contracts
+  both operands' row axis, in its generic dot at a third to a half of the library dot's speed,
+  and XLA folds a plain transpose of the tile back into it; the barrier keeps a transposed copy
+  (tiny train step 48.6-49.1 -> 47.3-47.8 ms). A single-head group (G = 1) is a 2-D product the
+  library takes transposed as it is: there the copy costs (mid train step 5.1 -> 6.0 s with it).
+  """
+  if tile_t.shape[0] == 1:
+    return matmul.einsum("gkq,gkd->gqd", tile_t, right, operand_dtype)
+  tile = jax.lax.optimization_barrier(jnp.swapaxes(tile_t, -1, -2))
+  return matmul.einsum("gqk,gkd->gqd", tile, right, operand_dtype)
+
+
 @functools.partial(jax.custom_vjp, nondiff_argnums=(4, 5))
 def _tiled_attention(queries, keys, values, mask, tile, operand_dtype):
   """softmax(queries keys^T) values (no 1/sqrt(d): `attend` scales the queries)."""
@@ -206,9 +221,9 @@ def _tiled_attention_bwd(tile, operand_dtype, residuals, out_grad):
   log-sum-exp instead of storing them; dK, dV accumulate over a head group's row chunks.
 
   The tile is recomputed transposed, [keys, queries]: then dV = P^T dO and dK = dS^T Q are plain
-  products, and only dQ = dS K contracts the tile's leading axis. XLA:CPU runs a batched product
-  that contracts both operands' row axis in its generic dot at a third of the speed of the library
-  dots (docs/benchmarks.md), and the untransposed tile needs two of them.
+  products, and dQ = dS K takes one transposed copy of dS. XLA:CPU runs a batched product that
+  contracts both operands' row axis in its generic dot at a fifth to a half of the speed of the
+  library dots (docs/benchmarks.md); the untransposed tile would need two copies.
   """
   queries, keys, values, mask, out, log_sum_exp = residuals
   b, h, num_queries, _ = queries.shape
@@ -232,7 +247,7 @@ def _tiled_attention_bwd(tile, operand_dtype, residuals, out_grad):
       values_grad += matmul.einsum("gkq,gqd->gkd", probs_t, chunk_out_grad, operand_dtype)
       probs_grad_t = matmul.einsum("gkd,gqd->gkq", group_values, chunk_out_grad, operand_dtype)
       logits_grad_t = probs_t * (probs_grad_t - jnp.swapaxes(chunk_out_dot, -1, -2))
-      queries_grad = matmul.einsum("gkq,gkd->gqd", logits_grad_t, group_keys, operand_dtype)
+      queries_grad = _tile_transposed_product(logits_grad_t, group_keys, operand_dtype)
       keys_grad += matmul.einsum("gkq,gqd->gkd", logits_grad_t, chunk_queries, operand_dtype)
       return (keys_grad, values_grad), queries_grad.astype(chunk_queries.dtype)
 
