@@ -13,7 +13,7 @@ memory"). `retain_freed_memory` stops that in two settings:
 - JAX's CPU client runs single-device computations inline (`jax_cpu_enable_async_dispatch`
   off), so their temporaries come from the calling thread's heap. A dispatch thread's glibc arena
   cannot grow a heap past 64 MB and, depending on what else lives in it, `mmap`s blocks far
-  smaller: measured, the train step still faulted on one process in four without this.
+  smaller: measured, the tiny train step still faulted in 4 processes of 10 without this.
 
 The cost is resident memory (the process keeps its heap's high-water mark) and that Python waits
 for each single-device computation instead of queueing the next (the training loop's data

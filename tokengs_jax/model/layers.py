@@ -221,9 +221,10 @@ def _tiled_attention_bwd(tile, operand_dtype, residuals, out_grad):
   log-sum-exp instead of storing them; dK, dV accumulate over a head group's row chunks.
 
   The tile is recomputed transposed, [keys, queries]: then dV = P^T dO and dK = dS^T Q are plain
-  products, and dQ = dS K takes one transposed copy of dS. XLA:CPU runs a batched product that
-  contracts both operands' row axis in its generic dot at a fifth to a half of the speed of the
-  library dots (docs/benchmarks.md); the untransposed tile would need two copies.
+  products, and only dQ = dS K contracts the tile's leading axis (`_tile_transposed_product`).
+  XLA:CPU runs a batched product that contracts both operands' row axis in its generic dot at a
+  fifth to a half of the speed of the library dots (docs/benchmarks.md); the untransposed tile
+  would need two of them.
   """
   queries, keys, values, mask, out, log_sum_exp = residuals
   b, h, num_queries, _ = queries.shape
