@@ -24,8 +24,8 @@ import dataclasses
 import numpy as np
 
 from tokengs_jax.data.synthetic import cameras, photos
-from tokengs_jax.data.synthetic.raytrace import Box, Scene, Sphere, Texture
-from tokengs_jax.data.synthetic.scenes import polygon_room_planes, random_color, yaw_rotation
+from tokengs_jax.data.synthetic.raytrace import Box, Plane, Scene, Sphere, Texture
+from tokengs_jax.data.synthetic.scenes import random_color, yaw_rotation
 from tokengs_jax.data.synthetic.varied import photo_texture
 
 FROZEN_SEED = 20261125
@@ -116,6 +116,24 @@ def _item(
   return tuple(parts), float(np.sqrt(2.0) * parts[0].half_size[0])
 
 
+def _facades(rng: np.random.Generator, apothem: float, config: CourtyardConfig) -> tuple[Box, ...]:
+  """The walls of a regular polygon around x = z = 0 at a random turn, each a finite slab of its
+  own height (so the sky shows above them; an infinite plane would close the courtyard)."""
+  count = int(rng.integers(*config.facades))
+  turn = rng.uniform(0, 2 * np.pi)
+  up = np.array([0.0, 1.0, 0.0])
+  walls = []
+  for k in range(count):
+    azimuth = turn + 2 * np.pi * k / count
+    outward = np.array([np.sin(azimuth), 0.0, np.cos(azimuth)])
+    along = np.cross(up, outward)
+    height = rng.uniform(*config.height)
+    half = np.array([apothem * np.tan(np.pi / count) + 0.3, 0.5 * height, 0.15])
+    centre = (apothem + half[2]) * outward + half[1] * up
+    walls.append(Box(centre, half, _texture(rng, config), np.stack([along, up, outward], -1)))
+  return tuple(walls)
+
+
 def sample_courtyard(
   rng: np.random.Generator, frames: int, config: CourtyardConfig = CourtyardConfig()
 ) -> tuple[Scene, np.ndarray]:
@@ -124,10 +142,9 @@ def sample_courtyard(
   Returns:
     (scene, c2w [F, 4, 4] OpenCV); items keep `config.clearance` from the camera path.
   """
-  facades = int(rng.integers(*config.facades))
-  apothem, height = rng.uniform(*config.apothem), rng.uniform(*config.height)
-  floor, _ceiling, *walls = polygon_room_planes(rng, facades, apothem, height, ("solid",))
-  planes = tuple(dataclasses.replace(p, texture=_texture(rng, config)) for p in (floor, *walls))
+  apothem = rng.uniform(*config.apothem)
+  ground = Plane(np.zeros(3), np.array([0.0, 1.0, 0.0]), np.eye(3)[0], _texture(rng, config))
+  facades = _facades(rng, apothem, config)
   inside = apothem - 1.0
   start = rng.uniform(-0.5, 0.5, 2) * inside
   c2w = track_and_pan(rng, frames, np.array([start[0], 0.0, start[1]]), config)
@@ -158,8 +175,8 @@ def sample_courtyard(
   warmth = rng.uniform(0.0, 1.0)
   sky = np.array(random_color(rng, saturation=(0.1, 0.6), value=(0.6, 1.0)))
   scene = Scene(
-    planes=planes,
-    objects=tuple(objects),
+    planes=(ground,),
+    objects=facades + tuple(objects),
     light_direction=tuple(float(v) for v in sun),
     ambient=float(rng.uniform(*config.ambient)),
     light_color=(1.0, 1.0 - 0.1 * warmth, 1.0 - 0.3 * warmth),
