@@ -64,7 +64,9 @@ class KubricExperiment(Experiment):
   """`Experiment` plus the Kubric view sampling and the synthetic rig.
 
   Attributes:
-    num_cameras: cameras of the synthetic rig.
+    num_cameras: cameras per scene: the synthetic rig's size, and the camera tars every scene
+      must have and is read from (`KubricSceneSource`; a scene with fewer is rejected). The
+      released Kubric-4D rig, and the official loader, have 9 (the `paper` preset).
     min_gap / max_gap: frame span of an example's input views (official 3 / 23).
     flow_times: times sampled for the scene-flow and in-between pictures.
     flow_tracks: dynamic Gaussians drawn in the scene-flow plot (the most opaque ones).
@@ -149,11 +151,15 @@ class KubricTask(Task):
     `eval.num_scenes` (default 16) scenes of the listing held out."""
     root = self.root(experiment)
     if not experiment.data_dir:
-      return KubricSceneSource(root, [TRAIN_SUBSET]), KubricSceneSource(root, [TEST_SUBSET])
+      return (
+        KubricSceneSource(root, [TRAIN_SUBSET], num_cameras=experiment.num_cameras),
+        KubricSceneSource(root, [TEST_SUBSET], num_cameras=experiment.num_cameras),
+      )
     scenes = list_kubric_scenes(root)
     held_out = experiment.eval.num_scenes or 16
-    return KubricSceneSource(scenes=scenes[:-held_out]), KubricSceneSource(
-      scenes=scenes[-held_out:]
+    return (
+      KubricSceneSource(scenes=scenes[:-held_out], num_cameras=experiment.num_cameras),
+      KubricSceneSource(scenes=scenes[-held_out:], num_cameras=experiment.num_cameras),
     )
 
   def training_batches(self, experiment: KubricExperiment):
@@ -305,6 +311,7 @@ PRESETS = {
     data_dir="datasets/kubric4d",
     output_dir="outputs/kubric/paper",
     model=model.preset("kubric_dyn"),
+    num_cameras=9,
     train=TrainSettings(
       steps=50_000,
       batch_size=64,

@@ -126,7 +126,7 @@ def test_pointmap_batches_and_a_record_without_depths(kubric_root):
   config = dataclasses.replace(DATASET_PRESETS["kubric"], image_shape=(8, 8))
   select = kubric.kubric_view_selector(3, 2, min_gap=2, max_gap=6)
   pipeline = InputPipeline(
-    kubric.KubricSceneSource(kubric_root, ("v0",)),
+    kubric.KubricSceneSource(kubric_root, ("v0",), num_cameras=CAMERAS),
     config,
     batch_size=2,
     seed=0,
@@ -137,7 +137,9 @@ def test_pointmap_batches_and_a_record_without_depths(kubric_root):
   batch = next(iter(pipeline))
   assert batch["context_c2w"].shape == (2, 3, 4, 4) and batch["target_times"].shape == (2, 2)
   record = {
-    k: v for k, v in kubric.KubricSceneSource(kubric_root, ("v0",))[0].items() if k != "depths"
+    k: v
+    for k, v in kubric.KubricSceneSource(kubric_root, ("v0",), num_cameras=CAMERAS)[0].items()
+    if k != "depths"
   }
   with pytest.raises(BadExampleError, match="scene_000000.*needs depth maps"):
     make_example(

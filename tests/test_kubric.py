@@ -41,7 +41,7 @@ CONFIG = dataclasses.replace(DATASET_PRESETS["kubric"], image_shape=(H, W), rand
 
 def _example(root, index, seed, num_context=2, num_targets=2, config=CONFIG):
   """The pipeline's example of scene `index`, views drawn from `default_rng(seed)`."""
-  record = kubric.KubricSceneSource(root)[index]
+  record = kubric.KubricSceneSource(root, num_cameras=CAMERAS)[index]
   rng = np.random.default_rng(seed)
   views = kubric.kubric_view_selector(num_context, num_targets, 2, 5)(record, rng, 0)
   return make_example(record, config, rng, views=views)
@@ -133,20 +133,17 @@ def test_generated_tars_round_trip_frames_cameras_and_depth(kubric_root):
 
 
 def test_rendered_depth_unprojects_to_the_same_point_in_another_camera(kubric_root):
-  """Cross-view geometry through the reader's cameras: a pixel's depth point from camera 0,
-  projected into camera 1 at the same frame, lands where camera 1's depth agrees (if visible)."""
+  """Cross-view geometry through the reader's cameras: a pixel's depth point from camera 0
+  (stored ray distance along the pixel-centre ray, as Kubric), projected into camera 1 at the same
+  frame, lands where camera 1's depth agrees (if visible)."""
   root, _ = kubric_root
   scene_dir = root / "v0" / "scene_000000"
   views = [
     kubric.read_kubric_view(scene_dir / f"output_{c:03d}.tar", [3], load_depth=True) for c in (0, 1)
   ]
-  fx, fy, cx, cy = views[0]["intrinsics"][0]
-  rows, cols = np.mgrid[0:H, 0:W]
-  z = views[0]["depths"][0]
-  cam_points = np.stack([(cols + 0.5 - cx) / fx * z, (rows + 0.5 - cy) / fy * z, z], -1).reshape(
-    -1, 3
-  )
-  world = cam_points @ views[0]["c2w"][0, :3, :3].T + views[0]["c2w"][0, :3, 3]
+  world = kubric.unproject_ray_depth(
+    views[0]["depths"][0], views[0]["c2w"][0], views[0]["intrinsics"][0]
+  ).reshape(-1, 3)
   uv, depth = camera.project_points(
     jnp.asarray(world, jnp.float32),
     jnp.asarray(np.linalg.inv(views[1]["c2w"][0]))[None],
@@ -159,7 +156,8 @@ def test_rendered_depth_unprojects_to_the_same_point_in_another_camera(kubric_ro
   x, y = (uv[inside] - 0.5).T
   x0, y0 = np.clip(np.floor(x), 0, W - 2).astype(int), np.clip(np.floor(y), 0, H - 2).astype(int)
   fx_, fy_ = x - x0, y - y0
-  inverse = 1.0 / views[1]["depths"][0]
+  # inverse planar z (not inverse ray distance) is the affine one
+  inverse = 1.0 / kubric.ray_depth_to_z(views[1]["depths"][0], views[1]["intrinsics"][0])
   seen = 1.0 / (
     (1 - fy_) * ((1 - fx_) * inverse[y0, x0] + fx_ * inverse[y0, x0 + 1])
     + fy_ * ((1 - fx_) * inverse[y0 + 1, x0] + fx_ * inverse[y0 + 1, x0 + 1])
@@ -327,7 +325,7 @@ def test_scene_records_batch_through_the_generic_pipeline(kubric_root):
   from tokengs_jax.data.pipeline import ExampleConfig, InputPipeline
 
   root, config = kubric_root
-  source = kubric.KubricSceneSource(root)
+  source = kubric.KubricSceneSource(root, num_cameras=CAMERAS)
   record = source[0]
   assert len(record["images"]) == record["c2w"].shape[0] == CAMERAS * FRAMES
   selector = kubric.kubric_view_selector(num_context=2, num_targets=1, min_gap=2, max_gap=5)
@@ -371,7 +369,7 @@ def test_scene_records_batch_through_the_generic_pipeline(kubric_root):
 
 def _pipeline(root, **kwargs):
   return InputPipeline(
-    kubric.KubricSceneSource(root),
+    kubric.KubricSceneSource(root, num_cameras=CAMERAS),
     CONFIG,
     batch_size=1,
     seed=5,
@@ -401,7 +399,7 @@ def test_resumed_pipeline_sees_the_same_batches_as_an_uninterrupted_one(kubric_r
 
 def test_scene_metadata_is_parsed_once_per_process(kubric_root, monkeypatch):
   root, _ = kubric_root
-  source = kubric.KubricSceneSource(root)
+  source = kubric.KubricSceneSource(root, num_cameras=CAMERAS)
   parsed = []
   parse = kubric.parse_kubric_view
   test_thread = threading.get_ident()
@@ -420,8 +418,9 @@ def test_scene_metadata_is_parsed_once_per_process(kubric_root, monkeypatch):
   for _ in range(3):
     record = source[0]
   assert len(parsed) == CAMERAS
-  frame = record["images"][CAMERAS * FRAMES - 1]
-  assert frame[:8] == b"\x89PNG\r\n\x1a\n" and record["depths"][0][:2] in (b"II", b"MM")
+  frame, depth = record["images"][CAMERAS * FRAMES - 1], record["depths"][0]
+  assert frame.shape == (H, W, 3) and frame.dtype == np.uint8
+  assert depth.shape == (H, W) and depth.dtype == np.float32
 
 
 @pytest.mark.slow

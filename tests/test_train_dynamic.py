@@ -216,7 +216,7 @@ def kubric_batches(tmp_path_factory):
     DATASET_PRESETS["kubric"], image_shape=(HEIGHT, WIDTH), random_flip=False
   )
   pipeline = InputPipeline(
-    kubric.KubricSceneSource(root),
+    kubric.KubricSceneSource(root, num_cameras=3),
     example_config,
     batch_size=2,
     seed=0,

@@ -2,7 +2,8 @@
 
 Layout: `<root>/<subset>/<scene>/output_{view:03d}.tar` (subsets v0, v1, v2; 9 cameras x 24
 frames), each tar holding `./metadata.json`, `./rgba_{frame:05d}.png` and (optional)
-`./depth_{frame:05d}.tiff` (float32 z-depth). From the metadata, as official:
+`./depth_{frame:05d}.tiff` (float32, the distance from the camera centre to the surface along each
+pixel's ray: Kubric's `z_to_depth` of the planar z, not z itself). From the metadata, as official:
 
 - intrinsics: fx = focal_length * W / sensor_width, fy = focal_length * H / sensor_width,
   (cx, cy) = (W / 2, H / 2), with `H, W = metadata.resolution` (the same for every frame);
@@ -17,25 +18,34 @@ cameras and `num_context` increasing frames spanning a random gap, plus one targ
 view v is camera v at frame v, target view v is camera v at the target frame. The pipeline
 (`DATASET_PRESETS["kubric"]`) then min-max normalises the times, normalises the cameras
 (`mean_cam`) and scales them by `translation_scale / mean distance of the context views' depth
-points from the origin` ("pointmap", `pointmap_scale`).
+points from the origin` ("pointmap", `pointmap_scale`; as the official provider, it unprojects
+the stored value as if it were planar z, see there).
 
-Every failure to read a scene (unreadable or truncated tar, missing member, bad metadata, a
-frame whose size is not the metadata's resolution) raises `KubricError` naming the file.
+Every failure to read a scene raises `KubricError` naming the file, and for a frame its member
+(`.../output_002.tar member ./rgba_00007.png`): an unreadable or truncated tar, bad metadata, a
+scene without all of its `num_cameras` tars (`KubricSceneSource`, official 9), a tar without
+every frame its metadata lists (`metadata.num_frames`, else the number of poses; a tar cut at a
+member boundary), a corrupt frame, a depth map whose size is not the metadata's resolution. The
+pipeline's `skip_bad` counts such a scene as a rejection (reason `KubricError`).
 
-Modules: `camera_tar` (one camera's tar: metadata, poses, frames), `source` (scene listing and
+Modules: `camera_tar` (one camera's tar: metadata, poses, frames, depth conventions), `source` (scene listing and
 `KubricSceneSource`), `sampling` (`kubric_view_selector`, `pointmap_scale`).
 """
 
 from tokengs_jax.data.kubric.camera_tar import (
   KubricError,
   KubricView,
+  decode_member,
   intrinsics_from_metadata,
   kubric_pose_to_opencv,
   opencv_to_kubric_pose,
   parse_kubric_view,
   quat_wxyz_to_rotation,
+  ray_depth_to_z,
   read_kubric_view,
   rotation_to_quat_wxyz,
+  unproject_ray_depth,
+  z_to_ray_depth,
 )
 from tokengs_jax.data.kubric.sampling import (
   kubric_view_selector,
@@ -48,6 +58,7 @@ __all__ = [
   "KubricError",
   "KubricSceneSource",
   "KubricView",
+  "decode_member",
   "intrinsics_from_metadata",
   "kubric_view_selector",
   "kubric_pose_to_opencv",
@@ -56,7 +67,10 @@ __all__ = [
   "parse_kubric_view",
   "pointmap_scale",
   "quat_wxyz_to_rotation",
+  "ray_depth_to_z",
   "read_kubric_view",
   "rotation_to_quat_wxyz",
   "sample_dynamic_indices",
+  "unproject_ray_depth",
+  "z_to_ray_depth",
 ]

@@ -1,8 +1,14 @@
 """One Kubric camera's tar: its metadata (poses, intrinsics, in the official conventions) and frames.
 
 `parse_kubric_view` reads a tar's index and `metadata.json` once into a `KubricView` (cameras and
-each member's byte range); `read_kubric_view` decodes frames (PNG RGB, TIFF depth) checked
-against the metadata's resolution. Every failure is a `KubricError` naming the file.
+each member's byte range) and refuses a tar that lacks any frame the metadata lists;
+`read_kubric_view` decodes frames (PNG RGB, TIFF depth) checked against the metadata's
+resolution. Every failure is a `KubricError` naming the file and, for a frame, the member
+(`.../output_002.tar member ./rgba_00007.png`).
+
+Depth: `depth_{frame:05d}.tiff` holds, as in real Kubric (its `z_to_depth`), the distance from the
+camera centre to the surface along each pixel's ray, not the planar camera z
+(`z_to_ray_depth`, `ray_depth_to_z`, `unproject_ray_depth` convert).
 """
 
 from __future__ import annotations
@@ -136,19 +142,23 @@ class KubricView:
   def num_frames(self) -> int:
     return len(self.c2w)
 
+  def where(self, name: str) -> str:
+    """How errors name member `name` (without "./"): `<tar> member ./<name>`."""
+    return f"{self.path} member ./{name}"
+
   def read(self, name: str) -> bytes:
     """The bytes of member `name`; `KubricError` if it is missing or the tar is truncated."""
     if name not in self.members:
-      raise KubricError(f"{self.path}: member '{name}' is missing")
+      raise KubricError(f"{self.where(name)} is missing")
     offset, size = self.members[name]
     try:
       with open(self.path, "rb") as handle:
         handle.seek(offset)
         data = handle.read(size)
     except OSError as error:
-      raise KubricError(f"{self.path}: cannot read member '{name}' ({error})") from error
+      raise KubricError(f"{self.where(name)}: cannot read ({error})") from error
     if len(data) != size:
-      raise KubricError(f"{self.path}: member '{name}' is truncated ({len(data)} of {size} bytes)")
+      raise KubricError(f"{self.where(name)} is truncated ({len(data)} of {size} bytes)")
     return data
 
 
@@ -173,12 +183,17 @@ def parse_kubric_view(tar_path: str | os.PathLike) -> KubricView:
     positions = np.asarray(camera["positions"], np.float64)
     quats = np.asarray(camera["quaternions"], np.float64)
     focal, sensor = float(camera["focal_length"]), float(camera["sensor_width"])
-  except (KeyError, TypeError, ValueError) as error:  # JSON and UTF-8 errors are ValueErrors
+    num_frames = meta["metadata"].get("num_frames", len(positions))
+  except (KeyError, TypeError, ValueError, AttributeError) as error:  # JSON errors: ValueErrors
     raise KubricError(f"{path}: bad metadata.json ({type(error).__name__}: {error})") from error
   if positions.ndim != 2 or positions.shape[1] != 3 or quats.shape != (len(positions), 4):
     raise KubricError(
       f"{path}: camera positions {list(positions.shape)} / quaternions "
       f"{list(quats.shape)} must be [F, 3] / [F, 4]"
+    )
+  if not isinstance(num_frames, int) or num_frames != len(positions):
+    raise KubricError(
+      f"{path}: metadata.json num_frames {num_frames!r} is not the {len(positions)} camera poses"
     )
   if not (np.isfinite(positions).all() and np.isfinite(quats).all()):
     raise KubricError(f"{path}: NaN/inf in the camera poses")
@@ -186,8 +201,26 @@ def parse_kubric_view(tar_path: str | os.PathLike) -> KubricView:
     intrinsics = intrinsics_from_metadata(focal, sensor, height, width)
   except KubricError as error:
     raise KubricError(f"{path}: metadata.json {error}") from None
+  _check_every_frame_is_present(view, num_frames)
   c2w = kubric_pose_to_opencv(positions, quats).astype(np.float32)
   return dataclasses.replace(view, c2w=c2w, intrinsics=intrinsics, height=height, width=width)
+
+
+def _check_every_frame_is_present(view: KubricView, num_frames: int) -> None:
+  """`KubricError` unless the tar holds an RGBA PNG for every frame the metadata lists, and a depth
+  TIFF for every frame when it holds any (depth is optional, a partial set is not).
+
+  A tar cut exactly at a member boundary reads as a valid, shorter tar; without this check the
+  scene would still give every example that avoids its missing frames.
+  """
+  has_depth = any(name.startswith("depth_") for name in view.members)
+  for pattern in ("rgba_{:05d}.png",) + (("depth_{:05d}.tiff",) if has_depth else ()):
+    missing = [f for f in range(num_frames) if pattern.format(f) not in view.members]
+    if missing:
+      raise KubricError(
+        f"{view.where(pattern.format(missing[0]))} is missing: metadata.json lists {num_frames} "
+        f"frames and {len(missing)} of them are absent (a truncated tar?)"
+      )
 
 
 def read_kubric_view(
@@ -206,7 +239,8 @@ def read_kubric_view(
   Returns:
     dict with `c2w` [F, 4, 4] float32 (OpenCV), `intrinsics` [F, 4] float32 (pixels),
     `frames` int [F], `num_frames` (in the file), `height`, `width`; `images` uint8 [F, H, W, 3]
-    when `load_images`; `depths` float32 [F, H, W] (z-depth) when `load_depth`.
+    when `load_images`; `depths` float32 [F, H, W] (distance along each pixel's ray, as stored)
+    when `load_depth`.
   """
   view = parse_kubric_view(tar_path)
   frames = np.arange(view.num_frames) if frames is None else np.asarray(frames, np.int64)
@@ -224,28 +258,63 @@ def read_kubric_view(
     "width": view.width,
   }
   if load_images:
-    images = [_decode(view, f"rgba_{f:05d}.png", shape) for f in frames]
+    images = [decode_member(view, f"rgba_{f:05d}.png", shape) for f in frames]
     result["images"] = np.stack(images) if images else np.zeros((0, *shape, 3), np.uint8)
   if load_depth:
-    depths = [_decode(view, f"depth_{f:05d}.tiff", shape) for f in frames]
+    depths = [decode_member(view, f"depth_{f:05d}.tiff", shape) for f in frames]
     result["depths"] = np.stack(depths) if depths else np.zeros((0, *shape), np.float32)
   return result
 
 
-def _decode(view: KubricView, name: str, shape: tuple[int, int]) -> np.ndarray:
+def decode_member(view: KubricView, name: str, shape: tuple[int, int]) -> np.ndarray:
   """Member `name` as uint8 [H, W, 3] RGB (PNG, alpha dropped as official) or float32 [H, W]
-  depth (TIFF, read with PIL as official); its size must be the metadata's resolution."""
+  depth (TIFF, read with PIL as official), whose size must be `shape` (the metadata's resolution:
+  the intrinsics are derived from it). Every failure is a `KubricError` naming tar and member."""
   try:
     with Image.open(io.BytesIO(view.read(name))) as image:
       pixels = (
         np.asarray(image.convert("RGB")) if name.endswith(".png") else np.asarray(image, np.float32)
       )
   except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as error:
-    raise KubricError(f"{view.path}: corrupt {name} ({error})") from error
+    raise KubricError(f"{view.where(name)}: corrupt image ({error})") from error
   pixels = pixels[..., 0] if name.endswith(".tiff") and pixels.ndim == 3 else pixels
   if pixels.shape[:2] != shape:
     raise KubricError(
-      f"{view.path}: {name} is {list(pixels.shape[:2])}, metadata.json resolution "
+      f"{view.where(name)} is {list(pixels.shape[:2])}, metadata.json resolution "
       f"is {list(shape)} (the intrinsics would be wrong)"
     )
   return pixels
+
+
+def _pixel_rays(intrinsics: np.ndarray, height: int, width: int) -> np.ndarray:
+  """Camera-space (OpenCV) rays through the pixel centres, with z = 1.  -> [H, W, 3] float64."""
+  fx, fy, cx, cy = np.asarray(intrinsics, np.float64)
+  rows, cols = np.mgrid[0:height, 0:width] + 0.5
+  return np.stack([(cols - cx) / fx, (rows - cy) / fy, np.ones_like(cols)], -1)
+
+
+def z_to_ray_depth(z: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
+  """Planar camera z -> distance from the camera centre along each pixel-centre ray (what Kubric's
+  `z_to_depth` stores in `depth_*.tiff`).  z: [..., H, W], intrinsics: [4] pixels -> float32."""
+  z = np.asarray(z)
+  rays = _pixel_rays(intrinsics, *z.shape[-2:])
+  return (z * np.linalg.norm(rays, axis=-1)).astype(np.float32)
+
+
+def ray_depth_to_z(depth: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
+  """Inverse of `z_to_ray_depth`.  depth: [..., H, W], intrinsics: [4] pixels -> float32."""
+  depth = np.asarray(depth)
+  rays = _pixel_rays(intrinsics, *depth.shape[-2:])
+  return (depth / np.linalg.norm(rays, axis=-1)).astype(np.float32)
+
+
+def unproject_ray_depth(depth: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
+  """World points a Kubric depth map sees: camera centre + depth x unit ray through the pixel
+  centre (pixels with depth 0 saw nothing and map to the centre).
+
+  depth: [H, W] ray distance, c2w: [4, 4] OpenCV, intrinsics: [4] pixels -> [H, W, 3] float64.
+  """
+  rays = _pixel_rays(intrinsics, *np.shape(depth))
+  rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+  pose = np.asarray(c2w, np.float64)
+  return (np.asarray(depth, np.float64)[..., None] * rays) @ pose[:3, :3].T + pose[:3, 3]

@@ -54,11 +54,16 @@ def pointmap_scale(
 ) -> float:
   """Mean distance from the origin of the points the depth maps see (official "pointmap").
 
-  Unprojects every pixel with depth > 1e-8 at integer pixel coordinates (as official, no +0.5),
-  optionally keeps only distances between the `trim` quantiles, and returns the mean (1.0 when
-  no pixel has depth).
+  Unprojects every pixel with depth > 1e-8 exactly as the official `_compute_pointmap_scale`:
+  point = depth x ((u - cx) / fx, (v - cy) / fy, 1) at integer pixel coordinates (no +0.5), i.e.
+  it treats the stored value as planar z. Kubric's files hold the distance along the ray, so
+  off-axis points land sqrt(1 + x^2 + y^2) too far (up to ~19 % at the corners of the 35 mm /
+  32 mm lens); this is kept so the scale is the official one. `unproject_ray_depth` gives the
+  true points. Optionally keeps only distances between the `trim` quantiles; returns the mean
+  (1.0 when no pixel has depth).
 
-  depths: [V, H, W] z-depth, c2w: [V, 4, 4] (already normalised), intrinsics: [V, 4] pixels.
+  depths: [V, H, W] as stored (Kubric: ray distance), c2w: [V, 4, 4] (already normalised),
+  intrinsics: [V, 4] pixels (of the stored resolution).
   """
   distances = []
   for depth, pose, (fx, fy, cx, cy) in zip(depths, np.asarray(c2w, np.float64), intrinsics):

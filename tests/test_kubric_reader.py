@@ -1,0 +1,264 @@
+"""Kubric reader: the depth convention (ray distance, as real Kubric) on a ray-traced plane, and
+the scenes it refuses (a missing camera tar, a tar without every frame its metadata lists) with
+errors naming the tar and member, through the pipeline's `skip_bad` like any bad data."""
+
+import dataclasses
+import io
+import json
+import shutil
+import tarfile
+
+import numpy as np
+import pytest
+import tifffile
+from PIL import Image
+
+from tokengs_jax.data import DATASET_PRESETS, BadExampleError, InputPipeline, kubric, make_example
+from tokengs_jax.data.synthetic import generate
+from tokengs_jax.data.synthetic.raytrace import Plane, Scene, render
+from tokengs_jax.data.synthetic.scenes import random_rotation
+
+H, W, FRAMES, CAMERAS = 8, 8, 4, 3
+CONFIG = dataclasses.replace(DATASET_PRESETS["kubric"], image_shape=(H, W), random_flip=False)
+
+
+# ---- depth: the distance along each pixel's ray
+
+
+def test_depth_of_a_traced_plane_is_the_ray_distance_and_unprojects_onto_the_plane(tmp_path):
+  height, width, focal, sensor = 12, 16, 20.0, 32.0  # wide lens: off-axis rays differ from z
+  intrinsics = kubric.intrinsics_from_metadata(focal, sensor, height, width)
+  rng = np.random.default_rng(3)
+  c2w = np.eye(4)
+  c2w[:3, :3], c2w[:3, 3] = random_rotation(rng), [0.4, 1.5, -2.0]
+  forward, right, down = c2w[:3, 2], c2w[:3, 0], c2w[:3, 1]
+  point = c2w[:3, 3] + 5.0 * forward
+  normal = -forward + 0.4 * right + 0.3 * down
+  normal /= np.linalg.norm(normal)
+  tangent = np.cross(normal, forward)
+  plane = Plane(point, normal, tangent / np.linalg.norm(tangent))
+  traced = render(Scene(planes=(plane,)), c2w, intrinsics, height, width)
+  assert (traced.ids == 0).all()
+  positions, quats = kubric.opencv_to_kubric_pose(np.stack([c2w, c2w]))
+  metadata = {
+    "metadata": {"resolution": [height, width], "num_frames": 2},
+    "camera": {
+      "focal_length": focal,
+      "sensor_width": sensor,
+      "positions": positions.tolist(),
+      "quaternions": quats.tolist(),
+    },
+  }
+  stored = kubric.z_to_ray_depth(np.stack([traced.depth] * 2), intrinsics)
+  (tmp_path / "v0" / "plane").mkdir(parents=True)
+  images = np.round(np.stack([traced.rgb] * 2) * 255).astype(np.uint8)
+  generate.write_kubric_view(tmp_path / "v0" / "plane" / "output_000.tar", metadata, images, stored)
+
+  record = kubric.KubricSceneSource(tmp_path, ["v0"], num_cameras=1)[0]
+  depth, pose, read_intrinsics = record["depths"][1], record["c2w"][1], record["intrinsics"][1]
+
+  # Analytic distance from the camera centre to the plane along each pixel-centre ray.
+  rows, cols = np.mgrid[0:height, 0:width] + 0.5
+  fx, fy, cx, cy = intrinsics.astype(np.float64)
+  rays = np.stack([(cols - cx) / fx, (rows - cy) / fy, np.ones_like(cols)], -1)
+  rays = rays / np.linalg.norm(rays, axis=-1, keepdims=True) @ c2w[:3, :3].T
+  expected = ((point - c2w[:3, 3]) @ normal) / (rays @ normal)
+  np.testing.assert_allclose(depth, expected, rtol=2e-5)
+  np.testing.assert_allclose(kubric.ray_depth_to_z(depth, read_intrinsics), traced.depth, rtol=2e-5)
+
+  on_plane = (kubric.unproject_ray_depth(depth, pose, read_intrinsics) - point) @ normal
+  np.testing.assert_allclose(on_plane, 0.0, atol=1e-4)
+  # Read as planar z (the previous convention), the corner points leave the plane by decimetres.
+  as_z = np.stack([(cols - cx) / fx * depth, (rows - cy) / fy * depth, depth], -1)
+  off_plane = (as_z @ np.asarray(pose[:3, :3], np.float64).T + pose[:3, 3] - point) @ normal
+  assert np.abs(off_plane).max() > 0.1
+
+
+def test_pointmap_scale_reads_the_stored_depth_as_the_official_provider():
+  # The official `_compute_pointmap_scale`: depth x ((u - cx) / fx, (v - cy) / fy, 1) at integer
+  # pixels, whatever the file's convention; on ray distances it is that formula, not the geometry.
+  rng = np.random.default_rng(0)
+  depths = rng.uniform(1.0, 4.0, (2, 3, 5)).astype(np.float32)
+  intrinsics = np.array([[4.0, 3.0, 2.5, 1.5], [5.0, 5.0, 2.0, 1.0]])
+  c2w = np.tile(np.eye(4), (2, 1, 1))
+  c2w[:, :3, 3] = [[0.0, 0.0, 1.0], [0.5, -0.2, 0.0]]
+  rows, cols = np.mgrid[0:3, 0:5]
+  distances = []
+  for depth, pose, (fx, fy, cx, cy) in zip(depths, c2w, intrinsics):
+    points = np.stack([(cols - cx) / fx * depth, (rows - cy) / fy * depth, depth], -1)
+    distances.append(np.linalg.norm(points.reshape(-1, 3) + pose[:3, 3], axis=-1))
+  expected = np.concatenate(distances).mean()
+  assert kubric.pointmap_scale(depths, c2w, intrinsics) == pytest.approx(expected, rel=1e-6)
+
+
+# ---- scenes the reader refuses
+
+
+@pytest.fixture(scope="module")
+def generated(tmp_path_factory):
+  root = tmp_path_factory.mktemp("kubric_reader")
+  config = generate.KubricLikeConfig(supersample=1)
+  generate.generate_kubric_like(root, 1, H, W, FRAMES, CAMERAS, seed=2, config=config)
+  return root / "v0" / "scene_000000"
+
+
+def _copy(generated, root, name="scene_000000"):
+  shutil.copytree(generated, root / "v0" / name)
+  return root / "v0" / name
+
+
+def _member_offsets(path) -> dict:
+  """member name -> (header offset, data offset, size)."""
+  with tarfile.open(path) as tar:
+    return {m.name: (m.offset, m.offset_data, m.size) for m in tar.getmembers()}
+
+
+def _cut(path, at: int):
+  path.write_bytes(path.read_bytes()[:at])
+
+
+def _rewrite(path, change: dict):
+  """Rebuilds the tar with members replaced (name -> bytes) or dropped (name -> None)."""
+  with tarfile.open(path) as tar:
+    members = [(m.name, tar.extractfile(m).read()) for m in tar.getmembers()]
+  with tarfile.open(path, "w") as tar:
+    for name, data in members:
+      data = change.get(name, data)
+      if data is not None:
+        info = tarfile.TarInfo(name)
+        info.size = len(data)
+        tar.addfile(info, io.BytesIO(data))
+
+
+def test_a_scene_without_its_last_camera_tar_is_rejected(generated, tmp_path):
+  scene = _copy(generated, tmp_path)
+  assert kubric.KubricSceneSource(tmp_path, num_cameras=CAMERAS)[0]["num_cameras"] == CAMERAS
+  assert kubric.KubricSceneSource(tmp_path, num_cameras=None)[0]["num_cameras"] == CAMERAS
+  # the default expects the official 9-camera rig
+  with pytest.raises(kubric.KubricError, match=r"scene_000000/output_003\.tar is missing.*=9"):
+    kubric.KubricSceneSource(tmp_path)[0]
+  (scene / "output_002.tar").unlink()
+  with pytest.raises(
+    kubric.KubricError, match=r"scene_000000: camera tar \S*scene_000000/output_002\.tar is missing"
+  ):
+    kubric.KubricSceneSource(tmp_path, num_cameras=CAMERAS)[0]
+  # configured as a 2-camera rig, the scene is whole (further tars would be ignored, as official)
+  assert kubric.KubricSceneSource(tmp_path, num_cameras=2)[0]["num_cameras"] == 2
+  # num_cameras=None takes the tars there are, but not around a gap
+  (scene / "output_001.tar").rename(scene / "output_002.tar")
+  with pytest.raises(kubric.KubricError, match=r"output_001\.tar is missing"):
+    kubric.KubricSceneSource(tmp_path, num_cameras=None)[0]
+
+
+@pytest.mark.parametrize(
+  "cut, message",
+  [
+    # at a member boundary the tar reads as a valid, shorter one
+    ("header ./rgba_00002.png", r"output_001\.tar member \./rgba_00002\.png is missing.*4 frames"),
+    ("header ./depth_00003.tiff", r"output_001\.tar member \./depth_00003\.tiff is missing"),
+    # inside a member: tarfile finds the end of data missing
+    ("inside ./rgba_00002.png", r"output_001\.tar: not a readable tar"),
+  ],
+)
+def test_a_tar_without_every_listed_frame_rejects_the_scene(generated, tmp_path, cut, message):
+  scene = _copy(generated, tmp_path)
+  tar = scene / "output_001.tar"
+  where, name = cut.split(" ")
+  header, data, size = _member_offsets(tar)[name]
+  _cut(tar, header if where == "header" else data + size // 2)
+  source = kubric.KubricSceneSource(tmp_path, num_cameras=CAMERAS)
+  with pytest.raises(kubric.KubricError, match=message):
+    source[0]  # the whole scene, not only the examples that draw the lost frames
+  with pytest.raises(kubric.KubricError, match=message):
+    kubric.read_kubric_view(tar, [0])
+
+
+def test_metadata_frame_count_must_match_the_poses(generated, tmp_path):
+  scene = _copy(generated, tmp_path)
+  tar = scene / "output_000.tar"
+  with tarfile.open(tar) as handle:
+    metadata = json.load(handle.extractfile("./metadata.json"))
+  metadata["metadata"]["num_frames"] = FRAMES + 1
+  _rewrite(tar, {"./metadata.json": json.dumps(metadata).encode()})
+  with pytest.raises(kubric.KubricError, match=r"output_000\.tar: metadata.json num_frames 5"):
+    kubric.KubricSceneSource(tmp_path, num_cameras=CAMERAS)[0]
+
+
+def _views(camera: int, frame: int):
+  """Context views (camera, frame) and (camera 1 - ..., frame 0), one target: flat indices."""
+  other = (camera + 1) % CAMERAS
+  return np.array([camera * FRAMES + frame, other * FRAMES]), np.array([other * FRAMES + 1])
+
+
+def _small_tiff(shape):
+  buffer = io.BytesIO()
+  tifffile.imwrite(buffer, np.ones(shape, np.float32))
+  return buffer.getvalue()
+
+
+def _small_png(shape):
+  buffer = io.BytesIO()
+  Image.new("RGBA", shape[::-1]).save(buffer, format="PNG")
+  return buffer.getvalue()
+
+
+@pytest.mark.parametrize(
+  "change, message",
+  [
+    ({"./rgba_00001.png": b"\0" * 64}, r"member \./rgba_00001\.png: corrupt image"),
+    ({"./rgba_00001.png": _small_png((4, 6))}, r"member \./rgba_00001\.png is \[4, 6\]"),
+    ({"./depth_00001.tiff": b"\0" * 64}, r"member \./depth_00001\.tiff: corrupt image"),
+    ({"./depth_00001.tiff": _small_tiff((4, 4))}, r"member \./depth_00001\.tiff is \[4, 4\]"),
+    # depth is optional in a tar; the pointmap scale then names the member it lacks
+    (
+      {f"./depth_{f:05d}.tiff": None for f in range(FRAMES)},
+      r"member \./depth_00001\.tiff is miss",
+    ),
+  ],
+)
+def test_frame_errors_name_the_tar_and_member(generated, tmp_path, change, message):
+  scene = _copy(generated, tmp_path)
+  _rewrite(scene / "output_002.tar", change)
+  record = kubric.KubricSceneSource(tmp_path, num_cameras=CAMERAS)[0]
+  with pytest.raises(BadExampleError, match=rf"output_002\.tar {message}") as error:
+    make_example(record, CONFIG, np.random.default_rng(0), views=_views(2, 1))
+  assert isinstance(error.value.__cause__, kubric.KubricError)
+  # frames of the scene's sound members still make examples
+  make_example(record, CONFIG, np.random.default_rng(0), views=_views(0, 1))
+
+
+def test_refused_scenes_are_counted_rejections_under_skip_bad(generated, tmp_path):
+  _copy(generated, tmp_path, "a_good")
+  (_copy(generated, tmp_path, "b_missing_tar") / "output_002.tar").unlink()
+  cut = _copy(generated, tmp_path, "c_cut") / "output_000.tar"
+  _cut(cut, _member_offsets(cut)["./rgba_00003.png"][0])
+  source = kubric.KubricSceneSource(tmp_path, ["v0"], num_cameras=CAMERAS)
+  pipeline = InputPipeline(
+    source,
+    CONFIG,
+    batch_size=1,
+    shard_index=0,
+    shard_count=1,
+    num_epochs=1,
+    shuffle=False,
+    skip_bad=True,
+    select_views=kubric.kubric_view_selector(2, 1, 1, 3),
+  )
+  assert [int(b["scene_index"][0]) for b in pipeline] == [0]
+  assert dict(pipeline.rejections.counts) == {"KubricError": 2}
+  messages = "\n".join(pipeline.rejections.messages)
+  assert "b_missing_tar/output_002.tar is missing" in messages
+  assert "c_cut/output_000.tar member ./rgba_00003.png is missing" in messages
+  with pytest.raises(kubric.KubricError, match=r"b_missing_tar.*output_002\.tar is missing"):
+    list(
+      InputPipeline(
+        source,
+        CONFIG,
+        batch_size=1,
+        shard_index=0,
+        shard_count=1,
+        num_epochs=1,
+        shuffle=False,
+        select_views=kubric.kubric_view_selector(2, 1, 1, 3),
+      )
+    )
