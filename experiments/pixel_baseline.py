@@ -10,8 +10,9 @@ contrasts: Gaussians tied to pixel rays versus free Gaussians decoded from learn
 With `gaussian_colours="inputs"` its Gaussians read their colours from the input views exactly as
 TokenGS's do (`tokengs_jax.model.colours`).
 
-Not part of the library: it exists so that `experiments/studies/camera_noise.py` can train it with
-exactly the data, loss, optimiser and loop the TokenGS model gets.
+Not part of the library: it exists so that the studies (`experiments/studies/camera_noise.py`)
+and a run with `--eval.pixel-baseline` can train it with exactly the data, loss, optimiser and loop
+the TokenGS model gets, and score it beside TokenGS (`method`).
 """
 
 from __future__ import annotations
@@ -129,3 +130,14 @@ def loss_fn(config: ModelConfig, loss_config=None, render_config=None, objective
 @functools.partial(jax.jit, static_argnames=("config",))
 def jitted_reconstruct(params, images, c2w, intrinsics, config):
   return reconstruct(params, images, c2w, intrinsics, config=config)
+
+
+def method(params, config: ModelConfig):
+  """The trained baseline as an evaluation method (its Gaussians rendered at the targets)."""
+  from tokengs_jax import evaluation
+
+  return evaluation.Method(
+    reconstruct=lambda batch: jitted_reconstruct(
+      params, batch["context_images"], batch["context_c2w"], batch["context_intrinsics"], config
+    )
+  )

@@ -10,7 +10,7 @@ from typing import Literal
 
 import jax
 
-from experiments import data, results, training, weights
+from experiments import data, pixel_baseline, results, training, weights
 from experiments.config import Experiment
 from tokengs_jax import evaluation, model
 from tokengs_jax.data import InputPipeline
@@ -34,7 +34,7 @@ class Task:
     """Writes the synthetic data if needed: called before any JAX work, because the generator's
     worker processes are forked and forking after JAX has started threads is unsafe."""
     data.data_root(experiment)
-    data.ensure_galleries(experiment)
+    data.held_out_families(experiment)
 
   def check_evaluation(self, experiment: Experiment) -> dict | None:
     """Raises before any work if the held-out data cannot be evaluated (index vs data); returns
@@ -52,11 +52,10 @@ class Task:
   def test_sets(self, experiment: Experiment) -> dict[str, list[evaluation.Scene]]:
     """Named held-out sets, all scored with the same methods; the first is the primary one
     (top of metrics.json, grids/, PLY and fly-through). Synthetic runs add the
-    out-of-distribution galleries (`data.gallery_set`)."""
+    out-of-distribution galleries and the frozen courtyards (`data.held_out_families`)."""
     sets = {"test": self.evaluation_examples(experiment)}
-    galleries = data.gallery_set(experiment)
-    if galleries is not None:
-      sets["ood_galleries"] = data.evaluation_scenes(experiment, held_out=galleries)
+    for name, held_out in data.held_out_families(experiment).items():
+      sets[name] = data.evaluation_scenes(experiment, held_out=held_out)
     return sets
 
   def loss_config(self, experiment: Experiment):
@@ -141,15 +140,20 @@ def run_eval(
   include_untrained: bool = True,
   extra_info: dict | None = None,
   started: float | None = None,
+  pixel_params=None,
 ) -> dict:
   """Evaluates `params` (and the baselines) on every test set and writes the results folder.
 
   started: `time.perf_counter()` at the start of the command (for `total_seconds`).
+  pixel_params: the pixel-aligned baseline's weights (`eval.pixel_baseline`), scored as
+    `pixel_aligned`; None: not scored.
   """
   e = experiment.eval
   start = time.perf_counter()
   test_sets = task.test_sets(experiment)
   methods = task.methods(experiment, params, include_untrained)
+  if pixel_params is not None:
+    methods["pixel_aligned"] = pixel_baseline.method(pixel_params, experiment.model)
   print(
     f"[eval] {', '.join(f'{name}: {len(s)} scenes' for name, s in test_sets.items())}; "
     f"methods: {', '.join(methods)}",
@@ -209,6 +213,36 @@ def _train(experiment: Experiment, task: Task, command: Command, writer, info: d
   return params
 
 
+def _pixel_baseline(experiment: Experiment, task: Task, command: Command):
+  """The pixel-aligned baseline's weights when `eval.pixel_baseline` is set (else None): trained
+  with TokenGS's data, loss, optimiser, steps and seed (its own checkpoints in
+  `<output_dir>/pixel_baseline/`) and saved as `<output_dir>/pixel_baseline.msgpack`, or, for
+  `eval`, read from beside `--checkpoint`."""
+  if not experiment.eval.pixel_baseline:
+    return None
+  out = pathlib.Path(experiment.output_dir)
+  if command == "eval":
+    path = pathlib.Path(experiment.checkpoint or out / "params.msgpack").parent
+    path = path / "pixel_baseline.msgpack"
+    if not path.exists():
+      raise FileNotFoundError(f"--eval.pixel-baseline: {path} is missing (written by `run`)")
+    return weights.load_params(path)
+  config = experiment.model
+  print("[pixel baseline] training the pixel-aligned baseline the same way", flush=True)
+  params, _, seconds = training.train_model(
+    dataclasses.replace(experiment, output_dir=str(out / "pixel_baseline")),
+    pixel_baseline.init_params(jax.random.key(experiment.seed), config),
+    pixel_baseline.loss_fn(
+      config, task.loss_config(experiment), objective=task.objective(experiment)
+    ),
+    iter(task.training_batches(experiment)),
+  )
+  print(f"[pixel baseline] trained in {seconds:.0f} s", flush=True)
+  if evaluation.writes_results():
+    weights.save_params(out / "pixel_baseline.msgpack", params)
+  return params
+
+
 def execute(
   command: Command, experiment: Experiment, task: Task | None = None, invocation: str = ""
 ) -> dict | None:
@@ -240,8 +274,10 @@ def execute(
         writer=writer,
         extra_info=info,
         include_untrained=not experiment.official_checkpoint,
+        pixel_params=_pixel_baseline(experiment, task, command),
       )
     params = _train(experiment, task, command, writer, info)
+    pixel_params = _pixel_baseline(experiment, task, command)
     if command in ("train", "finetune"):
       return None
     return run_eval(
@@ -252,6 +288,7 @@ def execute(
       step=experiment.train.steps,
       extra_info=info,
       started=started,
+      pixel_params=pixel_params,
     )
   finally:
     if writer is not None:

@@ -121,3 +121,51 @@ def test_unknown_methods_raise(scene):
     transforms.normalize_cameras(scene[0], 2, "median_cam")
   with pytest.raises(ValueError, match="scale method"):
     transforms.translation_scale(scene[0], 2, 0.1, "huge")
+
+
+def test_depth_follows_the_image_crop_and_keeps_unknown_pixels_unknown():
+
+  depth = np.full((1, 48, 64), 3.0, np.float32)
+  depth[:, :, 40:] = 0.0  # nothing hit on the right: unknown
+  image = np.where(depth[..., None] > 0, 200, 0).astype(np.uint8).repeat(3, -1)
+  for shape in [(24, 24), (24, 32), (40, 40)]:
+    cropped, _ = transforms.resize_and_center_crop(image, np.array([[40.0, 40, 32, 24]]), shape)
+    resized = transforms.resize_and_center_crop_depth(depth, shape)
+    assert resized.shape == (1, *shape) and resized.dtype == np.float32
+    assert set(np.unique(resized)) <= {0.0, 3.0}  # no blend of a surface with "unknown"
+    # Known where the image is fully the surface, unknown where it is fully empty.
+    assert (resized[cropped[..., 0] == 200] == 3.0).all()
+    assert (resized[cropped[..., 0] == 0] == 0.0).all()
+
+
+def test_make_example_target_depths_are_scaled_and_flipped_with_the_cameras():
+  import dataclasses
+
+  from tokengs_jax.data import BoundedSamplerConfig, ExampleConfig, make_example
+
+  rng = np.random.default_rng(0)
+  frames, height, width = 4, 8, 12
+  depths = rng.uniform(1.0, 5.0, (frames, height, width)).astype(np.float32)
+  record = {
+    "key": "k",
+    "height": height,
+    "width": width,
+    "c2w": np.tile(np.eye(4, dtype=np.float32), (frames, 1, 1)),
+    "intrinsics": np.tile(np.array([10.0, 10.0, 6.0, 4.0], np.float32), (frames, 1)),
+    "images": list(rng.integers(0, 255, (frames, height, width, 3), dtype=np.uint8)),
+    "depths": list(depths),
+  }
+  sampler = BoundedSamplerConfig(2, 1, 1, 3, 0, 0, 1, 3)
+  config = ExampleConfig((height, width), sampler, 0.25, target_depths=True, random_flip=False)
+  views = (np.array([0, 3]), np.array([2]))
+  example = make_example(record, config, rng, views=views)
+  np.testing.assert_allclose(example["target_depths"], 0.25 * depths[[2]], rtol=1e-6)
+  flipped = dataclasses.replace(config, random_flip=True)
+  for seed in range(8):  # one of these seeds flips
+    other = make_example(record, flipped, np.random.default_rng(seed), views=views)
+    mirrored = np.allclose(other["target_images"], example["target_images"][:, :, ::-1])
+    expected = example["target_depths"][:, :, ::-1] if mirrored else example["target_depths"]
+    np.testing.assert_allclose(other["target_depths"], expected)
+  assert "target_depths" not in make_example(
+    record, dataclasses.replace(config, target_depths=False), rng, views=views
+  )

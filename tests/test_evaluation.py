@@ -249,3 +249,21 @@ def test_dynamic_methods_decode_at_each_target_views_time():
   )
   tuned = evaluation.tuned(params, DYNAMIC_CONFIG, TuningConfig(steps=2, learning_rate=1e-2))
   assert tuned.reconstruct(batch).batch_shape == (1, 2)  # one tuned set per target time
+
+
+def test_geometry_scores_for_rendering_methods_only():
+  batch = _batch(np.random.default_rng(8), [0, 4], [1, 3])
+  gaussians = _gaussians((1,))
+  rendered = evaluation.render_targets(
+    gaussians, batch["target_c2w"], batch["target_intrinsics"], height=HEIGHT, width=WIDTH
+  )
+  batch["target_depths"] = np.where(rendered.alpha[..., 0] > 0.5, 2.0 * rendered.depth[..., 0], 0)
+  batch["target_depths"][0, :, 0, 0] = 1.0  # at least one known pixel per view
+  methods = {"splats": evaluation.Method(reconstruct=lambda b: gaussians), **evaluation.baselines()}
+  scored = evaluation.evaluate([("s", batch)], methods, evaluation.Scorer(lpips=False))
+  splats = scored.scores["splats"].per_view[0]
+  np.testing.assert_allclose(splats["holes"], metrics.holes(rendered.alpha[0]))
+  expected = metrics.depth_errors(rendered.depth[0], batch["target_depths"][0])
+  np.testing.assert_allclose(splats["depth_absrel"], expected["depth_absrel"])
+  assert (splats["depth_absrel"] > 0.3).all()  # the truth is twice the render almost everywhere
+  assert set(scored.summary()["nearest_view"]) == {"psnr", "ssim"}  # no geometry for a copy

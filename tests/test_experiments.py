@@ -194,7 +194,8 @@ def test_trajectory_plot_on_background(tmp_path):
 
 
 def test_entry_point_end_to_end(tmp_path):
-  """`python -m experiments.re10k run smoke`: generate, train, evaluate, write every file."""
+  """`python -m experiments.re10k run smoke`: generate (the varied family), train TokenGS and
+  the pixel-aligned baseline, evaluate with geometry, write every file."""
   out = tmp_path / "results"
   completed = subprocess.run(
     [
@@ -207,6 +208,9 @@ def test_entry_point_end_to_end(tmp_path):
       str(out),
       "--synthetic-dir",
       str(tmp_path / "data"),
+      "--synthetic.family",
+      "varied",
+      "--eval.pixel-baseline",
     ],
     cwd=REPO,
     capture_output=True,
@@ -223,11 +227,20 @@ def test_entry_point_end_to_end(tmp_path):
     "untrained",
     "trained",
     "trained+token_tuning",
+    "pixel_aligned",
   }
   for method in payload["metrics"].values():
     assert len(method["per_scene"]) == 2
     for value in method["mean"].values():
       assert math.isfinite(value)
+  assert (out / "pixel_baseline.msgpack").stat().st_size > 0
+  for name in ("test", "ood_galleries", "frozen_courtyards"):  # geometry where it renders
+    scores = payload if name == "test" else payload["other_test_sets"][name]
+    means = {method: v["mean"] for method, v in scores["metrics"].items()}
+    assert {"holes", "depth_absrel", "depth_delta1"} <= set(means["pixel_aligned"]) & set(
+      means["trained"]
+    )
+    assert "holes" not in means["nearest_view"]
   for name in (
     "metrics.md",
     "flythrough.mp4",
@@ -238,7 +251,8 @@ def test_entry_point_end_to_end(tmp_path):
     assert (out / name).stat().st_size > 0, name
   assert list((out / "grids").glob("*.png"))
   assert "trained beats nearest_view" in payload["checks"]
-  assert payload["test_sets"] == ["test", "ood_galleries"]  # the other generator's scenes too
+  # the other generators' scenes too: the galleries (validation) and the frozen courtyards
+  assert payload["test_sets"] == ["test", "ood_galleries", "frozen_courtyards"]
   galleries = payload["other_test_sets"]["ood_galleries"]["metrics"]
   assert set(galleries) == set(payload["metrics"])
   assert all(len(method["per_scene"]) == 2 for method in galleries.values())

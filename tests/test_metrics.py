@@ -114,3 +114,22 @@ def test_mean_over_scenes_averages_scenes_equally():
   assert metrics.mean_over_scenes([np.array([1.0, 2.0, 3.0]), np.array([10.0])]) == 6.0
   with pytest.raises(ValueError):
     metrics.mean_over_scenes([])
+
+
+def test_holes_count_pixels_the_render_leaves_uncovered():
+  alpha = np.ones((2, 4, 4, 1))
+  alpha[0, :2] = 0.49  # half the first view shows the background
+  alpha[1, 0, 0] = 0.5  # exactly the threshold counts as covered
+  np.testing.assert_allclose(metrics.holes(alpha), [0.5, 0.0])
+
+
+def test_depth_errors_absrel_and_delta_over_known_pixels():
+  truth = np.full((1, 2, 2), 2.0)
+  truth[0, 1, 1] = 0.0  # unknown: not scored
+  depth = np.array([[[2.0], [2.4]], [[1.0], [99.0]]])[None]  # exact, +20%, half, (unknown)
+  scores = metrics.depth_errors(depth, truth)
+  np.testing.assert_allclose(scores["depth_absrel"], [(0.0 + 0.2 + 0.5) / 3])
+  np.testing.assert_allclose(scores["depth_delta1"], [2 / 3])  # 1.2 < 1.25; a factor 2 is not
+  empty = metrics.depth_errors(np.zeros((1, 2, 2, 1)), np.full((1, 2, 2), 3.0))
+  np.testing.assert_allclose(empty["depth_absrel"], [1.0])  # a hole is a full error
+  np.testing.assert_allclose(empty["depth_delta1"], [0.0])

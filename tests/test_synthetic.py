@@ -147,7 +147,8 @@ def test_object_shadow_leaves_only_ambient_light():
 
 @pytest.mark.parametrize("kind", raytrace.TEXTURE_KINDS)
 def test_textures_mix_between_their_two_colours(kind):
-  texture = raytrace.Texture(kind, (0.1, 0.2, 0.3), (0.9, 0.6, 0.3), frequency=1.7, seed=5)
+  photo = {"image": "grass.png", "tint": True} if kind == "photo" else {}  # a tinted photograph
+  texture = raytrace.Texture(kind, (0.1, 0.2, 0.3), (0.9, 0.6, 0.3), frequency=1.7, seed=5, **photo)
   points = np.random.default_rng(1).uniform(-3, 3, (500, 3)).astype(np.float32)
   colors = raytrace.texture_color(texture, points)
   mix = (colors[:, 0] - 0.1) / 0.8
@@ -274,7 +275,9 @@ def test_gallery_set_reads_back_through_the_evaluation_index(tmp_path):
     tmp_path, num_scenes=3, height=H, width=W, frames=9, seed=4, config=config
   )
   assert sorted(p.name for p in (tmp_path / "test").iterdir()) == [
+    "000000.depth.npz",  # true depth maps, for the evaluation's geometry scores
     "000000.torch",
+    "000001.depth.npz",
     "000001.torch",
     "index.json",
   ]

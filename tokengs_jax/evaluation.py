@@ -22,6 +22,11 @@ context view whose frame index is nearest the target's; by camera centre where a
 frame indices); the **input-view average** (pixel-wise mean of the context views). A model that
 does not beat the nearest view has not learnt to render a new viewpoint.
 
+Geometry (`geometry_scores`), for methods that render: `holes`, the share of target pixels left
+uncovered (alpha < 0.5), and where a test set knows its true depth (`target_depths`, written by
+the synthetic generators) the rendered expected depth's AbsRel and delta < 1.25
+(`metrics.depth_errors`).
+
 Several test sets (e.g. in-distribution and out-of-distribution rooms) are scored by
 `evaluate_sets`, one `Evaluation` per named set, with the same methods and scorer.
 
@@ -340,6 +345,18 @@ def _predict(method: Method, batch: dict, render_config) -> tuple[dict, float]:
   }, seconds
 
 
+def geometry_scores(prediction: dict, batch: dict) -> dict[str, np.ndarray]:
+  """Per target view of a batch of one: `holes` for a method that renders, plus depth AbsRel and
+  delta < 1.25 where the batch carries `target_depths` (synthetic test sets); {} for an image
+  method (nothing rendered, no geometry)."""
+  if prediction["alpha"] is None:
+    return {}
+  scores = {"holes": metrics.holes(prediction["alpha"][0])}
+  if "target_depths" in batch:
+    scores.update(metrics.depth_errors(prediction["depth"][0], batch["target_depths"][0]))
+  return scores
+
+
 def _on_host(prediction: dict) -> dict:
   """A batch-of-one prediction kept for pictures: rgb / depth / alpha without the batch axis,
   Gaussians fetched with it ([1] or [1, Vt])."""
@@ -375,6 +392,7 @@ def evaluate(
       start = time.perf_counter()
       prediction, predict_seconds = _predict(method, batch, render_config)
       views = scorer(prediction["rgb"][0], batch["target_images"][0])
+      views.update(geometry_scores(prediction, batch))
       scores[name].seconds += time.perf_counter() - start
       scores[name].predict_seconds.append(predict_seconds)
       scores[name].per_view.append(views)

@@ -4,6 +4,8 @@
 - SSIM = skimage `structural_similarity(win_size=11, gaussian_weights=True, sigma=1.5,
   use_sample_covariance=True, data_range=1.0, channel_axis=-1)`, on the images as given.
 - LPIPS VGG v0.1 with `normalize=True` (see `tokengs_jax.lpips`), on the images as given.
+- Geometry, for methods that render (numpy): `holes` (share of pixels with alpha < 0.5) and, where
+  the test set knows its true depth, `depth_errors` (AbsRel, delta < 1.25).
 
 Every metric takes `[..., H, W, 3]` images in [0, 1] and returns one score per image `[...]`; all
 are jit-able and differentiable. Scores are averaged per scene over its targets, then over scenes
@@ -140,6 +142,37 @@ def lpips(pred: jax.Array, target: jax.Array, params=None) -> jax.Array:
   if params is None:
     params = lpips_lib.load_vgg_params()
   return lpips_lib.lpips_distance(params, pred, target)
+
+
+# Geometry scores (issue 23), where a test set knows its true depth: monocular-depth conventions.
+DEPTH_DELTA = 1.25
+HOLE_ALPHA = 0.5
+
+
+def holes(alpha: np.ndarray) -> np.ndarray:
+  """Share of pixels a render leaves uncovered (accumulated opacity below `HOLE_ALPHA`, so the
+  background shows through).  alpha: [..., H, W, 1] -> [...]."""
+  return np.mean(np.asarray(alpha)[..., 0] < HOLE_ALPHA, axis=(-2, -1))
+
+
+def depth_errors(depth: np.ndarray, true_depth: np.ndarray) -> dict[str, np.ndarray]:
+  """AbsRel (mean |d - d*| / d*) and the share within a factor `DEPTH_DELTA` (delta < 1.25) of a
+  rendered expected depth against the true depth, over the pixels whose true depth is known
+  (d* > 0). A pixel the render leaves empty (depth 0) counts as an error of 1 and a miss.
+
+  depth: [..., H, W, 1] rendered planar z; true_depth: [..., H, W] (0: unknown)
+  -> {"depth_absrel", "depth_delta1"}: [...] each (NaN where no pixel is known).
+  """
+  depth = np.maximum(np.asarray(depth, np.float64)[..., 0], 0.0)
+  true_depth = np.asarray(true_depth, np.float64)
+  known = true_depth > 0
+  count = known.sum(axis=(-2, -1))
+  safe_truth = np.where(known, true_depth, 1.0)
+  ratio = np.maximum(depth / safe_truth, safe_truth / np.maximum(depth, 1e-12))
+  with np.errstate(invalid="ignore", divide="ignore"):
+    absrel = np.where(known, np.abs(depth - true_depth) / safe_truth, 0.0).sum((-2, -1)) / count
+    delta = np.where(known, ratio < DEPTH_DELTA, False).sum((-2, -1)) / count
+  return {"depth_absrel": absrel, "depth_delta1": delta}
 
 
 def mean_over_scenes(scores_per_scene: Sequence[np.ndarray]) -> float:

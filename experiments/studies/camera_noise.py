@@ -94,11 +94,7 @@ def main(settings: CameraNoise) -> list[dict]:
   scorer = evaluation.Scorer(lpips=False)
   methods = {
     "TokenGS": evaluation.feed_forward(params, config),
-    "pixel-aligned (GS-LRM-style)": evaluation.Method(
-      reconstruct=lambda batch: pixel_baseline.jitted_reconstruct(
-        baseline, batch["context_images"], batch["context_c2w"], batch["context_intrinsics"], config
-      )
-    ),
+    "pixel-aligned (GS-LRM-style)": pixel_baseline.method(baseline, config),
   }
   rows, curves = [], {name: ([], []) for name in methods}
   for degrees in settings.angles:

@@ -5,8 +5,9 @@ the record fields) works. Per example: pick views (bounded sampler, an evaluatio
 caller's `select_views`), decode only those frames, resize-then-centre-crop, normalise cameras
 (first_cam/mean_cam + translation scale), randomly flip, and convert images to float32 in [0, 1].
 The "pointmap" scale (official Kubric preset) also reads the context views' depth maps from the
-record's optional `depths` (a length-F sequence of float32 z-depth `[H, W]` arrays, TIFF bytes or
-`LazyTensor`s, at the stored resolution).
+record's optional `depths` (a length-F sequence of float32 `[H, W]` arrays, TIFF bytes or
+`LazyTensor`s, at the stored resolution). Kubric's hold the distance along each pixel's ray (not
+planar z); `pointmap_scale` unprojects them exactly as the official provider does (as if z).
 
 Batches are dicts of numpy arrays (docs/design.md): `context_images [B, Vc, H, W, 3]`,
 `context_c2w [B, Vc, 4, 4]`, `context_intrinsics [B, Vc, 4]`, the same for `target_*`,
@@ -40,6 +41,7 @@ from tokengs_jax.data.transforms import (
   normalize_cameras,
   normalize_times,
   resize_and_center_crop,
+  resize_and_center_crop_depth,
   translation_scale,
 )
 
@@ -91,6 +93,10 @@ class ExampleConfig:
     min_context_baseline: reject the example if its two context camera centres, in the record's
       raw world units (before normalisation and translation scaling), are strictly closer than
       this. Not checked with more or fewer than 2 context views. None: off (default).
+    target_depths: also return `target_depths [Vt, H, W]`, the record's true depth maps of the
+      target views (`depths`, as `pointmap` reads them; 0 where nothing was hit) resized and
+      cropped as the images and scaled as the cameras, so that they compare with rendered depth
+      (the evaluation's geometry scores; synthetic test sets record them).
 
   The last two reproduce pixelSplat/MVSplat's RE10K filters (`src/dataset/dataset_re10k.py`:
   `max_fov: 100.0` and, with `make_baseline_1`, `baseline_epsilon: 1e-3` in
@@ -107,6 +113,7 @@ class ExampleConfig:
   deterministic: bool = False
   max_fov_degrees: float | None = None
   min_context_baseline: float | None = None
+  target_depths: bool = False
 
 
 DATASET_PRESETS = {
@@ -283,10 +290,19 @@ def make_example(
     )
   else:
     scale = translation_scale(c2w, num_context, config.translation_scale, config.scale_method)
-  if config.random_flip and not config.deterministic and rng.random() < 0.5:
+  flipped = config.random_flip and not config.deterministic and rng.random() < 0.5
+  if flipped:
     images, c2w, intrinsics = flip_horizontal(images, c2w, intrinsics)
   c2w[:, :3, 3] *= scale
   images = images.astype(np.float32) / 255.0
+  if config.target_depths:
+    try:
+      true_depths = np.stack([_depth(record, int(i)) for i in target])
+    except _DATA_ERRORS as error:
+      raise BadExampleError(f"{where}: {error}") from error
+    true_depths = resize_and_center_crop_depth(true_depths, config.image_shape) * scale
+    if flipped:
+      true_depths = true_depths[:, :, ::-1]
   example = {
     "context_images": images[:num_context],
     "context_c2w": c2w[:num_context],
@@ -298,6 +314,8 @@ def make_example(
   if "times" in record:
     times = normalize_times(np.asarray(record["times"], np.float64)[frames])
     example["context_times"], example["target_times"] = times[:num_context], times[num_context:]
+  if config.target_depths:
+    example["target_depths"] = true_depths.astype(np.float32)
   return example
 
 

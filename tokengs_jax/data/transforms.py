@@ -15,6 +15,7 @@ from PIL import Image
 __all__ = [
   "rigid_inverse",
   "resize_and_center_crop",
+  "resize_and_center_crop_depth",
   "flip_horizontal",
   "normalize_cameras",
   "translation_scale",
@@ -53,24 +54,45 @@ def resize_and_center_crop(
   images: uint8 [V, H, W, 3], intrinsics: [V, 4] pixels -> (uint8 [V, h_out, w_out, 3], [V, 4]).
   """
   height, width = images.shape[1:3]
-  h_out, w_out = shape
-  scale = max(h_out / height, w_out / width)
-  h_scaled, w_scaled = max(h_out, round(height * scale)), max(w_out, round(width * scale))
-  if (h_scaled, w_scaled) != (height, width):
-    images = np.stack(
-      [
-        np.asarray(Image.fromarray(image).resize((w_scaled, h_scaled), Image.LANCZOS))
-        for image in images
-      ]
-    )
-  row, col = (h_scaled - h_out) // 2, (w_scaled - w_out) // 2
-  images = images[:, row : row + h_out, col : col + w_out]
+  images, (h_scaled, w_scaled), (row, col) = _scale_and_crop(images, shape, Image.LANCZOS)
   factor_x, factor_y = w_scaled / width, h_scaled / height
   intrinsics = np.asarray(intrinsics, np.float64) * np.array(
     [factor_x, factor_y, factor_x, factor_y]
   )
   intrinsics = intrinsics - np.array([0.0, 0.0, col, row])
   return np.ascontiguousarray(images), intrinsics.astype(np.float32)
+
+
+def _scale_and_crop(stack: np.ndarray, shape: tuple[int, int], resample):
+  """The geometry of `resize_and_center_crop` on a stack of PIL-readable images [V, H, W(, C)].
+
+  -> (the cropped stack, the scaled size (h, w), the crop offset (row, col)).
+  """
+  height, width = stack.shape[1:3]
+  h_out, w_out = shape
+  scale = max(h_out / height, w_out / width)
+  h_scaled, w_scaled = max(h_out, round(height * scale)), max(w_out, round(width * scale))
+  if (h_scaled, w_scaled) != (height, width):
+    stack = np.stack(
+      [np.asarray(Image.fromarray(image).resize((w_scaled, h_scaled), resample)) for image in stack]
+    )
+  row, col = (h_scaled - h_out) // 2, (w_scaled - w_out) // 2
+  return stack[:, row : row + h_out, col : col + w_out], (h_scaled, w_scaled), (row, col)
+
+
+def resize_and_center_crop_depth(depths: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+  """Depth maps through the same scale and crop as `resize_and_center_crop` gives the images.
+
+  Bilinear, so a pixel on a depth edge gets a blend of both sides (as its colour does); a 0
+  ("nothing hit") blended with a surface is marked 0 again, so invalid stays invalid.
+
+  depths: [V, H, W] -> float32 [V, h_out, w_out].
+  """
+  depths = np.asarray(depths, np.float32)
+  valid = (depths > 0).astype(np.float32)
+  scaled, _, _ = _scale_and_crop(depths, shape, Image.BILINEAR)
+  coverage, _, _ = _scale_and_crop(valid, shape, Image.BILINEAR)
+  return np.where(coverage > 0.999, scaled, 0.0).astype(np.float32)
 
 
 def flip_horizontal(images: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray):

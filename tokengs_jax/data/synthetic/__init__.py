@@ -4,6 +4,7 @@ from tokengs_jax.data.synthetic import generate_re10k_like, generate_kubric_like
 generate_re10k_like("data/synthetic_re10k", num_train=256, num_test=32, height=64, width=64)
 generate_kubric_like("data/synthetic_kubric", num_scenes=16)
 generate_galleries("data/galleries", num_scenes=24)  # out-of-distribution test set (64x64)
+generate_courtyards("data/courtyards")  # the frozen test family (fixed seed)
 """
 
 from tokengs_jax.data.synthetic.cameras import (
@@ -16,10 +17,12 @@ from tokengs_jax.data.synthetic.cameras import (
   pinhole_intrinsics,
 )
 from tokengs_jax.data.synthetic.generate import (
+  COURTYARD_DATASET,
   GalleryDatasetConfig,
   KubricLikeConfig,
   Re10kLikeConfig,
   gallery_views,
+  generate_courtyards,
   generate_galleries,
   generate_kubric_like,
   generate_re10k_like,
@@ -38,6 +41,7 @@ from tokengs_jax.data.synthetic.raytrace import (
   render,
   trace,
 )
+from tokengs_jax.data.synthetic.courtyards import CourtyardConfig, sample_courtyard
 from tokengs_jax.data.synthetic.scenes import (
   DynamicConfig,
   DynamicScene,
@@ -47,6 +51,7 @@ from tokengs_jax.data.synthetic.scenes import (
   sample_gallery_scene,
   sample_room_scene,
 )
+from tokengs_jax.data.synthetic.varied import VariedRoomConfig, sample_varied_room
 
 __all__ = [
   "ArcConfig",
@@ -54,6 +59,8 @@ __all__ = [
   "DynamicConfig",
   "DynamicScene",
   "GalleryConfig",
+  "COURTYARD_DATASET",
+  "CourtyardConfig",
   "GalleryDatasetConfig",
   "KubricLikeConfig",
   "Plane",
@@ -63,10 +70,12 @@ __all__ = [
   "Scene",
   "Sphere",
   "Texture",
+  "VariedRoomConfig",
   "WalkConfig",
   "arc_path",
   "forward_walk",
   "gallery_views",
+  "generate_courtyards",
   "generate_galleries",
   "generate_kubric_like",
   "generate_re10k_like",
@@ -80,6 +89,8 @@ __all__ = [
   "sample_dynamic_scene",
   "sample_gallery_scene",
   "sample_room_scene",
+  "sample_courtyard",
+  "sample_varied_room",
   "trace",
   "write_kubric_view",
 ]

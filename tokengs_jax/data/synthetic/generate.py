@@ -5,9 +5,12 @@
 - `generate_galleries`: a held-out family (polygonal galleries, orbiting camera; see
   `scenes.GalleryConfig`) -> `test/` chunks + `index.json` in the same layout, plus
   `eval_index.json` (pixelSplat's evaluation-index format) whose targets are never input frames.
+- `generate_courtyards`: the frozen test family (`courtyards`: open courtyards, held-out
+  photographs, a sideways tracking camera; a fixed seed), in the gallery layout.
 - `generate_kubric_like`: dynamic scenes seen by a 9-camera rig -> the Kubric-4D layout
   `<root>/<subset>/<scene>/output_{view:03d}.tar`, each tar holding `metadata.json`,
-  `rgba_{frame:05d}.png` and `depth_{frame:05d}.tiff` (camera z-depth, float32).
+  `rgba_{frame:05d}.png` and `depth_{frame:05d}.tiff` (float32 distance along each pixel's ray,
+  as Kubric's).
 
 Every scene is a pure function of (seed, split, index): `np.random.default_rng([seed, split_id,
 index])`. That makes generation deterministic, lets scenes be generated in any order or in
@@ -30,7 +33,7 @@ import tifffile
 from PIL import Image
 
 from tokengs_jax.data import chunks, kubric
-from tokengs_jax.data.synthetic import cameras, scenes
+from tokengs_jax.data.synthetic import cameras, courtyards, scenes, varied
 from tokengs_jax.data.synthetic.raytrace import render
 
 _SPLIT_IDS = {"train": 0, "test": 1}
@@ -45,7 +48,7 @@ class Re10kLikeConfig:
   supersample: int = 2  # sub-pixel samples per axis (anti-aliasing, as downscaled video has)
   jpeg_quality: int = 95
   scenes_per_chunk: int = 16
-  room: scenes.RoomConfig = scenes.RoomConfig()
+  room: scenes.RoomConfig | varied.VariedRoomConfig = scenes.RoomConfig()  # the scene family
 
 
 def scene_rng(seed: int, split: str, index: int) -> np.random.Generator:
@@ -70,7 +73,10 @@ def render_re10k_like_scene(
   `intrinsics [F, 4]` (pixels) and `images` uint8 [F, H, W, 3], plus `depths` [F, H, W] (not
   written to chunks; for checks)."""
   rng = scene_rng(seed, split, index)
-  scene, c2w = scenes.sample_room_scene(rng, frames, config.room)
+  if isinstance(config.room, varied.VariedRoomConfig):
+    scene, c2w = varied.sample_varied_room(rng, frames, config.room)
+  else:
+    scene, c2w = scenes.sample_room_scene(rng, frames, config.room)
   fov_x = np.deg2rad(rng.uniform(*config.fov_x_degrees))
   intrinsics = cameras.pinhole_intrinsics(height, width, fov_x)
   outputs = [render(scene, pose, intrinsics, height, width, config.supersample) for pose in c2w]
@@ -100,7 +106,37 @@ def _write_re10k_chunk(
     render_re10k_like_scene(seed, split, i, height, width, frames, config) for i in indices
   ]
   chunks.write_chunk(path, rendered, jpeg_quality=config.jpeg_quality)
+  if split == "test":
+    write_true_depths(path, rendered)
   return [scene["key"] for scene in rendered]
+
+
+def true_depths_path(chunk_path: str | os.PathLike) -> pathlib.Path:
+  """Where a chunk's true depth maps are kept: `NNNNNN.torch` -> `NNNNNN.depth.npz`."""
+  chunk_path = pathlib.Path(chunk_path)
+  return chunk_path.with_name(chunk_path.name.removesuffix(".torch") + ".depth.npz")
+
+
+def write_true_depths(chunk_path: str | os.PathLike, rendered: Sequence[dict]) -> None:
+  """Writes the planar z-depth maps of a chunk's scenes beside it (`true_depths_path`): `keys`
+  [S] and `depths` float16 [S, F, H, W] (0 where a pixel saw nothing). Test splits only: the
+  evaluation's geometry scores read them; the pixelSplat chunk format has no depth field."""
+  np.savez(
+    true_depths_path(chunk_path),
+    keys=np.array([scene["key"] for scene in rendered]),
+    depths=np.stack([scene["depths"] for scene in rendered]).astype(np.float16),
+  )
+
+
+def read_true_depths(chunk_path: str | os.PathLike, key: str) -> np.ndarray | None:
+  """The true depth maps float32 [F, H, W] of scene `key` of a chunk, None where the chunk has
+  none recorded (real data, training splits)."""
+  path = true_depths_path(chunk_path)
+  if not path.exists():
+    return None
+  with np.load(path) as stored:
+    positions = np.flatnonzero(stored["keys"] == key)
+    return stored["depths"][positions[0]].astype(np.float32) if len(positions) else None
 
 
 def _run_jobs(function, jobs: list[tuple], workers: int) -> list:
@@ -152,21 +188,51 @@ def generate_re10k_like(
 
 
 # ----------------------------------------------------------------------------------------------
-# Galleries: the out-of-distribution test family (never trained on)
+# Held-out test families (never trained on): galleries and the frozen courtyards
 
-_GALLERY_STREAM = 7  # rng stream of the gallery family: disjoint from the rooms' train / test ids
+# rng streams of the test families: disjoint from each other and from the rooms' train / test ids
+_HELD_OUT_STREAMS = {"galleries": 7, "courtyards": 11}
 
 
 @dataclasses.dataclass(frozen=True)
 class GalleryDatasetConfig:
-  """Options of `generate_galleries` beyond the sizes."""
+  """Options of `generate_galleries` beyond the sizes (and of `generate_courtyards`, whose
+  `scene` is a `courtyards.CourtyardConfig`)."""
 
   fov_x_degrees: tuple[float, float] = (45.0, 95.0)
   supersample: int = 2
   jpeg_quality: int = 95
   scenes_per_chunk: int = 16
   num_targets: int = 3  # per scene in `eval_index.json`, evenly inside the context span
-  scene: scenes.GalleryConfig = scenes.GalleryConfig()
+  scene: scenes.GalleryConfig | courtyards.CourtyardConfig = scenes.GalleryConfig()
+
+
+def _render_held_out_scene(
+  family: str,
+  seed: int,
+  index: int,
+  height: int,
+  width: int,
+  frames: int,
+  config: GalleryDatasetConfig,
+) -> dict:
+  """One scene of a held-out test family (`galleries` or `courtyards`), with the fields of
+  `render_re10k_like_scene`."""
+  rng = np.random.default_rng([seed, _HELD_OUT_STREAMS[family], index])
+  sample = {"galleries": scenes.sample_gallery_scene, "courtyards": courtyards.sample_courtyard}
+  scene, c2w = sample[family](rng, frames, config.scene)
+  fov_x = np.deg2rad(rng.uniform(*config.fov_x_degrees))
+  intrinsics = cameras.pinhole_intrinsics(height, width, fov_x)
+  outputs = [render(scene, pose, intrinsics, height, width, config.supersample) for pose in c2w]
+  return {
+    "key": f"{ {'galleries': 'gallery', 'courtyards': 'courtyard'}[family] }{seed}_{index:06d}",
+    "url": "",
+    "timestamps": np.arange(frames, dtype=np.int64) * (1_000_000 // _RE10K_FPS),
+    "c2w": c2w.astype(np.float32),
+    "intrinsics": np.broadcast_to(intrinsics, (frames, 4)).astype(np.float32),
+    "images": np.stack([np.round(o.rgb * 255.0).astype(np.uint8) for o in outputs]),
+    "depths": np.stack([o.depth for o in outputs]),
+  }
 
 
 def render_gallery_scene(
@@ -178,20 +244,7 @@ def render_gallery_scene(
   config: GalleryDatasetConfig = GalleryDatasetConfig(),
 ) -> dict:
   """One gallery scene, with the fields of `render_re10k_like_scene`."""
-  rng = np.random.default_rng([seed, _GALLERY_STREAM, index])
-  scene, c2w = scenes.sample_gallery_scene(rng, frames, config.scene)
-  fov_x = np.deg2rad(rng.uniform(*config.fov_x_degrees))
-  intrinsics = cameras.pinhole_intrinsics(height, width, fov_x)
-  outputs = [render(scene, pose, intrinsics, height, width, config.supersample) for pose in c2w]
-  return {
-    "key": f"gallery{seed}_{index:06d}",
-    "url": "",
-    "timestamps": np.arange(frames, dtype=np.int64) * (1_000_000 // _RE10K_FPS),
-    "c2w": c2w.astype(np.float32),
-    "intrinsics": np.broadcast_to(intrinsics, (frames, 4)).astype(np.float32),
-    "images": np.stack([np.round(o.rgb * 255.0).astype(np.uint8) for o in outputs]),
-    "depths": np.stack([o.depth for o in outputs]),
-  }
+  return _render_held_out_scene("galleries", seed, index, height, width, frames, config)
 
 
 def gallery_views(frames: int, num_targets: int) -> dict:
@@ -203,10 +256,50 @@ def gallery_views(frames: int, num_targets: int) -> dict:
   return {"context": [0, frames - 1], "target": [int(t) for t in targets]}
 
 
-def _write_gallery_chunk(path, seed, indices, height, width, frames, config) -> list[str]:
-  rendered = [render_gallery_scene(seed, i, height, width, frames, config) for i in indices]
+def _write_held_out_chunk(path, family, seed, indices, height, width, frames, config) -> list[str]:
+  rendered = [
+    _render_held_out_scene(family, seed, i, height, width, frames, config) for i in indices
+  ]
   chunks.write_chunk(path, rendered, jpeg_quality=config.jpeg_quality)
+  write_true_depths(path, rendered)
   return [scene["key"] for scene in rendered]
+
+
+def _generate_held_out(
+  family: str,
+  root: str | os.PathLike,
+  num_scenes: int,
+  height: int,
+  width: int,
+  frames: int,
+  seed: int,
+  config: GalleryDatasetConfig,
+  workers: int,
+) -> dict:
+  """Writes a test family: `<root>/test/NNNNNN.torch` (+ `.depth.npz`) + `<root>/test/index.json`
+  (the pixelSplat layout, as `generate_re10k_like`) and `<root>/eval_index.json` (scene key ->
+  {"context", "target"}, the pixelSplat / MVSplat evaluation-index format; `gallery_views`).
+
+  Returns the evaluation index.
+  """
+  directory = pathlib.Path(root) / "test"
+  directory.mkdir(parents=True, exist_ok=True)
+  groups = [
+    list(range(start, min(start + config.scenes_per_chunk, num_scenes)))
+    for start in range(0, num_scenes, config.scenes_per_chunk)
+  ]
+  names = [f"{number:06d}.torch" for number in range(len(groups))]
+  jobs = [
+    (str(directory / name), family, seed, group, height, width, frames, config)
+    for name, group in zip(names, groups)
+  ]
+  keys = _run_jobs(_write_held_out_chunk, jobs, workers)
+  index = {key: name for name, chunk_keys in zip(names, keys) for key in chunk_keys}
+  (directory / "index.json").write_text(json.dumps(index, indent=1))
+  views = gallery_views(frames, config.num_targets)
+  evaluation = {key: views for key in index}
+  (pathlib.Path(root) / "eval_index.json").write_text(json.dumps(evaluation, indent=1))
+  return evaluation
 
 
 def generate_galleries(
@@ -220,30 +313,32 @@ def generate_galleries(
   config: GalleryDatasetConfig = GalleryDatasetConfig(),
   workers: int = 1,
 ) -> dict:
-  """Writes the gallery test set: `<root>/test/NNNNNN.torch` + `<root>/test/index.json` (the
-  pixelSplat layout, as `generate_re10k_like`) and `<root>/eval_index.json` (scene key ->
-  {"context", "target"}, the pixelSplat / MVSplat evaluation-index format; `gallery_views`).
+  """Writes the gallery test set (`_generate_held_out`); returns its evaluation index."""
+  return _generate_held_out(
+    "galleries", root, num_scenes, height, width, frames, seed, config, workers
+  )
 
-  Returns the evaluation index.
-  """
-  directory = pathlib.Path(root) / "test"
-  directory.mkdir(parents=True, exist_ok=True)
-  groups = [
-    list(range(start, min(start + config.scenes_per_chunk, num_scenes)))
-    for start in range(0, num_scenes, config.scenes_per_chunk)
-  ]
-  names = [f"{number:06d}.torch" for number in range(len(groups))]
-  jobs = [
-    (str(directory / name), seed, group, height, width, frames, config)
-    for name, group in zip(names, groups)
-  ]
-  keys = _run_jobs(_write_gallery_chunk, jobs, workers)
-  index = {key: name for name, chunk_keys in zip(names, keys) for key in chunk_keys}
-  (directory / "index.json").write_text(json.dumps(index, indent=1))
-  views = gallery_views(frames, config.num_targets)
-  evaluation = {key: views for key in index}
-  (pathlib.Path(root) / "eval_index.json").write_text(json.dumps(evaluation, indent=1))
-  return evaluation
+
+COURTYARD_DATASET = GalleryDatasetConfig(
+  fov_x_degrees=(50.0, 90.0), scene=courtyards.CourtyardConfig()
+)
+
+
+def generate_courtyards(
+  root: str | os.PathLike,
+  num_scenes: int = 24,
+  height: int = 64,
+  width: int = 64,
+  frames: int = 13,
+  *,
+  config: GalleryDatasetConfig = COURTYARD_DATASET,
+  workers: int = 1,
+) -> dict:
+  """Writes the frozen courtyard test set (`courtyards`; seed `courtyards.FROZEN_SEED`, whatever
+  the experiment's) in the layout of `_generate_held_out`; returns its evaluation index."""
+  return _generate_held_out(
+    "courtyards", root, num_scenes, height, width, frames, courtyards.FROZEN_SEED, config, workers
+  )
 
 
 # ----------------------------------------------------------------------------------------------
@@ -273,7 +368,8 @@ def render_kubric_like_scene(
   """Renders one dynamic scene from every camera at every frame.
 
   Returns:
-    dict with `images` uint8 [C, F, H, W, 3], `depths` float32 [C, F, H, W] (z-depth),
+    dict with `images` uint8 [C, F, H, W, 3], `depths` float32 [C, F, H, W] (distance from the
+    camera centre along each pixel-centre ray, Kubric's convention; 0 where nothing was hit),
     `c2w` [C, F, 4, 4] (OpenCV), `intrinsics` [4] (pixels, the values the Kubric reader derives
     from the metadata) and `metadata` [C] (the per-camera `metadata.json` dicts).
   """
@@ -292,7 +388,8 @@ def render_kubric_like_scene(
     for camera in range(num_cameras):
       output = render(scene, c2w[camera, frame], intrinsics, height, width, config.supersample)
       images[camera, frame] = np.round(output.rgb * 255.0)
-      depths[camera, frame] = output.depth
+      # The tracer gives planar z; real Kubric's depth_*.tiff holds the ray distance (z_to_depth).
+      depths[camera, frame] = kubric.z_to_ray_depth(output.depth, intrinsics)
   metadata = []
   for camera in range(num_cameras):
     positions, quaternions = kubric.opencv_to_kubric_pose(c2w[camera])
@@ -330,7 +427,8 @@ def write_kubric_view(
   path: str | os.PathLike, metadata: dict, images: np.ndarray, depths: np.ndarray
 ) -> None:
   """Writes one camera's tar: images uint8 [F, H, W, 3] as opaque RGBA PNGs, depths [F, H, W] as
-  float32 TIFFs, member names prefixed with './' as in the released data."""
+  float32 TIFFs (written as given: Kubric's are ray distances, `kubric.z_to_ray_depth`), member
+  names prefixed with './' as in the released data."""
   with tarfile.open(path, "w") as tar:
     _add_member(tar, "./metadata.json", json.dumps(metadata).encode())
     for frame, (image, depth) in enumerate(zip(images, depths)):
