@@ -62,6 +62,8 @@ class TrainSettings:
     checkpoint_every: orbax checkpoint period (0: only at the end); a rerun resumes from it.
     num_workers: grain decoding processes.
     view_chunk_size: target views rendered per rematerialised chunk (None: all at once).
+    lambda_depth: weight of the depth loss on the training targets (`losses.depth_loss`; needs
+      true depths, which the synthetic sets record); 0: off, as in the paper.
   """
 
   steps: int = 1500
@@ -76,6 +78,7 @@ class TrainSettings:
   checkpoint_every: int = 0
   num_workers: int = 0
   view_chunk_size: int | None = None
+  lambda_depth: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)

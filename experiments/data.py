@@ -59,6 +59,7 @@ def _generator_settings(experiment: Experiment) -> dict:
     "num_test": s.num_test,
     "frames": s.frames,
     "family": s.family,
+    "true_depths": "every split",  # sets from before the depth files lack them
     "walk": dataclasses.asdict(s.walk),
     "image_size": list(experiment.image_size),
     "seed": experiment.seed,
@@ -205,12 +206,39 @@ def example_config(experiment: Experiment, *, training: bool) -> ExampleConfig:
     )
   if not training:
     config = dataclasses.replace(config, random_flip=False, deterministic=True)
+  elif t.lambda_depth > 0:
+    config = dataclasses.replace(config, target_depths=True)
   return config
 
 
+class _WithTrueDepths:
+  """A chunk source whose records also carry their scenes' true depth maps (`depths` [F, H, W],
+  from the files the synthetic writer keeps beside each chunk), for the depth loss."""
+
+  def __init__(self, source: ChunkedSceneSource):
+    self.source = source
+    self.rejections = source.rejections
+
+  def __len__(self) -> int:
+    return len(self.source)
+
+  def __getitem__(self, index: int) -> dict:
+    record = self.source[index]
+    depths = read_true_depths(self.source.entries[index].chunk, record["key"])
+    if depths is None:
+      raise FileNotFoundError(
+        f"{self.source.entries[index].chunk} scene '{record['key']}': no true depth recorded "
+        "(train.lambda_depth > 0 needs a synthetic set that wrote them)"
+      )
+    return {**record, "depths": depths}
+
+
 def training_batches(experiment: Experiment) -> InputPipeline:
-  """This process's share of the global batch, forever, from `<root>/train`."""
+  """This process's share of the global batch, forever, from `<root>/train` (with the scenes'
+  true depths when `train.lambda_depth > 0`)."""
   source = ChunkedSceneSource(data_root(experiment) / "train", skip_bad=bool(experiment.data_dir))
+  if experiment.train.lambda_depth > 0:
+    source = _WithTrueDepths(source)
   local = experiment.train.batch_size // jax.process_count()
   if local * jax.process_count() != experiment.train.batch_size:
     raise ValueError(

@@ -122,6 +122,7 @@ def loss_fn(config: ModelConfig, loss_config=None, render_config=None, objective
       loss_config,
       render_config,
       objective,
+      depths=batch.get("target_depths"),
     )
 
   return compute

@@ -59,10 +59,12 @@ class Task:
     return sets
 
   def loss_config(self, experiment: Experiment):
-    """The training (and token-tuning) loss weights: the library's defaults (official base)."""
+    """The training (and token-tuning) loss weights: the library's defaults (official base),
+    plus the depth term's `train.lambda_depth` (tuning supervises input views, which carry no
+    depth, so it never applies there)."""
     from tokengs_jax.losses import LossConfig
 
-    return LossConfig()
+    return LossConfig(lambda_depth=experiment.train.lambda_depth)
 
   def objective(self, experiment: Experiment) -> ObjectiveConfig:
     return ObjectiveConfig(view_chunk_size=experiment.train.view_chunk_size)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from experiments import cli, data, pictures, plot, re10k, results
+from experiments import cli, data, pictures, plot, re10k, results, tasks
 from tokengs_jax import evaluation, export
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
@@ -331,12 +331,16 @@ def test_kubric_entry_point_end_to_end(tmp_path):
     "mean_colour",
     "input_average",
     "nearest_view",
+    "same_camera",
+    "nearest_time",
     "untrained",
     "trained",
     "trained+token_tuning",
   }
-  for method in ("trained", "trained+token_tuning"):
+  for method in ("same_camera", "trained", "trained+token_tuning"):
     assert math.isfinite(payload["metrics"][method]["mean"]["psnr"])
+    assert math.isfinite(payload["metrics"][method]["mean"]["psnr_moving"])
+  assert "trained beats same_camera" in payload["checks"]
   history = json.loads((out / "train_history.json").read_text())
   # the official auxiliary weight, scaled to 2 steps: held at step 0, decayed to 0 at step 1
   assert [h["dyn_aux_weight"] for h in history] == pytest.approx([0.3, 0.0])
@@ -500,3 +504,21 @@ def test_generated_sets_are_published_whole_and_the_first_copy_kept(tmp_path):
   data._publish(root, ("test",), writer("second"))
   assert (root / "test" / "index.json").read_text() == "first"
   assert sorted(p.name for p in tmp_path.iterdir()) == ["set"]  # no staging folder left
+
+
+def test_training_batches_carry_true_depths_for_the_depth_loss(tmp_path):
+  smoke = re10k.PRESETS["smoke"]
+  experiment = dataclasses.replace(
+    smoke,
+    synthetic_dir=str(tmp_path / "data"),
+    synthetic=dataclasses.replace(smoke.synthetic, num_train=2, num_test=1, workers=1),
+    train=dataclasses.replace(smoke.train, lambda_depth=0.1),
+  )
+  batch = next(iter(data.training_batches(experiment)))
+  depths = batch["target_depths"]
+  assert depths.shape == batch["target_images"].shape[:-1]
+  # Scaled as the cameras (translation scale 0.25): closed rooms of a few metres.
+  assert (depths > 0).all() and 0.05 < float(depths.mean()) < 2.0
+  assert tasks.Task().loss_config(experiment).lambda_depth == 0.1
+  plain = dataclasses.replace(experiment, train=smoke.train)
+  assert "target_depths" not in next(iter(data.training_batches(plain)))

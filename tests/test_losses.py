@@ -199,3 +199,52 @@ def test_loss_config_validates():
   with pytest.raises(ValueError):
     losses.LossConfig(visibility_threshold=0.0)
   assert hash(losses.LossConfig()) == hash(losses.LossConfig())  # usable as a static jit argument
+
+
+def test_depth_loss_is_opacity_weighted_relative_error_over_known_pixels():
+  truth = jnp.array([[2.0, 4.0], [1.0, 0.0]])  # the last pixel is unknown
+  depth = jnp.array([[2.0, 5.0], [3.0, 7.0]])[..., None]
+  alpha = jnp.array([[1.0, 1.0], [0.5, 1.0]])[..., None]
+  # exact, 1/4 off, 2x off at half opacity; the unknown pixel is ignored
+  np.testing.assert_allclose(losses.depth_loss(depth, alpha, truth), (0 + 0.25 + 0.5 * 2) / 3)
+  assert float(losses.depth_loss(depth, alpha, jnp.zeros((2, 2)))) == 0.0  # nothing known
+  # An empty render (alpha 0, expected depth a huge 0/0 stand-in) has a finite gradient.
+  grad = jax.grad(lambda d: losses.depth_loss(d, jnp.zeros_like(d), truth))(depth * 1e10)
+  assert np.isfinite(np.asarray(grad)).all()
+
+
+def test_supervision_adds_the_depth_term_only_with_depths_and_a_weight():
+  from tokengs_jax import splatting
+  from tokengs_jax.gaussians import Gaussians
+  from tokengs_jax.train.supervision import supervision_loss
+
+  n = 64
+  key = jax.random.split(jax.random.key(0), 2)
+  means = jax.random.uniform(key[0], (1, n, 3), minval=-0.5, maxval=0.5).at[..., 2].add(2.0)
+  gaussians = Gaussians(
+    means=means,
+    opacities=jnp.full((1, n), 0.9),
+    scales=jnp.full((1, n, 3), 0.2),
+    quats=jnp.tile(jnp.array([1.0, 0, 0, 0]), (1, n, 1)),
+    colors=jax.random.uniform(key[1], (1, n, 3)),
+  )
+  images = jnp.full((1, 1, 16, 16, 3), 0.5)
+  w2c = jnp.eye(4)[None, None]
+  intrinsics = jnp.array([[[16.0, 16.0, 8.0, 8.0]]])
+  depths = jnp.full((1, 1, 16, 16), 4.0)  # twice as far as the Gaussians
+  args = (gaussians, images, w2c, intrinsics)
+  render = splatting.RenderConfig()
+  plain, plain_terms = supervision_loss(*args, losses.LossConfig(), render)
+  weighted = losses.LossConfig(lambda_depth=0.5)
+  assert "depth" not in supervision_loss(*args, weighted, render)[1]  # no depths: no term
+  loss, terms = supervision_loss(*args, weighted, render, depths=depths)
+  assert 0.2 < float(terms["depth"]) < 0.6  # about half the covered pixels' depth is off
+  np.testing.assert_allclose(loss, plain + 0.5 * terms["depth"], rtol=1e-5)
+  assert "depth" not in supervision_loss(*args, losses.LossConfig(), render, depths=depths)[1]
+
+  def depth_of(means):
+    g = Gaussians(means, gaussians.opacities, gaussians.scales, gaussians.quats, gaussians.colors)
+    return supervision_loss(g, images, w2c, intrinsics, weighted, render, depths=depths)[1]["depth"]
+
+  # The term pulls the Gaussians back towards the true depth (+z).
+  assert float(jax.grad(depth_of)(means)[..., 2].sum()) < 0

@@ -49,6 +49,9 @@ class LossConfig:
     dyn_aux_hold_steps: steps for which the base weight is held (official warmup_steps, 5000).
     dyn_aux_decay_steps: steps of the linear decay after that (10000); <= 0 keeps it constant.
     dyn_aux_min: weight reached at the end of the decay.
+    lambda_depth: weight of the depth term (`depth_loss`) on supervision views that carry true
+      depth (the synthetic sets). Not in the paper or the official code (0 there): a geometry
+      prior for training on synthetic data, where the truth is known (docs/deviations.md).
   """
 
   rgb_loss: Literal["l2", "l1"] = "l2"
@@ -62,6 +65,7 @@ class LossConfig:
   dyn_aux_hold_steps: int = 0
   dyn_aux_decay_steps: int = 0
   dyn_aux_min: float = 0.0
+  lambda_depth: float = 0.0
 
   def __post_init__(self):
     if self.rgb_loss not in ("l2", "l1"):
@@ -136,6 +140,22 @@ def dynamic_aux_weight(step: jax.Array | int, config: LossConfig) -> jax.Array:
   past_hold = jnp.asarray(step, jnp.float32) - config.dyn_aux_hold_steps
   fraction = jnp.clip(past_hold / config.dyn_aux_decay_steps, 0.0, 1.0)
   return base + fraction * (config.dyn_aux_min - base)
+
+
+def depth_loss(depth: jax.Array, alpha: jax.Array, true_depth: jax.Array) -> jax.Array:
+  """Opacity-weighted relative depth error over the pixels whose true depth is known:
+  mean of alpha |d - d*| / d* where d* > 0 (0 with no such pixel).
+
+  Weighting by alpha (= |D - alpha d*| / d* with D the accumulated depth) keeps the gradient
+  bounded where the render is nearly empty, where the expected depth d = D / alpha is noise.
+
+  depth, alpha: [..., H, W, 1] rendered expected depth and opacity; true_depth: [..., H, W]
+  (0: unknown) -> [].
+  """
+  known = true_depth > 0
+  safe_truth = jnp.where(known, true_depth, 1.0)
+  error = alpha[..., 0] * jnp.abs(depth[..., 0] - safe_truth) / safe_truth
+  return jnp.sum(jnp.where(known, error, 0.0)) / jnp.maximum(jnp.sum(known), 1)
 
 
 def render_loss(

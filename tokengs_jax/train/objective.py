@@ -254,6 +254,7 @@ def static_model_loss(
     render_config,
     objective,
     lpips_params,
+    depths=batch.get("target_depths"),
   )
 
 

@@ -176,6 +176,7 @@ def supervision_loss(
   render_config,
   objective: ObjectiveConfig = ObjectiveConfig(),
   lpips_params=None,
+  depths=None,
 ):
   """Loss of Gaussians against supervision views (training targets, or the inputs when tuning).
 
@@ -192,10 +193,15 @@ def supervision_loss(
     render_config: `splatting.RenderConfig`.
     objective: view chunking, background, near/far.
     lpips_params: VGG weights when `loss_config.lambda_lpips > 0`.
+    depths: [B, V, H, W] true depth of the views (0: unknown), or None; with
+      `loss_config.lambda_depth > 0` it adds `lambda_depth * losses.depth_loss` (term "depth").
 
   Returns:
     `(loss, terms)`: the loss terms, "psnr", and `render_diagnostics`.
   """
+  from tokengs_jax import losses
+
+  with_depth = depths is not None and loss_config.lambda_depth > 0
   gaussians = _float32(gaussians)
   height, width = images.shape[-3], images.shape[-2]
   world_to_camera = world_to_camera.astype(jnp.float32)
@@ -212,17 +218,20 @@ def supervision_loss(
       objective,
     )
     loss, terms = photometric_loss(rendered.rgb, views["images"], loss_config, lpips_params)
+    if with_depth:
+      terms["depth"] = losses.depth_loss(rendered.depth, rendered.alpha, views["depths"])
+      loss = loss + loss_config.lambda_depth * terms["depth"]
+      terms["loss"] = loss
     return loss, {**terms, **render_diagnostics(rendered.stats)}
 
-  loss, terms = mean_over_view_chunks(
-    chunk_loss,
-    {
-      "world_to_camera": world_to_camera,
-      "intrinsics": intrinsics,
-      "images": images.astype(jnp.float32),
-    },
-    objective.view_chunk_size,
-  )
+  views = {
+    "world_to_camera": world_to_camera,
+    "intrinsics": intrinsics,
+    "images": images.astype(jnp.float32),
+  }
+  if with_depth:
+    views["depths"] = depths.astype(jnp.float32)
+  loss, terms = mean_over_view_chunks(chunk_loss, views, objective.view_chunk_size)
   return add_visibility(
     loss, terms, gaussians.means, world_to_camera, intrinsics, height, width, loss_config
   )

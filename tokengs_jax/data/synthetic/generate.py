@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import functools
 import io
 import json
 import os
@@ -106,8 +107,7 @@ def _write_re10k_chunk(
     render_re10k_like_scene(seed, split, i, height, width, frames, config) for i in indices
   ]
   chunks.write_chunk(path, rendered, jpeg_quality=config.jpeg_quality)
-  if split == "test":
-    write_true_depths(path, rendered)
+  write_true_depths(path, rendered)
   return [scene["key"] for scene in rendered]
 
 
@@ -119,8 +119,8 @@ def true_depths_path(chunk_path: str | os.PathLike) -> pathlib.Path:
 
 def write_true_depths(chunk_path: str | os.PathLike, rendered: Sequence[dict]) -> None:
   """Writes the planar z-depth maps of a chunk's scenes beside it (`true_depths_path`): `keys`
-  [S] and `depths` float16 [S, F, H, W] (0 where a pixel saw nothing). Test splits only: the
-  evaluation's geometry scores read them; the pixelSplat chunk format has no depth field."""
+  [S] and `depths` float16 [S, F, H, W] (0 where a pixel saw nothing). The evaluation's geometry
+  scores and the optional depth loss read them; the pixelSplat chunk format has no depth field."""
   np.savez(
     true_depths_path(chunk_path),
     keys=np.array([scene["key"] for scene in rendered]),
@@ -134,9 +134,16 @@ def read_true_depths(chunk_path: str | os.PathLike, key: str) -> np.ndarray | No
   path = true_depths_path(chunk_path)
   if not path.exists():
     return None
+  keys, depths = _load_true_depths(str(path))
+  positions = np.flatnonzero(keys == key)
+  return depths[positions[0]].astype(np.float32) if len(positions) else None
+
+
+@functools.lru_cache(maxsize=64)
+def _load_true_depths(path: str) -> tuple[np.ndarray, np.ndarray]:
+  """A chunk's depth file, read once per process (training reads it once per example)."""
   with np.load(path) as stored:
-    positions = np.flatnonzero(stored["keys"] == key)
-    return stored["depths"][positions[0]].astype(np.float32) if len(positions) else None
+    return stored["keys"], stored["depths"]
 
 
 def _run_jobs(function, jobs: list[tuple], workers: int) -> list:
