@@ -4,6 +4,16 @@
     python -m experiments.kubric finetune paper --data-dir /data/kubric4d \\
         --checkpoint outputs/re10k/paper_4view/params.msgpack
 
+Evaluation views are (camera, frame) pairs (`tokengs_jax.data.kubric.evaluation`): with
+`--eval-index PATH` a JSON `{"<scene>": {"context": [[camera, frame], ...], "target": [...]}}`
+(camera = the N of `output_N.tar`, frame = the N of `rgba_N.png`; inputs may be at different
+times), validated against the held-out scenes before any work (with `--data-dir`, the scenes it
+names are the held-out ones and never trained on); without one, the default protocol: inputs at
+frames spread over `max_gap`, every target at an in-between time that is no input's, from unused
+and input cameras, so no target is an input view. Scores: PSNR / SSIM / LPIPS, and `psnr_moving`
+over the pixels where the scene moved since the nearest input time (`motion_mask`). Baselines:
+mean colour, input average, nearest view (camera centre), same camera and nearest time.
+
 Besides the common results folder (metrics of the baselines / untrained / trained / trained +
 token tuning, grids, PLY, MP4), the evaluation writes `dynamic/`:
 - `in_between_times.png`: one target camera rendered at times between (and at) the input times;
@@ -51,8 +61,23 @@ from experiments.config import EvalSettings, Experiment, SyntheticSettings, Trai
 from experiments.tasks import Task
 from tokengs_jax import evaluation, export, losses, model
 from tokengs_jax.camera import invert_rigid, project_points
-from tokengs_jax.data import DATASET_PRESETS, ExampleConfig, InputPipeline, make_example
-from tokengs_jax.data.kubric import KubricSceneSource, kubric_view_selector, list_kubric_scenes
+from tokengs_jax.data import (
+  DATASET_PRESETS,
+  EvaluationIndexReport,
+  ExampleConfig,
+  InputPipeline,
+  make_example,
+)
+from tokengs_jax.data.kubric import (
+  KubricSceneSource,
+  default_evaluation_views,
+  evaluation_fields,
+  flat_views,
+  kubric_view_selector,
+  list_kubric_scenes,
+  load_kubric_evaluation_index,
+  validate_kubric_evaluation_index,
+)
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.train.supervision import ObjectiveConfig
 
@@ -67,7 +92,8 @@ class KubricExperiment(Experiment):
     num_cameras: cameras per scene: the synthetic rig's size, and the camera tars every scene
       must have and is read from (`KubricSceneSource`; a scene with fewer is rejected). The
       released Kubric-4D rig, and the official loader, have 9 (the `paper` preset).
-    min_gap / max_gap: frame span of an example's input views (official 3 / 23).
+    min_gap / max_gap: frame span of an example's input views (official 3 / 23); the default
+      evaluation spreads its inputs over `max_gap` frames (at most the clip).
     flow_times: times sampled for the scene-flow and in-between pictures.
     flow_tracks: dynamic Gaussians drawn in the scene-flow plot (the most opaque ones).
     rgb_loss: photometric term, "l1" (official release) or "l2" (MSE: PSNR's own criterion).
@@ -148,7 +174,9 @@ class KubricTask(Task):
 
   def sources(self, experiment: KubricExperiment) -> tuple[KubricSceneSource, KubricSceneSource]:
     """(training scenes, held-out scenes): the synthetic subsets, or with `--data-dir` the last
-    `eval.num_scenes` (default 16) scenes of the listing held out."""
+    `eval.num_scenes` (default 16) scenes of the listing held out; with `--data-dir` and
+    `--eval-index`, every scene of the listing is searched for the index's keys and those the
+    index names are left out of training."""
     root = self.root(experiment)
     if not experiment.data_dir:
       return (
@@ -156,6 +184,14 @@ class KubricTask(Task):
         KubricSceneSource(root, [TEST_SUBSET], num_cameras=experiment.num_cameras),
       )
     scenes = list_kubric_scenes(root)
+    if experiment.eval_index:
+      named = set(load_kubric_evaluation_index(experiment.eval_index))
+      return (
+        KubricSceneSource(
+          scenes=[s for s in scenes if s.name not in named], num_cameras=experiment.num_cameras
+        ),
+        KubricSceneSource(scenes=scenes, num_cameras=experiment.num_cameras),
+      )
     held_out = experiment.eval.num_scenes or 16
     return (
       KubricSceneSource(scenes=scenes[:-held_out], num_cameras=experiment.num_cameras),
@@ -181,19 +217,66 @@ class KubricTask(Task):
     """Its test split only: the out-of-distribution galleries are static rooms."""
     return {"test": self.evaluation_examples(experiment)}
 
+  def check_evaluation(self, experiment: KubricExperiment) -> dict | None:
+    """Chooses every evaluated scene's views before any work, so a bad `--eval-index` (or a clip
+    too short for the default protocol) fails now; returns the index report for metrics.json
+    (None without an index)."""
+    _, report = self.evaluation_views(experiment)
+    return None if report is None else report.as_dict()
+
+  def evaluation_views(
+    self, experiment: KubricExperiment
+  ) -> tuple[list[tuple[int, tuple[np.ndarray, np.ndarray]]], EvaluationIndexReport | None]:
+    """(position in the held-out source, (context [Vc, 2], target [Vt, 2]) (camera, frame)
+    pairs) of each evaluated scene, at most `eval.num_scenes` (0: all), and the index's report
+    (None without `--eval-index`: the default protocol, drawn per scene from (seed, position))."""
+    _, test = self.sources(experiment)
+    limit = experiment.eval.num_scenes
+    if experiment.eval_index:
+      index = load_kubric_evaluation_index(experiment.eval_index)
+      report = validate_kubric_evaluation_index(
+        index, test, num_context=experiment.num_context_views, where=experiment.eval_index
+      )
+      position = {key: i for i, key in enumerate(test.keys)}
+      keys = report.matched[:limit] if limit > 0 else report.matched
+      return [(position[key], index[key]) for key in keys], report
+    chosen = []
+    for position in range(min(len(test), limit) if limit > 0 else len(test)):
+      record = test[position]
+      views = default_evaluation_views(
+        record["num_cameras"],
+        record["num_frames"],
+        experiment.num_context_views,
+        experiment.eval.num_target_views,
+        experiment.max_gap,
+        np.random.default_rng([experiment.seed, position]),
+      )
+      chosen.append((position, views))
+    return chosen, None
+
   def evaluation_examples(self, experiment: KubricExperiment) -> list[tuple[str, dict]]:
+    """(key, batch of one) per evaluated scene; besides `make_example`'s fields the batches carry
+    `context_cameras` / `target_cameras` and `target_motion_masks` (`evaluation_fields`)."""
     _, test = self.sources(experiment)
     config = kubric_example_config(experiment, training=False)
-    select = kubric_views(
-      experiment, min(experiment.eval.num_target_views, experiment.num_context_views)
-    )
     examples = []
-    for position in range(min(len(test), experiment.eval.num_scenes or len(test))):
+    for position, views in self.evaluation_views(experiment)[0]:
       record = test[position]
       rng = np.random.default_rng([experiment.seed, position])
-      example = make_example(record, config, rng, views=select(record, rng, 0))
+      example = make_example(record, config, rng, views=flat_views(record, views))
+      example.update(evaluation_fields(record, views, config.image_shape))
       examples.append((record["key"], {k: v[None] for k, v in example.items()}))
     return examples
+
+  def methods(
+    self, experiment: KubricExperiment, params, include_untrained: bool
+  ) -> dict[str, evaluation.Method]:
+    """The common methods, the baselines of dynamic scenes (same camera, nearest time) among
+    the baselines."""
+    return {
+      **evaluation.baselines(dynamic=True),
+      **super().methods(experiment, params, include_untrained),
+    }
 
   def loss_config(self, experiment: KubricExperiment) -> losses.LossConfig:
     """The official Kubric release loss, its auxiliary schedule scaled to `train.steps`."""

@@ -154,8 +154,13 @@ def run_eval(
   start = time.perf_counter()
   test_sets = task.test_sets(experiment)
   methods = task.methods(experiment, params, include_untrained)
-  if pixel_params is not None:
-    methods["pixel_aligned"] = pixel_baseline.method(pixel_params, experiment.model)
+  if pixel_params is not None:  # a baseline: before TokenGS's rows, whose last one is exported
+    trained = {name: methods.pop(name) for name in list(methods) if name.startswith("trained")}
+    methods = {
+      **methods,
+      "pixel_aligned": pixel_baseline.method(pixel_params, experiment.model),
+      **trained,
+    }
   print(
     f"[eval] {', '.join(f'{name}: {len(s)} scenes' for name, s in test_sets.items())}; "
     f"methods: {', '.join(methods)}",

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from tokengs_jax import evaluation, metrics
+from tokengs_jax import copies, evaluation, metrics
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.tuning import TuningConfig
 
@@ -36,30 +36,30 @@ def _batch(rng, context_frames, target_frames, height=HEIGHT, width=WIDTH) -> di
 
 def test_nearest_view_is_the_input_with_the_nearest_frame_index():
   batch = _batch(np.random.default_rng(0), [0, 5, 12], [1, 3, 8, 9, 12])
-  np.testing.assert_array_equal(evaluation.nearest_views(batch), [[0, 1, 1, 2, 2]])
-  images = evaluation.nearest_view_images(batch)
+  np.testing.assert_array_equal(copies.nearest_views(batch), [[0, 1, 1, 2, 2]])
+  images = copies.nearest_view_images(batch)
   assert images.shape == batch["target_images"].shape
   for view, source in enumerate([0, 1, 1, 2, 2]):
     np.testing.assert_array_equal(images[0, view], batch["context_images"][0, source])
   # a tie (frame 6 is 6 from 0 and from 12) goes to the earlier input
   tie = _batch(np.random.default_rng(0), [0, 12], [6])
-  np.testing.assert_array_equal(evaluation.nearest_views(tie), [[0]])
+  np.testing.assert_array_equal(copies.nearest_views(tie), [[0]])
 
 
 def test_nearest_view_falls_back_to_camera_centres_without_frames():
   batch = _batch(np.random.default_rng(0), [0, 10], [2, 7])
   del batch["context_frames"], batch["target_frames"]
-  np.testing.assert_array_equal(evaluation.nearest_views(batch), [[0, 1]])
+  np.testing.assert_array_equal(copies.nearest_views(batch), [[0, 1]])
 
 
 def test_mean_colour_and_input_average_baselines():
   batch = _batch(np.random.default_rng(1), [0, 4], [1, 2, 3])
-  mean = evaluation.mean_colour_images(batch)
+  mean = copies.mean_colour_images(batch)
   assert mean.shape == (1, 3, HEIGHT, WIDTH, 3)
   np.testing.assert_allclose(
     mean[0, 2, 1, 1], batch["context_images"][0].mean(axis=(0, 1, 2)), rtol=1e-6
   )
-  average = evaluation.input_average_images(batch)
+  average = copies.input_average_images(batch)
   np.testing.assert_allclose(average[0, 1], batch["context_images"][0].mean(axis=0), rtol=1e-6)
 
 
@@ -267,3 +267,99 @@ def test_geometry_scores_for_rendering_methods_only():
   np.testing.assert_allclose(splats["depth_absrel"], expected["depth_absrel"])
   assert (splats["depth_absrel"] > 0.3).all()  # the truth is twice the render almost everywhere
   assert set(scored.summary()["nearest_view"]) == {"psnr", "ssim"}  # no geometry for a copy
+
+
+def _dynamic_batch(rng, context, target) -> dict:
+  """A batch of one whose views are (camera, time) pairs; camera c sits at x = c."""
+  batch = _batch(rng, [c for c, _ in context], [c for c, _ in target])
+  del batch["context_frames"], batch["target_frames"]  # nearest_view: by camera centre
+  for side, views in (("context", context), ("target", target)):
+    batch[f"{side}_cameras"] = np.asarray([[c for c, _ in views]])
+    batch[f"{side}_times"] = np.asarray([[t for _, t in views]], np.float32)
+    batch[f"{side}_c2w"][0, :, 0, 3] = [c for c, _ in views]
+  return batch
+
+
+def test_same_camera_copies_the_targets_own_camera_nearest_in_time():
+  context = [(0, 0.0), (1, 0.5), (0, 1.0)]
+  # camera 0 twice (nearest time wins, then a tie goes to the first), camera 1, and camera 3,
+  # which has no input: the nearest camera centre (camera 1 at x = 1 beats camera 0 at x = 0)
+  target = [(0, 0.8), (0, 0.5), (1, 0.0), (3, 0.1)]
+  batch = _dynamic_batch(np.random.default_rng(9), context, target)
+  np.testing.assert_array_equal(copies.same_camera_views(batch), [[2, 0, 1, 1]])
+  images = copies.same_camera_images(batch)
+  for view, source in enumerate([2, 0, 1, 1]):
+    np.testing.assert_array_equal(images[0, view], batch["context_images"][0, source])
+
+
+def test_nearest_time_copies_the_input_nearest_in_time_ties_by_camera_centre():
+  context = [(0, 0.0), (4, 0.5), (1, 1.0)]
+  target = [(0, 0.3), (4, 0.9), (0, 0.25), (2, 0.75), (9, 0.5)]
+  batch = _dynamic_batch(np.random.default_rng(10), context, target)
+  # 0.25 is as near 0.0 as 0.5: camera 0's centre is nearer; 0.75: camera 1 (x = 1) beats 4
+  np.testing.assert_array_equal(copies.nearest_time_views(batch), [[1, 2, 0, 2, 1]])
+  np.testing.assert_array_equal(
+    copies.nearest_time_images(batch)[0, 3], batch["context_images"][0, 2]
+  )
+  # float32 rounding of equal gaps is still a tie
+  batch["target_times"][0, 2] = np.nextafter(np.float32(0.25), np.float32(1.0))
+  assert copies.nearest_time_views(batch)[0, 2] == 0
+
+
+def test_dynamic_baselines_are_added_on_request_and_checked_against():
+  assert list(evaluation.baselines()) == ["mean_colour", "input_average", "nearest_view"]
+  dynamic = evaluation.baselines(dynamic=True)
+  assert list(dynamic) == [
+    "mean_colour",
+    "input_average",
+    "nearest_view",
+    "same_camera",
+    "nearest_time",
+  ]
+  lines = evaluation.checks(
+    {"trained": {"psnr": 21.0}, "same_camera": {"psnr": 22.0}, "nearest_time": {"psnr": 20.5}}
+  )
+  assert lines == {
+    "trained beats same_camera": "False (PSNR margin -1.000 dB)",
+    "trained beats nearest_time": "True (PSNR margin +0.500 dB)",
+  }
+
+
+def test_psnr_moving_scores_every_method_over_the_moving_pixels_only():
+  rng = np.random.default_rng(11)
+  moving = _dynamic_batch(rng, [(0, 0.0), (1, 1.0)], [(2, 0.5), (0, 0.5)])
+  masks = np.zeros((1, 2, HEIGHT, WIDTH), bool)
+  masks[0, 0, 2:6, 3:9] = True  # the second target view has no moving pixel
+  moving["target_motion_masks"] = masks
+  still = _dynamic_batch(rng, [(0, 0.0), (1, 1.0)], [(2, 0.5)])
+  still["target_motion_masks"] = np.zeros((1, 1, HEIGHT, WIDTH), bool)
+  static = _batch(rng, [0, 4], [2])  # no masks at all: no psnr_moving
+  scenes = [("moving", moving), ("still", still), ("static", static)]
+  methods = {"splats": evaluation.Method(reconstruct=lambda b: _gaussians((1,)))}
+  methods.update(evaluation.baselines())
+  scored = evaluation.evaluate(scenes, methods, evaluation.Scorer(lpips=False))
+  for name, scores in scored.scores.items():
+    views = scores.per_view[0]["psnr_moving"]
+    prediction = _scored_rgb(methods[name], moving)
+    expected = metrics.masked_psnr(prediction[0, 0], moving["target_images"][0, 0], masks[0, 0])
+    np.testing.assert_allclose(views[0], expected, rtol=1e-5)
+    assert np.isnan(views[1])  # nothing moved in this view: left out of the scene's mean
+    assert scores.per_scene[0]["psnr_moving"] == pytest.approx(float(views[0]))
+    assert "psnr_moving" not in scores.per_scene[1] and "psnr_moving" not in scores.per_scene[2]
+    summary = scores.summary()
+    assert summary["psnr_moving"] == pytest.approx(float(views[0]))  # the scene that moved
+    assert summary["psnr"] == pytest.approx(np.mean([s["psnr"] for s in scores.per_scene]))
+    assert all(np.isfinite(v) for v in summary.values())
+
+
+def _scored_rgb(method: evaluation.Method, batch: dict) -> np.ndarray:
+  """What `evaluate` scores for a method: its images, or its render at the target cameras."""
+  if method.images is not None:
+    return method.images(batch)
+  return evaluation.render_targets(
+    method.reconstruct(batch),
+    batch["target_c2w"],
+    batch["target_intrinsics"],
+    height=HEIGHT,
+    width=WIDTH,
+  ).rgb

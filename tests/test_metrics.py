@@ -133,3 +133,20 @@ def test_depth_errors_absrel_and_delta_over_known_pixels():
   empty = metrics.depth_errors(np.zeros((1, 2, 2, 1)), np.full((1, 2, 2), 3.0))
   np.testing.assert_allclose(empty["depth_absrel"], [1.0])  # a hole is a full error
   np.testing.assert_allclose(empty["depth_delta1"], [0.0])
+
+
+def test_masked_psnr_scores_only_the_masked_pixels():
+  rng = np.random.default_rng(5)
+  target = rng.uniform(0.0, 0.9, size=(2, 8, 8, 3)).astype(np.float32)
+  pred = target.copy()
+  mask = np.zeros((2, 8, 8), bool)
+  mask[0, 2:4, 1:5] = True
+  pred[0, 2:4, 1:5] += 0.1  # error 0.1 on every masked value: MSE 0.01 -> 20 dB
+  pred[0, 6:] = 1.0 - target[0, 6:]  # large errors outside the mask do not count
+  values = np.asarray(jax.jit(metrics.masked_psnr)(pred, target, mask))
+  assert values[0] == pytest.approx(20.0, abs=1e-3)
+  assert np.isnan(values[1])  # empty mask: nothing to score
+  full = np.ones((2, 8, 8), bool)
+  np.testing.assert_allclose(metrics.masked_psnr(pred, target, full), metrics.psnr(pred, target))
+  # clipped to [0, 1] and capped as psnr
+  assert float(metrics.masked_psnr(target[1] + 5.0, np.ones_like(target[1]), full[1])) == 100.0

@@ -20,7 +20,15 @@ metrics judge the same images, the ones a person sees in the saved PNGs.
 Baselines (`baselines()`): the mean colour of the input views; the **nearest input view** (the
 context view whose frame index is nearest the target's; by camera centre where a batch carries no
 frame indices); the **input-view average** (pixel-wise mean of the context views). A model that
-does not beat the nearest view has not learnt to render a new viewpoint.
+does not beat the nearest view has not learnt to render a new viewpoint. Dynamic scenes
+(`baselines(dynamic=True)`) add the **same camera** (the target camera's input nearest in time;
+without one, the nearest camera centre) and the **nearest time** (the input nearest in time; ties:
+the nearest camera centre): a model that does not beat them has not learnt motion.
+
+Moving pixels (`motion_scores`), where a batch carries `target_motion_masks` (Kubric): `psnr_moving`
+is the PSNR over the pixels where the scene moved, for every method. A target view without a
+moving pixel is left out of its scene's mean, and a scene without any out of the mean over scenes
+(which then averages the scenes where something moved).
 
 Geometry (`geometry_scores`), for methods that render: `holes`, the share of target pixels left
 uncovered (alpha < 0.5), and where a test set knows its true depth (`target_depths`, written by
@@ -46,6 +54,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from tokengs_jax import metrics, model, splatting, tuning
+from tokengs_jax.copies import (
+  input_average_images,
+  mean_colour_images,
+  nearest_time_images,
+  nearest_view_images,
+  same_camera_images,
+)
 from tokengs_jax.camera import invert_rigid
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.train.objective import decode_at_times
@@ -147,49 +162,19 @@ def tuned(
   return Method(reconstruct=predict)
 
 
-def mean_colour_images(batch: dict) -> np.ndarray:
-  """Each target is the mean RGB of the input views.  -> [B, Vt, H, W, 3]."""
-  mean = np.asarray(batch["context_images"]).mean(axis=(1, 2, 3))  # [B, 3]
-  return np.broadcast_to(mean[:, None, None, None, :], batch["target_images"].shape).copy()
-
-
-def input_average_images(batch: dict) -> np.ndarray:
-  """Each target is the pixel-wise mean of the input views.  -> [B, Vt, H, W, 3]."""
-  average = np.asarray(batch["context_images"]).mean(axis=1)  # [B, H, W, 3]
-  return np.broadcast_to(average[:, None], batch["target_images"].shape).copy()
-
-
-def nearest_views(batch: dict) -> np.ndarray:
-  """Index of the input view nearest each target.  -> [B, Vt] int.
-
-  By frame index (`context_frames` [B, Vc], `target_frames` [B, Vt]) when the batch has them
-  (ties: the earlier input); otherwise by distance between camera centres.
-  """
-  if "context_frames" in batch and "target_frames" in batch:
-    context = np.asarray(batch["context_frames"], np.int64)
-    target = np.asarray(batch["target_frames"], np.int64)
-    distance = np.abs(target[:, :, None] - context[:, None, :])
-  else:
-    context = np.asarray(batch["context_c2w"])[..., :3, 3]
-    target = np.asarray(batch["target_c2w"])[..., :3, 3]
-    distance = np.linalg.norm(target[:, :, None] - context[:, None, :], axis=-1)
-  return np.argmin(distance, axis=-1)
-
-
-def nearest_view_images(batch: dict) -> np.ndarray:
-  """Each target is a copy of its nearest input view (`nearest_views`).  -> [B, Vt, H, W, 3]."""
-  chosen = nearest_views(batch)
-  context = np.asarray(batch["context_images"])
-  return context[np.arange(len(chosen))[:, None], chosen]
-
-
-def baselines() -> dict[str, Method]:
-  """The trivial baselines every evaluation scores, weakest first."""
-  return {
+def baselines(dynamic: bool = False) -> dict[str, Method]:
+  """The trivial baselines every evaluation scores, weakest first; `dynamic` adds the copies of
+  dynamic scenes, `same_camera` and `nearest_time` (batches with `context_times` /
+  `target_times` and `context_cameras` / `target_cameras`, e.g. Kubric's)."""
+  methods = {
     "mean_colour": Method(images=mean_colour_images),
     "input_average": Method(images=input_average_images),
     "nearest_view": Method(images=nearest_view_images),
   }
+  if dynamic:
+    methods["same_camera"] = Method(images=same_camera_images)
+    methods["nearest_time"] = Method(images=nearest_time_images)
+  return methods
 
 
 # ----------------------------------------------------------------------------------------------
@@ -273,6 +258,7 @@ class Scorer:
 
 _psnr = jax.jit(metrics.psnr)
 _ssim = jax.jit(metrics.ssim)
+_masked_psnr = jax.jit(metrics.masked_psnr)
 
 
 @dataclasses.dataclass
@@ -296,8 +282,9 @@ class MethodScores:
     """Metric -> mean over scenes; empty when the method scored no scene."""
     if not self.per_scene:
       return {}
-    names = [k for k in self.per_scene[0] if k != "key"]
-    return {k: metrics.mean_over_scenes([[s[k]] for s in self.per_scene]) for k in names}
+    names = dict.fromkeys(k for s in self.per_scene for k in s if k != "key")
+    # a metric some scenes have no value for (`psnr_moving` where nothing moved): over the others
+    return {k: metrics.mean_over_scenes([[s[k]] for s in self.per_scene if k in s]) for k in names}
 
 
 @dataclasses.dataclass
@@ -357,6 +344,31 @@ def geometry_scores(prediction: dict, batch: dict) -> dict[str, np.ndarray]:
   return scores
 
 
+def motion_scores(prediction: dict, batch: dict) -> dict[str, np.ndarray]:
+  """Per target view of a batch of one carrying `target_motion_masks` [1, Vt, H, W] (dynamic
+  test sets): `psnr_moving`, the PSNR over the pixels where the scene moved
+  (`metrics.masked_psnr`; NaN for a view without one), for every method, image baselines
+  included; {} without masks."""
+  if "target_motion_masks" not in batch:
+    return {}
+  masks = batch["target_motion_masks"][0]
+  return {
+    "psnr_moving": np.asarray(_masked_psnr(prediction["rgb"][0], batch["target_images"][0], masks))
+  }
+
+
+def _scene_means(views: dict[str, np.ndarray], batch: dict) -> dict[str, float]:
+  """A scene's scores: each metric's mean over its target views, but `psnr_moving` only over the
+  views with a moving pixel, and absent when none has one (the mean over scenes then covers the
+  scenes where something moved)."""
+  means = {name: float(np.mean(v)) for name, v in views.items() if name != "psnr_moving"}
+  if "psnr_moving" in views:
+    moving = np.asarray(batch["target_motion_masks"][0]).any(axis=(-2, -1))
+    if moving.any():
+      means["psnr_moving"] = float(np.mean(views["psnr_moving"][moving]))
+  return means
+
+
 def _on_host(prediction: dict) -> dict:
   """A batch-of-one prediction kept for pictures: rgb / depth / alpha without the batch axis,
   Gaussians fetched with it ([1] or [1, Vt])."""
@@ -393,12 +405,11 @@ def evaluate(
       prediction, predict_seconds = _predict(method, batch, render_config)
       views = scorer(prediction["rgb"][0], batch["target_images"][0])
       views.update(geometry_scores(prediction, batch))
+      views.update(motion_scores(prediction, batch))
       scores[name].seconds += time.perf_counter() - start
       scores[name].predict_seconds.append(predict_seconds)
       scores[name].per_view.append(views)
-      scores[name].per_scene.append(
-        {"key": key, **{k: float(np.mean(v)) for k, v in views.items()}}
-      )
+      scores[name].per_scene.append({"key": key, **_scene_means(views, batch)})
       if position < keep:
         entry[name] = _on_host(prediction)
     if position < keep:
@@ -421,7 +432,8 @@ def checks(summary: Mapping[str, Mapping[str, float]]) -> dict[str, str]:
   psnr = {name: values["psnr"] for name, values in summary.items() if "psnr" in values}
   lines = {}
   if "trained" in psnr:
-    for other in ("nearest_view", "input_average", "mean_colour", "untrained"):
+    copies = ("nearest_view", "same_camera", "nearest_time")
+    for other in (*copies, "input_average", "mean_colour", "untrained"):
       if other in psnr:
         margin = psnr["trained"] - psnr[other]
         lines[f"trained beats {other}"] = f"{margin > 0} (PSNR margin {margin:+.3f} dB)"

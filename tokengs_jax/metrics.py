@@ -6,6 +6,7 @@
 - LPIPS VGG v0.1 with `normalize=True` (see `tokengs_jax.lpips`), on the images as given.
 - Geometry, for methods that render (numpy): `holes` (share of pixels with alpha < 0.5) and, where
   the test set knows its true depth, `depth_errors` (AbsRel, delta < 1.25).
+- `masked_psnr`: PSNR over the pixels of a mask (dynamic scenes: where the scene moved).
 
 Every metric takes `[..., H, W, 3]` images in [0, 1] and returns one score per image `[...]`; all
 are jit-able and differentiable. Scores are averaged per scene over its targets, then over scenes
@@ -183,3 +184,19 @@ def mean_over_scenes(scores_per_scene: Sequence[np.ndarray]) -> float:
   if not scores_per_scene:
     raise ValueError("no scenes to average")
   return float(np.mean([np.mean(np.asarray(s, np.float64)) for s in scores_per_scene]))
+
+
+def masked_psnr(pred: jax.Array, target: jax.Array, mask: jax.Array) -> jax.Array:
+  """PSNR in dB over the pixels where `mask` is set (all three channels), clipped and capped as
+  `psnr`; NaN where the mask is empty (nothing to score: callers leave such images out of their
+  means). The evaluation's `psnr_moving` (issue 24): the mask marks where the scene moved.
+
+  pred, target: [..., H, W, 3]; mask: [..., H, W] bool -> [...].
+  """
+  pred = jnp.clip(jnp.asarray(pred, jnp.float32), 0.0, 1.0)
+  target = jnp.clip(jnp.asarray(target, jnp.float32), 0.0, 1.0)
+  weight = jnp.broadcast_to(jnp.asarray(mask, jnp.float32)[..., None], pred.shape)
+  count = jnp.sum(weight, axis=(-3, -2, -1))
+  mse = jnp.sum(weight * (pred - target) ** 2, axis=(-3, -2, -1)) / jnp.maximum(count, 1.0)
+  value = -10.0 * jnp.log10(jnp.maximum(mse, 10.0 ** (-PSNR_CAP_DB / 10.0)))
+  return jnp.where(count > 0, value, jnp.nan)

@@ -295,14 +295,6 @@ def make_example(
     images, c2w, intrinsics = flip_horizontal(images, c2w, intrinsics)
   c2w[:, :3, 3] *= scale
   images = images.astype(np.float32) / 255.0
-  if config.target_depths:
-    try:
-      true_depths = np.stack([_depth(record, int(i)) for i in target])
-    except _DATA_ERRORS as error:
-      raise BadExampleError(f"{where}: {error}") from error
-    true_depths = resize_and_center_crop_depth(true_depths, config.image_shape) * scale
-    if flipped:
-      true_depths = true_depths[:, :, ::-1]
   example = {
     "context_images": images[:num_context],
     "context_c2w": c2w[:num_context],
@@ -315,8 +307,19 @@ def make_example(
     times = normalize_times(np.asarray(record["times"], np.float64)[frames])
     example["context_times"], example["target_times"] = times[:num_context], times[num_context:]
   if config.target_depths:
-    example["target_depths"] = true_depths.astype(np.float32)
+    example["target_depths"] = _target_depths(record, target, config, scale, flipped)
   return example
+
+
+def _target_depths(record: dict, target, config: ExampleConfig, scale: float, flipped: bool):
+  """The targets' true depth maps as `make_example` transformed their images and cameras.
+  -> float32 [Vt, H, W] (0: unknown)."""
+  try:
+    depths = np.stack([_depth(record, int(i)) for i in target])
+  except _DATA_ERRORS as error:
+    raise BadExampleError(f"{_where(record)}: {error}") from error
+  depths = resize_and_center_crop_depth(depths, config.image_shape) * scale
+  return (depths[:, :, ::-1] if flipped else depths).astype(np.float32)
 
 
 @dataclasses.dataclass(frozen=True)

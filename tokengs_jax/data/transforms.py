@@ -16,6 +16,7 @@ __all__ = [
   "rigid_inverse",
   "resize_and_center_crop",
   "resize_and_center_crop_depth",
+  "resize_and_center_crop_mask",
   "flip_horizontal",
   "normalize_cameras",
   "translation_scale",
@@ -93,6 +94,17 @@ def resize_and_center_crop_depth(depths: np.ndarray, shape: tuple[int, int]) -> 
   scaled, _, _ = _scale_and_crop(depths, shape, Image.BILINEAR)
   coverage, _, _ = _scale_and_crop(valid, shape, Image.BILINEAR)
   return np.where(coverage > 0.999, scaled, 0.0).astype(np.float32)
+
+
+def resize_and_center_crop_mask(masks: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+  """Boolean masks through the same scale and crop as `resize_and_center_crop` gives the images:
+  an output pixel is set where the bilinear resize of the mask (antialiased when shrinking) is at
+  least 1/2.
+
+  masks: bool [V, H, W] -> bool [V, h_out, w_out].
+  """
+  scaled, _, _ = _scale_and_crop(np.asarray(masks, np.float32), shape, Image.BILINEAR)
+  return scaled >= 0.5
 
 
 def flip_horizontal(images: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray):

@@ -29,7 +29,9 @@ member boundary), a corrupt frame, a depth map whose size is not the metadata's 
 pipeline's `skip_bad` counts such a scene as a rejection (reason `KubricError`).
 
 Modules: `camera_tar` (one camera's tar: metadata, poses, frames, depth conventions), `source` (scene listing and
-`KubricSceneSource`), `sampling` (`kubric_view_selector`, `pointmap_scale`).
+`KubricSceneSource`), `sampling` (`kubric_view_selector`, `pointmap_scale`), `evaluation` (the
+evaluation's (camera, frame) views: index and default protocol of novel views at novel times,
+moving-pixel masks).
 """
 
 from tokengs_jax.data.kubric.camera_tar import (
@@ -47,6 +49,15 @@ from tokengs_jax.data.kubric.camera_tar import (
   unproject_ray_depth,
   z_to_ray_depth,
 )
+from tokengs_jax.data.kubric.evaluation import (
+  MOTION_THRESHOLD,
+  default_evaluation_views,
+  evaluation_fields,
+  flat_views,
+  load_kubric_evaluation_index,
+  motion_mask,
+  validate_kubric_evaluation_index,
+)
 from tokengs_jax.data.kubric.sampling import (
   kubric_view_selector,
   pointmap_scale,
@@ -55,14 +66,20 @@ from tokengs_jax.data.kubric.sampling import (
 from tokengs_jax.data.kubric.source import KubricSceneSource, list_kubric_scenes
 
 __all__ = [
+  "MOTION_THRESHOLD",
   "KubricError",
   "KubricSceneSource",
   "KubricView",
   "decode_member",
+  "default_evaluation_views",
+  "evaluation_fields",
+  "flat_views",
   "intrinsics_from_metadata",
   "kubric_view_selector",
   "kubric_pose_to_opencv",
   "list_kubric_scenes",
+  "load_kubric_evaluation_index",
+  "motion_mask",
   "opencv_to_kubric_pose",
   "parse_kubric_view",
   "pointmap_scale",
@@ -72,5 +89,6 @@ __all__ = [
   "rotation_to_quat_wxyz",
   "sample_dynamic_indices",
   "unproject_ray_depth",
+  "validate_kubric_evaluation_index",
   "z_to_ray_depth",
 ]

@@ -60,6 +60,11 @@ class _TarFrames:
   def __len__(self) -> int:
     return len(self.views) * self.num_frames
 
+  def present(self, index: int) -> bool:
+    """Whether item `index`'s member is in its tar (depth maps are optional)."""
+    camera, frame = divmod(int(index), self.num_frames)
+    return self.member.format(frame) in self.views[camera].members
+
   def __getitem__(self, index: int) -> np.ndarray:
     if not 0 <= index < len(self):
       raise IndexError(

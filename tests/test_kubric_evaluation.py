@@ -1,0 +1,307 @@
+"""Kubric evaluation (issue 24 item 1): novel views at novel times. The (camera, frame) index and
+its validation, the default protocol (no target is an input view, targets at in-between times),
+the moving-pixel masks, and the batches `experiments.kubric` scores."""
+
+import dataclasses
+import json
+import tarfile
+
+import numpy as np
+import pytest
+
+from experiments import cli
+from experiments import kubric as kubric_experiment
+from experiments.config import SyntheticSettings
+from experiments.tasks import execute
+from tokengs_jax.data import EvaluationIndexError, NotEnoughFramesError, kubric
+from tokengs_jax.data.transforms import resize_and_center_crop_mask
+
+H = W = 16
+CAMERAS, FRAMES = 3, 6
+
+
+def _experiment(root, **changes) -> kubric_experiment.KubricExperiment:
+  """The tiny preset on 2 generated held-out scenes of 3 cameras x 6 frames at 16x16."""
+  tiny = kubric_experiment.PRESETS["synthetic-tiny"]
+  return dataclasses.replace(
+    tiny,
+    synthetic_dir=str(root),
+    output_dir=str(root / "results"),
+    num_cameras=CAMERAS,
+    max_gap=4,
+    synthetic=SyntheticSettings(num_train=1, num_test=2, frames=FRAMES, workers=1),
+    model=tiny.model.replace(image_size=(H, W)),
+    **changes,
+  )
+
+
+@pytest.fixture(scope="module")
+def data_root(tmp_path_factory):
+  root = tmp_path_factory.mktemp("kubric_eval")
+  kubric_experiment.KubricTask().prepare(_experiment(root))
+  return root
+
+
+def _write_index(path, entries) -> str:
+  path.write_text(json.dumps(entries))
+  return str(path)
+
+
+# ----------------------------------------------------------------------------------------------
+# The default protocol
+
+
+@pytest.mark.parametrize(
+  "cameras, frames, context, targets, max_gap",
+  [(3, 6, 2, 2, 4), (4, 12, 2, 2, 8), (9, 24, 4, 4, 23), (9, 24, 4, 8, 10), (2, 8, 3, 3, 7)],
+)
+def test_default_views_are_novel_views_at_in_between_times(
+  cameras, frames, context, targets, max_gap
+):
+  for seed in range(10):
+    views = kubric.default_evaluation_views(
+      cameras, frames, context, targets, max_gap, np.random.default_rng(seed)
+    )
+    again = kubric.default_evaluation_views(
+      cameras, frames, context, targets, max_gap, np.random.default_rng(seed)
+    )
+    np.testing.assert_array_equal(views[0], again[0])
+    np.testing.assert_array_equal(views[1], again[1])
+    inputs, novel = views
+    assert inputs.shape == (context, 2) and novel.shape == (targets, 2)
+    assert (inputs[:, 0] < cameras).all() and (novel[:, 0] < cameras).all()
+    assert (inputs[:, 1] < frames).all() and (novel[:, 1] < frames).all()
+    assert not {tuple(p) for p in novel.tolist()} & {tuple(p) for p in inputs.tolist()}
+    first, last = inputs[:, 1].min(), inputs[:, 1].max()
+    assert last - first == min(max_gap, frames - 1)
+    # every target time lies strictly between input times and is none of them
+    assert ((novel[:, 1] > first) & (novel[:, 1] < last)).all()
+    assert not set(novel[:, 1].tolist()) & set(inputs[:, 1].tolist())
+    if cameras >= context:
+      assert len(set(inputs[:, 0].tolist())) == context
+    # new viewpoints and input viewpoints are both scored at the new times
+    used = set(inputs[:, 0].tolist())
+    assert any(c in used for c in novel[:, 0].tolist())
+    assert any(c not in used for c in novel[:, 0].tolist()) == (cameras > len(used))
+
+
+def test_default_views_need_an_in_between_frame():
+  with pytest.raises(NotEnoughFramesError, match="no in-between frame"):
+    kubric.default_evaluation_views(9, 24, 4, 2, 3, np.random.default_rng(0))
+  with pytest.raises(NotEnoughFramesError, match="no in-between frame"):
+    kubric.default_evaluation_views(9, 24, 1, 2, 10, np.random.default_rng(0))
+
+
+def _pairs(batch, side: str) -> set[tuple[int, float]]:
+  cameras, times = batch[f"{side}_cameras"][0], batch[f"{side}_times"][0]
+  return {(int(c), float(t)) for c, t in zip(cameras, times)}
+
+
+def test_experiment_batches_never_score_an_input_view(data_root):
+  experiment = _experiment(data_root)
+  task = kubric_experiment.KubricTask()
+  assert task.check_evaluation(experiment) is None
+  examples = task.evaluation_examples(experiment)
+  assert [key for key, _ in examples] == ["scene_000000", "scene_000001"]
+  for _, batch in examples:
+    vt = batch["target_images"].shape[1]
+    assert batch["target_cameras"].shape == (1, vt) and batch["context_cameras"].shape == (1, 2)
+    assert batch["target_motion_masks"].shape == (1, vt, H, W)
+    assert batch["target_motion_masks"].dtype == bool
+    # (camera, time) identifies a view: no target is an input
+    assert not _pairs(batch, "target") & _pairs(batch, "context")
+    context_times = batch["context_times"][0]
+    inside = (batch["target_times"][0] > context_times.min()) & (
+      batch["target_times"][0] < context_times.max()
+    )
+    assert inside.any() and not set(batch["target_times"][0]) & set(context_times)
+    assert set(batch["target_cameras"][0]) - set(batch["context_cameras"][0])  # a new viewpoint
+    assert batch["target_motion_masks"].any()  # the synthetic objects move
+
+
+# ----------------------------------------------------------------------------------------------
+# The index
+
+
+def test_index_views_are_read_as_camera_and_frame(data_root, tmp_path):
+  """Bullet time: the inputs are at different times; each view is the tar's own frame."""
+  entries = {
+    "scene_000001": {"context": [[0, 1], [2, 4]], "target": [[1, 2], [0, 4], [2, 1]]},
+    "scene_404": {"context": [[0, 0], [1, 1]], "target": [[2, 2]]},
+    "scene_000000": None,  # left out by the benchmark
+  }
+  experiment = _experiment(data_root, eval_index=_write_index(tmp_path / "index.json", entries))
+  task = kubric_experiment.KubricTask()
+  assert task.check_evaluation(experiment) == {
+    "requested": 2,
+    "evaluated": 1,
+    "missing": ["scene_404"],
+  }
+  [(key, batch)] = task.evaluation_examples(experiment)
+  assert key == "scene_000001"
+  scene = data_root / "test" / key
+  for side, pairs in (("context", [[0, 1], [2, 4]]), ("target", [[1, 2], [0, 4], [2, 1]])):
+    np.testing.assert_array_equal(batch[f"{side}_cameras"][0], [c for c, _ in pairs])
+    for view, (camera, frame) in enumerate(pairs):
+      raw = kubric.read_kubric_view(scene / f"output_{camera:03d}.tar", [frame])["images"][0]
+      np.testing.assert_allclose(batch[f"{side}_images"][0, view], raw / 255.0, atol=1e-6)
+  np.testing.assert_allclose(batch["context_times"][0], [0.0, 1.0])
+  np.testing.assert_allclose(batch["target_times"][0], [1 / 3, 1.0, 0.0])
+  # a target at an input time: nothing moved since then, no pixel to score
+  assert not batch["target_motion_masks"][0, 1:].any()
+
+
+def test_the_cli_takes_an_index_and_a_bad_one_fails_before_any_work(data_root, tmp_path):
+  path = _write_index(tmp_path / "bad.json", {"scene_000000": {"context": [[0, 0]], "target": []}})
+  _, parsed = cli.parse(
+    ["eval", "--eval-index", path], kubric_experiment.PRESETS, "synthetic-tiny", "prog"
+  )
+  assert parsed.eval_index == path
+  experiment = _experiment(data_root, eval_index=path)
+  with pytest.raises(EvaluationIndexError, match="scene_000000' 'target'"):
+    execute("run", experiment, kubric_experiment.KubricTask())
+  assert not (data_root / "results" / "params.msgpack").exists()  # nothing was trained
+
+
+@pytest.mark.parametrize(
+  "entries, message",
+  [
+    ({"scene_999": {"context": [[0, 0], [1, 1]], "target": [[2, 2]]}}, "none of its 1 scenes"),
+    (
+      {"scene_000000": {"context": [[0, 0], [3, 1]], "target": [[2, 2]]}},
+      r"scene 'scene_000000' context entry 1 \[camera 3, frame 1\]: the scene has cameras 0-2",
+    ),
+    (
+      {"scene_000001": {"context": [[0, 0], [1, 1]], "target": [[2, 2], [1, 6]]}},
+      r"scene 'scene_000001' target entry 1 \[camera 1, frame 6\].*frames 0-5",
+    ),
+    (
+      {"scene_000000": {"context": [[0, 0], [1, 1], [2, 2]], "target": [[2, 3]]}},
+      "3 context views, the model takes 2",
+    ),
+  ],
+)
+def test_index_entries_outside_the_data_are_errors(data_root, tmp_path, entries, message):
+  experiment = _experiment(data_root, eval_index=_write_index(tmp_path / "index.json", entries))
+  with pytest.raises(EvaluationIndexError, match=message):
+    kubric_experiment.KubricTask().check_evaluation(experiment)
+
+
+@pytest.mark.parametrize(
+  "raw, message",
+  [
+    ([], "maps scene keys"),
+    ({"s": [[0, 0]]}, "scene 's': needs exactly 'context' and 'target'"),
+    ({"s": {"context": [[0, 0]]}}, r"needs exactly 'context' and 'target'.*\['context'\]"),
+    ({"s": {"context": [[0, 0]], "targets": [[0, 1]]}}, "'targets'"),
+    ({"s": {"context": [], "target": [[0, 1]]}}, "scene 's' 'context': needs a non-empty list"),
+    ({"s": {"context": [[0, 0]], "target": [[0]]}}, "'target' entry 0: expected"),
+    ({"s": {"context": [[0, 0], [1, "a"]], "target": [[0, 1]]}}, "'context' entry 1"),
+    ({"s": {"context": [[0, 0]], "target": [[0, 1], [True, 2]]}}, "'target' entry 1"),
+    ({"s": {"context": [[0, -1]], "target": [[0, 1]]}}, "non-negative integers, got \\[0, -1\\]"),
+    ({"s": {"context": [[0, 1.0]], "target": [[0, 1]]}}, "'context' entry 0"),
+  ],
+)
+def test_malformed_index_entries_are_rejected_with_a_clear_message(tmp_path, raw, message):
+  path = _write_index(tmp_path / "index.json", raw)
+  with pytest.raises(EvaluationIndexError, match=message):
+    kubric.load_kubric_evaluation_index(path)
+
+
+def test_null_entries_are_left_out_and_broken_json_is_named(tmp_path):
+  path = _write_index(
+    tmp_path / "index.json", {"a": None, "b": {"context": [[1, 2]], "target": [[0, 3]]}}
+  )
+  index = kubric.load_kubric_evaluation_index(path)
+  assert list(index) == ["b"]
+  np.testing.assert_array_equal(index["b"][0], [[1, 2]])
+  (tmp_path / "broken.json").write_text("{")
+  with pytest.raises(EvaluationIndexError, match="broken.json: not JSON"):
+    kubric.load_kubric_evaluation_index(tmp_path / "broken.json")
+
+
+# ----------------------------------------------------------------------------------------------
+# Moving pixels
+
+
+def _plane_view(camera_x: float, patch: bool):
+  """A 16x16 view (fx = fy = 16, centred) of a plane at z = 4 whose red channel ramps with world x
+  (12.5 levels a pixel), from a camera at (camera_x, 0, 0) looking down +z; the top row sees
+  nothing (a constant sky). `patch`: a green square object at depth 3 over rows/cols 5-9.
+  -> (uint8 image [H, W, 3], ray depth [H, W], c2w [4, 4])."""
+  intrinsics = np.array([16.0, 16.0, 8.0, 8.0])
+  cols = np.arange(W) + 0.5
+  world_x = camera_x + (cols - 8.0) / 16.0 * 4.0
+  image = np.zeros((H, W, 3))
+  image[:, :, 0] = 128 + 50 * world_x
+  image[:, :, 1] = 100
+  image[0] = [20, 30, 200]
+  z = np.full((H, W), 4.0)
+  z[0] = 0.0
+  if patch:
+    image[5:10, 5:10] = [40, 250, 40]
+    z[5:10, 5:10] = 3.0
+  c2w = np.eye(4)
+  c2w[0, 3] = camera_x
+  return np.round(image).astype(np.uint8), kubric.z_to_ray_depth(z, intrinsics), c2w, intrinsics
+
+
+def test_motion_mask_marks_what_moved_not_what_the_camera_did():
+  target, depth, target_c2w, intrinsics = _plane_view(0.0, patch=True)
+  reference, _, reference_c2w, _ = _plane_view(0.5, patch=False)  # the camera moved 2 pixels
+  moved = np.zeros((H, W), bool)
+  moved[5:10, 5:10] = True
+  mask = kubric.motion_mask(target, reference, depth, target_c2w, reference_c2w, intrinsics)
+  np.testing.assert_array_equal(mask, moved)
+  # the plain per-pixel rule would call the whole shifted ramp moving
+  plain = kubric.motion_mask(target, reference, None, target_c2w, reference_c2w, intrinsics)
+  assert plain.mean() > 0.8
+  # a camera that did not move: with or without depth, exactly the object
+  still, _, _, _ = _plane_view(0.0, patch=False)
+  for known in (depth, None):
+    np.testing.assert_array_equal(
+      kubric.motion_mask(target, still, known, target_c2w, target_c2w, intrinsics), moved
+    )
+  # a change below the threshold is no motion
+  dimmer = (target.astype(int) - 3).clip(0).astype(np.uint8)
+  assert not kubric.motion_mask(target, dimmer, depth, target_c2w, target_c2w, intrinsics).any()
+
+
+def test_motion_masks_follow_the_images_resize_and_crop():
+  masks = np.zeros((1, 4, 4), bool)
+  masks[0, :, :2] = True
+  np.testing.assert_array_equal(resize_and_center_crop_mask(masks, (2, 2)), [[[1, 0], [1, 0]]])
+  np.testing.assert_array_equal(resize_and_center_crop_mask(masks, (4, 4)), masks)
+  wide = np.zeros((1, 2, 4), bool)
+  wide[0, :, 2:] = True
+  np.testing.assert_array_equal(resize_and_center_crop_mask(wide, (2, 2)), [[[0, 1], [0, 1]]])
+
+
+def test_a_tar_without_depth_compares_the_same_pixel(data_root, tmp_path):
+  scene = tmp_path / "v0" / "scene_000000"
+  scene.mkdir(parents=True)
+  for camera in range(CAMERAS):
+    name = f"output_{camera:03d}.tar"
+    with (
+      tarfile.open(data_root / "test" / "scene_000000" / name) as source,
+      tarfile.open(scene / name, "w") as copy,
+    ):
+      for member in source.getmembers():
+        if "depth" not in member.name:
+          copy.addfile(member, source.extractfile(member))
+  record = kubric.KubricSceneSource(tmp_path, ["v0"], num_cameras=CAMERAS)[0]
+  views = (np.array([[0, 0], [1, 4]]), np.array([[2, 3], [0, 1]]))
+  fields = kubric.evaluation_fields(record, views, (H, W))
+  np.testing.assert_array_equal(fields["context_cameras"], [0, 1])
+  np.testing.assert_array_equal(fields["target_cameras"], [2, 0])
+  for view, (camera, frame, reference) in enumerate([(2, 3, 4), (0, 1, 0)]):
+    at, before = camera * FRAMES + frame, camera * FRAMES + reference
+    expected = kubric.motion_mask(
+      record["images"][at],
+      record["images"][before],
+      None,
+      record["c2w"][at],
+      record["c2w"][before],
+      record["intrinsics"][at],
+    )
+    np.testing.assert_array_equal(fields["target_motion_masks"][view], expected)
