@@ -32,16 +32,17 @@ class SyntheticSettings:
       photographs, partitions, floating / stacked objects, tinted light, walks and orbits, 45-95
       degree fields of view; `walk` unused).
     walk: the rooms' camera path (train and test rooms alike).
-    num_ood: scenes of each held-out test family (`galleries/`, the validation family, and
-      `courtyards/`, the frozen one; 64x64 on disk, read at the model's size), scored next to the
-      test rooms and never trained on; 0: none.
+    num_ood: scenes of each held-out test family, scored next to the test split and never
+      trained on; 0: none. Static runs: `galleries/` (the validation family) and `courtyards/`
+      (the frozen one), 64x64 on disk, read at the model's size. Kubric runs: `ood_kubric/`
+      (`synthetic.kubric_ood`, frozen).
     workers: generator processes.
   """
 
-  num_train: int = 48
+  num_train: int = 960
   num_test: int = 8
-  frames: int = 24
-  family: Literal["rooms", "varied"] = "rooms"
+  frames: int = 16
+  family: Literal["rooms", "varied"] = "varied"
   walk: WalkConfig = RANDOMISED_WALK
   num_ood: int = 24
   workers: int = 2

@@ -13,6 +13,10 @@ frames spread over `max_gap`, every target at an in-between time that is no inpu
 and input cameras, so no target is an input view. Scores: PSNR / SSIM / LPIPS, and `psnr_moving`
 over the pixels where the scene moved since the nearest input time (`motion_mask`). Baselines:
 mean colour, input average, nearest view (camera centre), same camera and nearest time.
+Synthetic runs score a second test set, `ood_kubric`: `synthetic.num_ood` scenes (default 8; 0:
+none) of a frozen dynamic family unlike the training scenes and never trained on (composite
+objects tumbling along curved paths, held-out photographs, a low tinted sun, another camera rig;
+`tokengs_jax.data.synthetic.kubric_ood`), with the same protocol, baselines and `psnr_moving`.
 
 Besides the common results folder (metrics of the baselines / untrained / trained / trained +
 token tuning, grids, PLY, MP4), the evaluation writes `dynamic/`:
@@ -24,13 +28,14 @@ token tuning, grids, PLY, MP4), the evaluation writes `dynamic/`:
 Presets:
 - `synthetic-tiny` (default): writes Kubric-4D-layout tars of synthetic dynamic scenes to
   `outputs/synthetic_kubric` when missing (train subset `v0`, held-out subset `test` drawn with
-  another seed), trains the `tiny` model with 8 dynamic tokens and a time embedding at 32x32,
-  2 input views + 2 targets at one target time, for 1200 steps. Tokens start 100x larger than
-  official (`gs_token_std=1.0`; the head readout 100x smaller, 0.003, so the first Gaussians are
-  those of the RE10K default): with the official 0.01 the target-time embedding, shared by all
-  dynamic tokens and trained at lr 2e-3, outgrows them (norm ~4 vs ~0.14 in trained weights) and
-  every dynamic token collapses onto one (cosine 0.999 after LayerNorm). Token tuning's step is relative to the
-  token scale, hence lr 1e-2 (= the paper's 1e-4 x 100).
+  another seed, 8 scenes of the held-out family in `ood_kubric`), trains the `tiny` model with 8
+  dynamic tokens and a time embedding at 32x32, 2 input views + 2 targets at one target time, for
+  1200 steps. Tokens start 100x larger than official (`gs_token_std=1.0`; the head readout 100x
+  smaller, 0.003, so the first Gaussians are those of the RE10K default): with the official 0.01
+  the target-time embedding, shared by all dynamic tokens and trained at lr 2e-3, outgrows them
+  (norm ~4 vs ~0.14 in trained weights) and every dynamic token collapses onto one (cosine 0.999
+  after LayerNorm). Token tuning's step is relative to the token scale, hence lr 1e-2 (= the
+  paper's 1e-4 x 100).
 - `paper`: the official `kubric_dyn` architecture (latent bottleneck, 1024 static + 256 dynamic
   tokens, 4 input views, 256x256), 50k finetuning steps; the last `eval.num_scenes` (16, as the
   paper) scenes of the listing are held out.
@@ -47,6 +52,7 @@ auxiliary term at its base weight, as the official tuning) and renders the targe
 from __future__ import annotations
 
 import dataclasses
+import functools
 import pathlib
 import time
 from typing import Literal
@@ -78,10 +84,14 @@ from tokengs_jax.data.kubric import (
   load_kubric_evaluation_index,
   validate_kubric_evaluation_index,
 )
+from tokengs_jax.data.synthetic import generate_kubric_like
+from tokengs_jax.data.synthetic.kubric_ood import FROZEN_SEED as OOD_SEED
+from tokengs_jax.data.synthetic.kubric_ood import generate_kubric_ood
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.train.supervision import ObjectiveConfig
 
-TRAIN_SUBSET, TEST_SUBSET = "v0", "test"
+# The held-out dynamic family's subset is also its test set's name in the results.
+TRAIN_SUBSET, TEST_SUBSET, OOD_SUBSET = "v0", "test", "ood_kubric"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -145,27 +155,31 @@ class KubricTask(Task):
     self.root(experiment)
 
   def root(self, experiment: KubricExperiment) -> pathlib.Path:
+    """The data root; synthetic: writes each subset that has fewer camera tars than wanted (the
+    training family's train / test, and `synthetic.num_ood` scenes of the frozen held-out family,
+    `tokengs_jax.data.synthetic.kubric_ood`)."""
     if experiment.data_dir:
       return pathlib.Path(experiment.data_dir)
     root = pathlib.Path(experiment.synthetic_dir)
     s = experiment.synthetic
     wanted = {
-      TRAIN_SUBSET: (s.num_train, experiment.seed),
-      TEST_SUBSET: (s.num_test, experiment.seed + 1000),
+      TRAIN_SUBSET: (s.num_train, functools.partial(generate_kubric_like, seed=experiment.seed)),
+      TEST_SUBSET: (
+        s.num_test,
+        functools.partial(generate_kubric_like, seed=experiment.seed + 1000),
+      ),
+      OOD_SUBSET: (s.num_ood, generate_kubric_ood),
     }
-    for subset, (count, seed) in wanted.items():
+    for subset, (count, generate) in wanted.items():
       if len(list((root / subset).glob("scene_*/output_*.tar"))) < count * experiment.num_cameras:
-        from tokengs_jax.data.synthetic import generate_kubric_like
-
         print(f"[data] writing {count} synthetic Kubric scenes to {root / subset}", flush=True)
         start = time.perf_counter()
-        generate_kubric_like(
+        generate(
           root,
           count,
           *experiment.image_size,
           frames=s.frames,
           num_cameras=experiment.num_cameras,
-          seed=seed,
           subset=subset,
           workers=s.workers,
         )
@@ -198,6 +212,16 @@ class KubricTask(Task):
       KubricSceneSource(scenes=scenes[-held_out:], num_cameras=experiment.num_cameras),
     )
 
+  def ood_source(self, experiment: KubricExperiment) -> KubricSceneSource | None:
+    """The first `synthetic.num_ood` scenes of the frozen held-out family; None for real data or
+    `synthetic.num_ood = 0`."""
+    if experiment.data_dir or experiment.synthetic.num_ood <= 0:
+      return None
+    scenes = list_kubric_scenes(self.root(experiment), [OOD_SUBSET])
+    return KubricSceneSource(
+      scenes=scenes[: experiment.synthetic.num_ood], num_cameras=experiment.num_cameras
+    )
+
   def training_batches(self, experiment: KubricExperiment):
     """This process's batches from the shared input pipeline: grain workers, and an iterator
     state the checkpoints save, so a resumed run continues the data stream where it stopped."""
@@ -214,14 +238,25 @@ class KubricTask(Task):
     return pipeline
 
   def test_sets(self, experiment: KubricExperiment) -> dict[str, list[evaluation.Scene]]:
-    """Its test split only: the out-of-distribution galleries are static rooms."""
-    return {"test": self.evaluation_examples(experiment)}
+    """Its test split and, when synthetic, every scene of the held-out dynamic family
+    (`ood_kubric`; the default protocol's views, drawn with the family's frozen seed so they do
+    not follow `--seed`). The static galleries and courtyards are not scored: they do not move."""
+    sets = {"test": self.evaluation_examples(experiment)}
+    ood = self.ood_source(experiment)
+    if ood is not None:
+      sets[OOD_SUBSET] = self._examples(
+        experiment, ood, self._default_views(experiment, ood, 0, OOD_SEED), OOD_SEED
+      )
+    return sets
 
   def check_evaluation(self, experiment: KubricExperiment) -> dict | None:
-    """Chooses every evaluated scene's views before any work, so a bad `--eval-index` (or a clip
-    too short for the default protocol) fails now; returns the index report for metrics.json
-    (None without an index)."""
+    """Chooses every evaluated scene's views (the held-out family's too) before any work, so a
+    bad `--eval-index` (or a clip too short for the default protocol) fails now; returns the
+    index report for metrics.json (None without an index)."""
     _, report = self.evaluation_views(experiment)
+    ood = self.ood_source(experiment)
+    if ood is not None:
+      self._default_views(experiment, ood, 0, OOD_SEED)
     return None if report is None else report.as_dict()
 
   def evaluation_views(
@@ -240,29 +275,48 @@ class KubricTask(Task):
       position = {key: i for i, key in enumerate(test.keys)}
       keys = report.matched[:limit] if limit > 0 else report.matched
       return [(position[key], index[key]) for key in keys], report
+    return self._default_views(experiment, test, limit, experiment.seed), None
+
+  @staticmethod
+  def _default_views(
+    experiment: KubricExperiment, source: KubricSceneSource, limit: int, seed: int
+  ) -> list[tuple[int, tuple[np.ndarray, np.ndarray]]]:
+    """The default protocol's views of the first `limit` scenes of `source` (0: all), scene at
+    `position` drawn from `default_rng([seed, position])`."""
     chosen = []
-    for position in range(min(len(test), limit) if limit > 0 else len(test)):
-      record = test[position]
+    for position in range(min(len(source), limit) if limit > 0 else len(source)):
+      record = source[position]
       views = default_evaluation_views(
         record["num_cameras"],
         record["num_frames"],
         experiment.num_context_views,
         experiment.eval.num_target_views,
         experiment.max_gap,
-        np.random.default_rng([experiment.seed, position]),
+        np.random.default_rng([seed, position]),
       )
       chosen.append((position, views))
-    return chosen, None
+    return chosen
 
   def evaluation_examples(self, experiment: KubricExperiment) -> list[tuple[str, dict]]:
-    """(key, batch of one) per evaluated scene; besides `make_example`'s fields the batches carry
-    `context_cameras` / `target_cameras` and `target_motion_masks` (`evaluation_fields`)."""
+    """(key, batch of one) per evaluated scene of the test split (`_examples`)."""
     _, test = self.sources(experiment)
+    return self._examples(experiment, test, self.evaluation_views(experiment)[0], experiment.seed)
+
+  @staticmethod
+  def _examples(
+    experiment: KubricExperiment,
+    source: KubricSceneSource,
+    chosen: list[tuple[int, tuple[np.ndarray, np.ndarray]]],
+    seed: int,
+  ) -> list[tuple[str, dict]]:
+    """(key, batch of one) per (position, views) of `chosen`; besides `make_example`'s fields the
+    batches carry `context_cameras` / `target_cameras` and `target_motion_masks`
+    (`evaluation_fields`)."""
     config = kubric_example_config(experiment, training=False)
     examples = []
-    for position, views in self.evaluation_views(experiment)[0]:
-      record = test[position]
-      rng = np.random.default_rng([experiment.seed, position])
+    for position, views in chosen:
+      record = source[position]
+      rng = np.random.default_rng([seed, position])
       example = make_example(record, config, rng, views=flat_views(record, views))
       example.update(evaluation_fields(record, views, config.image_shape))
       examples.append((record["key"], {k: v[None] for k, v in example.items()}))
@@ -380,7 +434,7 @@ PRESETS = {
       gs_token_std=1.0,
       clip_head_readout_std=0.003,
     ),
-    synthetic=SyntheticSettings(num_train=24, num_test=4, frames=12, workers=2),
+    synthetic=SyntheticSettings(num_train=24, num_test=4, frames=12, num_ood=8, workers=2),
     min_gap=3,
     max_gap=8,
     train=TrainSettings(

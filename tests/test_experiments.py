@@ -341,6 +341,7 @@ def test_kubric_entry_point_end_to_end(tmp_path):
     assert math.isfinite(payload["metrics"][method]["mean"]["psnr"])
     assert math.isfinite(payload["metrics"][method]["mean"]["psnr_moving"])
   assert "trained beats same_camera" in payload["checks"]
+  assert payload["test_sets"] == ["test", "ood_kubric"]  # the frozen held-out dynamic family
   history = json.loads((out / "train_history.json").read_text())
   # the official auxiliary weight, scaled to 2 steps: held at step 0, decayed to 0 at step 1
   assert [h["dyn_aux_weight"] for h in history] == pytest.approx([0.3, 0.0])

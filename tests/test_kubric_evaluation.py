@@ -29,7 +29,7 @@ def _experiment(root, **changes) -> kubric_experiment.KubricExperiment:
     output_dir=str(root / "results"),
     num_cameras=CAMERAS,
     max_gap=4,
-    synthetic=SyntheticSettings(num_train=1, num_test=2, frames=FRAMES, workers=1),
+    synthetic=SyntheticSettings(num_train=1, num_test=2, frames=FRAMES, num_ood=0, workers=1),
     model=tiny.model.replace(image_size=(H, W)),
     **changes,
   )

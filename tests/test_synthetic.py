@@ -216,7 +216,8 @@ def test_generated_chunks_read_back_with_the_same_cameras(tmp_path):
     tmp_path, num_train=3, num_test=1, height=H, width=W, frames=4, seed=9, config=config
   )
   assert sorted((tmp_path / "train").iterdir()) == [
-    tmp_path / "train" / n for n in ("000000.torch", "000001.torch", "index.json")
+    tmp_path / "train" / n
+    for n in ("000000.depth.npz", "000000.torch", "000001.depth.npz", "000001.torch", "index.json")
   ]
   assert json.loads((tmp_path / "train" / "index.json").read_text()) == index["train"]
   assert len(index["train"]) == 3 and len(index["test"]) == 1
@@ -268,7 +269,7 @@ def test_generated_dataset_batches_through_the_chunked_source_and_pipeline(tmp_p
 
 def test_gallery_set_reads_back_through_the_evaluation_index(tmp_path):
   from tokengs_jax.data import ChunkedSceneSource, evaluation_views, load_evaluation_index
-  from tokengs_jax.data.synthetic.generate import GalleryDatasetConfig, generate_galleries
+  from tokengs_jax.data.synthetic.held_out import GalleryDatasetConfig, generate_galleries
 
   config = GalleryDatasetConfig(supersample=1, scenes_per_chunk=2)
   written = generate_galleries(
@@ -294,7 +295,7 @@ def test_gallery_set_reads_back_through_the_evaluation_index(tmp_path):
 
 
 def test_gallery_scene_is_deterministic_and_unlike_the_rooms():
-  from tokengs_jax.data.synthetic.generate import GalleryDatasetConfig, render_gallery_scene
+  from tokengs_jax.data.synthetic.held_out import GalleryDatasetConfig, render_gallery_scene
 
   config = GalleryDatasetConfig(supersample=1)
   a = render_gallery_scene(3, 1, 12, 16, 3, config)

@@ -5,7 +5,7 @@ test sets record beside their chunks."""
 import numpy as np
 import pytest
 
-from tokengs_jax.data.synthetic import courtyards, generate, photos, varied
+from tokengs_jax.data.synthetic import courtyards, generate, held_out, photos, varied
 from tokengs_jax.data.synthetic.raytrace import Plane, Scene, Texture, render, texture_color
 
 
@@ -69,9 +69,9 @@ def test_varied_rooms_are_deterministic_varied_and_draw_only_training_photos():
 
 
 def test_courtyards_are_frozen_open_and_draw_only_held_out_photos():
-  config = generate.COURTYARD_DATASET
-  a = generate._render_held_out_scene("courtyards", courtyards.FROZEN_SEED, 0, 12, 16, 3, config)
-  b = generate._render_held_out_scene("courtyards", courtyards.FROZEN_SEED, 0, 12, 16, 3, config)
+  config = held_out.COURTYARD_DATASET
+  a = held_out._render_held_out_scene("courtyards", courtyards.FROZEN_SEED, 0, 12, 16, 3, config)
+  b = held_out._render_held_out_scene("courtyards", courtyards.FROZEN_SEED, 0, 12, 16, 3, config)
   np.testing.assert_array_equal(a["images"], b["images"])
   assert a["key"] == f"courtyard{courtyards.FROZEN_SEED}_000000"
   used, open_sky = set(), 0
@@ -90,11 +90,11 @@ def test_courtyards_are_frozen_open_and_draw_only_held_out_photos():
   assert open_sky == 8
 
 
-def test_test_splits_record_true_depths_beside_their_chunks(tmp_path):
+def test_splits_record_true_depths_beside_their_chunks(tmp_path):
   generate.generate_re10k_like(
     tmp_path, 2, 2, 12, 16, frames=4, config=generate.Re10kLikeConfig(supersample=1)
   )
-  assert not list((tmp_path / "train").glob("*.depth.npz"))  # training splits: none needed
+  assert list((tmp_path / "train").glob("*.depth.npz"))  # every split: the depth loss reads them
   chunk = tmp_path / "test" / "000000.torch"
   scene = generate.render_re10k_like_scene(
     0, "test", 1, 12, 16, 4, generate.Re10kLikeConfig(supersample=1)
@@ -103,6 +103,8 @@ def test_test_splits_record_true_depths_beside_their_chunks(tmp_path):
   np.testing.assert_allclose(depths, scene["depths"], rtol=1e-3)  # stored as float16
   assert generate.read_true_depths(chunk, "no such scene") is None
   assert generate.read_true_depths(tmp_path / "train" / "000000.torch", scene["key"]) is None
+  (tmp_path / "test" / "000000.depth.npz").unlink()  # real data: no depth recorded
+  assert generate.read_true_depths(chunk, scene["key"]) is None
 
 
 def test_a_plane_textured_with_a_photo_renders_the_photo():

@@ -5,6 +5,7 @@ generate_re10k_like("data/synthetic_re10k", num_train=256, num_test=32, height=6
 generate_kubric_like("data/synthetic_kubric", num_scenes=16)
 generate_galleries("data/galleries", num_scenes=24)  # out-of-distribution test set (64x64)
 generate_courtyards("data/courtyards")  # the frozen test family (fixed seed)
+generate_kubric_ood("data/synthetic_kubric", num_scenes=8)  # the frozen dynamic test family
 """
 
 from tokengs_jax.data.synthetic.cameras import (
@@ -17,19 +18,21 @@ from tokengs_jax.data.synthetic.cameras import (
   pinhole_intrinsics,
 )
 from tokengs_jax.data.synthetic.generate import (
-  COURTYARD_DATASET,
-  GalleryDatasetConfig,
   KubricLikeConfig,
   Re10kLikeConfig,
-  gallery_views,
-  generate_courtyards,
-  generate_galleries,
   generate_kubric_like,
   generate_re10k_like,
-  render_gallery_scene,
   render_kubric_like_scene,
   render_re10k_like_scene,
   write_kubric_view,
+)
+from tokengs_jax.data.synthetic.held_out import (
+  COURTYARD_DATASET,
+  GalleryDatasetConfig,
+  gallery_views,
+  generate_courtyards,
+  generate_galleries,
+  render_gallery_scene,
 )
 from tokengs_jax.data.synthetic.raytrace import (
   Box,
@@ -42,6 +45,7 @@ from tokengs_jax.data.synthetic.raytrace import (
   trace,
 )
 from tokengs_jax.data.synthetic.courtyards import CourtyardConfig, sample_courtyard
+from tokengs_jax.data.synthetic.kubric_ood import KubricOodConfig, generate_kubric_ood
 from tokengs_jax.data.synthetic.scenes import (
   DynamicConfig,
   DynamicScene,
@@ -63,6 +67,7 @@ __all__ = [
   "CourtyardConfig",
   "GalleryDatasetConfig",
   "KubricLikeConfig",
+  "KubricOodConfig",
   "Plane",
   "Re10kLikeConfig",
   "RenderOutput",
@@ -78,6 +83,7 @@ __all__ = [
   "generate_courtyards",
   "generate_galleries",
   "generate_kubric_like",
+  "generate_kubric_ood",
   "generate_re10k_like",
   "look_at",
   "orbit_cameras",

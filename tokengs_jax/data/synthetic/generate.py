@@ -2,11 +2,7 @@
 
 - `generate_re10k_like`: static rooms + RE10K-like walks -> pixelSplat chunks
   `{train,test}/NNNNNN.torch` (JPEG frames, normalised intrinsics, w2c rows) + `index.json`.
-- `generate_galleries`: a held-out family (polygonal galleries, orbiting camera; see
-  `scenes.GalleryConfig`) -> `test/` chunks + `index.json` in the same layout, plus
-  `eval_index.json` (pixelSplat's evaluation-index format) whose targets are never input frames.
-- `generate_courtyards`: the frozen test family (`courtyards`: open courtyards, held-out
-  photographs, a sideways tracking camera; a fixed seed), in the gallery layout.
+- The held-out static test families (galleries, the frozen courtyards): `held_out`.
 - `generate_kubric_like`: dynamic scenes seen by a 9-camera rig -> the Kubric-4D layout
   `<root>/<subset>/<scene>/output_{view:03d}.tar`, each tar holding `metadata.json`,
   `rgba_{frame:05d}.png` and `depth_{frame:05d}.tiff` (float32 distance along each pixel's ray,
@@ -34,11 +30,11 @@ import tifffile
 from PIL import Image
 
 from tokengs_jax.data import chunks, kubric
-from tokengs_jax.data.synthetic import cameras, courtyards, scenes, varied
+from tokengs_jax.data.synthetic import cameras, scenes, varied
 from tokengs_jax.data.synthetic.raytrace import render
 
 _SPLIT_IDS = {"train": 0, "test": 1}
-_RE10K_FPS = 30  # RE10K timestamps are microseconds of the source video
+RE10K_FPS = 30  # RE10K timestamps are microseconds of the source video
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,7 +81,7 @@ def render_re10k_like_scene(
   return {
     "key": scene_key(seed, split, index),
     "url": "",
-    "timestamps": np.arange(frames, dtype=np.int64) * (1_000_000 // _RE10K_FPS),
+    "timestamps": np.arange(frames, dtype=np.int64) * (1_000_000 // RE10K_FPS),
     "c2w": c2w.astype(np.float32),
     "intrinsics": np.broadcast_to(intrinsics, (frames, 4)).astype(np.float32),
     "images": images,
@@ -195,160 +191,6 @@ def generate_re10k_like(
 
 
 # ----------------------------------------------------------------------------------------------
-# Held-out test families (never trained on): galleries and the frozen courtyards
-
-# rng streams of the test families: disjoint from each other and from the rooms' train / test ids
-_HELD_OUT_STREAMS = {"galleries": 7, "courtyards": 11}
-
-
-@dataclasses.dataclass(frozen=True)
-class GalleryDatasetConfig:
-  """Options of `generate_galleries` beyond the sizes (and of `generate_courtyards`, whose
-  `scene` is a `courtyards.CourtyardConfig`)."""
-
-  fov_x_degrees: tuple[float, float] = (45.0, 95.0)
-  supersample: int = 2
-  jpeg_quality: int = 95
-  scenes_per_chunk: int = 16
-  num_targets: int = 3  # per scene in `eval_index.json`, evenly inside the context span
-  scene: scenes.GalleryConfig | courtyards.CourtyardConfig = scenes.GalleryConfig()
-
-
-def _render_held_out_scene(
-  family: str,
-  seed: int,
-  index: int,
-  height: int,
-  width: int,
-  frames: int,
-  config: GalleryDatasetConfig,
-) -> dict:
-  """One scene of a held-out test family (`galleries` or `courtyards`), with the fields of
-  `render_re10k_like_scene`."""
-  rng = np.random.default_rng([seed, _HELD_OUT_STREAMS[family], index])
-  sample = {"galleries": scenes.sample_gallery_scene, "courtyards": courtyards.sample_courtyard}
-  scene, c2w = sample[family](rng, frames, config.scene)
-  fov_x = np.deg2rad(rng.uniform(*config.fov_x_degrees))
-  intrinsics = cameras.pinhole_intrinsics(height, width, fov_x)
-  outputs = [render(scene, pose, intrinsics, height, width, config.supersample) for pose in c2w]
-  return {
-    "key": f"{ {'galleries': 'gallery', 'courtyards': 'courtyard'}[family] }{seed}_{index:06d}",
-    "url": "",
-    "timestamps": np.arange(frames, dtype=np.int64) * (1_000_000 // _RE10K_FPS),
-    "c2w": c2w.astype(np.float32),
-    "intrinsics": np.broadcast_to(intrinsics, (frames, 4)).astype(np.float32),
-    "images": np.stack([np.round(o.rgb * 255.0).astype(np.uint8) for o in outputs]),
-    "depths": np.stack([o.depth for o in outputs]),
-  }
-
-
-def render_gallery_scene(
-  seed: int,
-  index: int,
-  height: int,
-  width: int,
-  frames: int,
-  config: GalleryDatasetConfig = GalleryDatasetConfig(),
-) -> dict:
-  """One gallery scene, with the fields of `render_re10k_like_scene`."""
-  return _render_held_out_scene("galleries", seed, index, height, width, frames, config)
-
-
-def gallery_views(frames: int, num_targets: int) -> dict:
-  """Evaluation views of a gallery scene: inputs at the first and last frame, targets evenly
-  spaced strictly between them (never an input frame, so copying an input is never exact)."""
-  if frames - 2 < num_targets:
-    raise ValueError(f"{frames} frames cannot hold {num_targets} targets between two inputs")
-  targets = np.linspace(0, frames - 1, num_targets + 2)[1:-1].round().astype(int)
-  return {"context": [0, frames - 1], "target": [int(t) for t in targets]}
-
-
-def _write_held_out_chunk(path, family, seed, indices, height, width, frames, config) -> list[str]:
-  rendered = [
-    _render_held_out_scene(family, seed, i, height, width, frames, config) for i in indices
-  ]
-  chunks.write_chunk(path, rendered, jpeg_quality=config.jpeg_quality)
-  write_true_depths(path, rendered)
-  return [scene["key"] for scene in rendered]
-
-
-def _generate_held_out(
-  family: str,
-  root: str | os.PathLike,
-  num_scenes: int,
-  height: int,
-  width: int,
-  frames: int,
-  seed: int,
-  config: GalleryDatasetConfig,
-  workers: int,
-) -> dict:
-  """Writes a test family: `<root>/test/NNNNNN.torch` (+ `.depth.npz`) + `<root>/test/index.json`
-  (the pixelSplat layout, as `generate_re10k_like`) and `<root>/eval_index.json` (scene key ->
-  {"context", "target"}, the pixelSplat / MVSplat evaluation-index format; `gallery_views`).
-
-  Returns the evaluation index.
-  """
-  directory = pathlib.Path(root) / "test"
-  directory.mkdir(parents=True, exist_ok=True)
-  groups = [
-    list(range(start, min(start + config.scenes_per_chunk, num_scenes)))
-    for start in range(0, num_scenes, config.scenes_per_chunk)
-  ]
-  names = [f"{number:06d}.torch" for number in range(len(groups))]
-  jobs = [
-    (str(directory / name), family, seed, group, height, width, frames, config)
-    for name, group in zip(names, groups)
-  ]
-  keys = _run_jobs(_write_held_out_chunk, jobs, workers)
-  index = {key: name for name, chunk_keys in zip(names, keys) for key in chunk_keys}
-  (directory / "index.json").write_text(json.dumps(index, indent=1))
-  views = gallery_views(frames, config.num_targets)
-  evaluation = {key: views for key in index}
-  (pathlib.Path(root) / "eval_index.json").write_text(json.dumps(evaluation, indent=1))
-  return evaluation
-
-
-def generate_galleries(
-  root: str | os.PathLike,
-  num_scenes: int = 24,
-  height: int = 64,
-  width: int = 64,
-  frames: int = 13,
-  seed: int = 0,
-  *,
-  config: GalleryDatasetConfig = GalleryDatasetConfig(),
-  workers: int = 1,
-) -> dict:
-  """Writes the gallery test set (`_generate_held_out`); returns its evaluation index."""
-  return _generate_held_out(
-    "galleries", root, num_scenes, height, width, frames, seed, config, workers
-  )
-
-
-COURTYARD_DATASET = GalleryDatasetConfig(
-  fov_x_degrees=(50.0, 90.0), scene=courtyards.CourtyardConfig()
-)
-
-
-def generate_courtyards(
-  root: str | os.PathLike,
-  num_scenes: int = 24,
-  height: int = 64,
-  width: int = 64,
-  frames: int = 13,
-  *,
-  config: GalleryDatasetConfig = COURTYARD_DATASET,
-  workers: int = 1,
-) -> dict:
-  """Writes the frozen courtyard test set (`courtyards`; seed `courtyards.FROZEN_SEED`, whatever
-  the experiment's) in the layout of `_generate_held_out`; returns its evaluation index."""
-  return _generate_held_out(
-    "courtyards", root, num_scenes, height, width, frames, courtyards.FROZEN_SEED, config, workers
-  )
-
-
-# ----------------------------------------------------------------------------------------------
 # Kubric-like dynamic scenes
 
 
@@ -388,33 +230,17 @@ def render_kubric_like_scene(
   intrinsics = kubric.intrinsics_from_metadata(
     config.focal_length, config.sensor_width, height, width
   )
-  images = np.zeros((num_cameras, frames, height, width, 3), np.uint8)
-  depths = np.zeros((num_cameras, frames, height, width), np.float32)
-  for frame in range(frames):
-    scene = dynamic.at(frame / config.dynamic.frame_rate)
-    for camera in range(num_cameras):
-      output = render(scene, c2w[camera, frame], intrinsics, height, width, config.supersample)
-      images[camera, frame] = np.round(output.rgb * 255.0)
-      # The tracer gives planar z; real Kubric's depth_*.tiff holds the ray distance (z_to_depth).
-      depths[camera, frame] = kubric.z_to_ray_depth(output.depth, intrinsics)
-  metadata = []
-  for camera in range(num_cameras):
-    positions, quaternions = kubric.opencv_to_kubric_pose(c2w[camera])
-    metadata.append(
-      {
-        "metadata": {
-          "resolution": [height, width],
-          "num_frames": frames,
-          "frame_rate": config.dynamic.frame_rate,
-        },
-        "camera": {
-          "focal_length": config.focal_length,
-          "sensor_width": config.sensor_width,
-          "positions": positions.tolist(),
-          "quaternions": quaternions.tolist(),
-        },
-      }
-    )
+  images, depths, metadata = render_kubric_views(
+    dynamic.at,
+    c2w,
+    np.broadcast_to(intrinsics, (num_cameras, 4)),
+    np.full(num_cameras, config.focal_length),
+    config.sensor_width,
+    config.dynamic.frame_rate,
+    height,
+    width,
+    config.supersample,
+  )
   return {
     "images": images,
     "depths": depths,
@@ -422,6 +248,56 @@ def render_kubric_like_scene(
     "intrinsics": intrinsics,
     "metadata": metadata,
   }
+
+
+def render_kubric_views(
+  scene_at,
+  c2w,
+  intrinsics,
+  focal_lengths,
+  sensor_width: float,
+  frame_rate: float,
+  height: int,
+  width: int,
+  supersample: int,
+) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+  """A dynamic scene from every camera at every frame, in Kubric's conventions.
+
+  Args:
+    scene_at: time (seconds) -> the static `Scene` at that time.
+    c2w: [C, F, 4, 4] OpenCV; intrinsics: [C, 4] pixels (as the Kubric reader derives them from
+      `focal_lengths` [C] mm and `sensor_width` mm); frame_rate: frames per second.
+
+  Returns:
+    images uint8 [C, F, H, W, 3]; depths float32 [C, F, H, W], the distance along each
+    pixel-centre ray (Kubric's `z_to_depth`; 0 where nothing was hit); metadata [C], each
+    camera's `metadata.json`.
+  """
+  num_cameras, frames = c2w.shape[:2]
+  images = np.zeros((num_cameras, frames, height, width, 3), np.uint8)
+  depths = np.zeros((num_cameras, frames, height, width), np.float32)
+  for frame in range(frames):
+    scene = scene_at(frame / frame_rate)
+    for camera in range(num_cameras):
+      output = render(scene, c2w[camera, frame], intrinsics[camera], height, width, supersample)
+      images[camera, frame] = np.round(output.rgb * 255.0)
+      # The tracer gives planar z; real Kubric's depth_*.tiff holds the ray distance.
+      depths[camera, frame] = kubric.z_to_ray_depth(output.depth, intrinsics[camera])
+  metadata = []
+  for camera in range(num_cameras):
+    positions, quaternions = kubric.opencv_to_kubric_pose(c2w[camera])
+    metadata.append(
+      {
+        "metadata": {"resolution": [height, width], "num_frames": frames, "frame_rate": frame_rate},
+        "camera": {
+          "focal_length": float(focal_lengths[camera]),
+          "sensor_width": sensor_width,
+          "positions": positions.tolist(),
+          "quaternions": quaternions.tolist(),
+        },
+      }
+    )
+  return images, depths, metadata
 
 
 def _add_member(tar: tarfile.TarFile, name: str, data: bytes) -> None:
