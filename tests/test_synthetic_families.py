@@ -121,16 +121,3 @@ def test_a_plane_textured_with_a_photo_renders_the_photo():
   assert np.isin(
     np.round(image.reshape(-1, 3) * 255), np.round(photos.photo("coffee.png") * 255)
   ).all()
-
-
-def test_views_traced_as_one_batch_equal_views_traced_alone():
-  from tokengs_jax.data.synthetic import cameras
-  from tokengs_jax.data.synthetic.raytrace import render_views
-
-  scene, c2w = varied.sample_varied_room(np.random.default_rng(5), 3)
-  intrinsics = np.stack([cameras.pinhole_intrinsics(10, 12, fov) for fov in (0.9, 1.2, 1.6)])
-  batch = render_views(scene, c2w, intrinsics, 10, 12, supersample=2)
-  for view in range(3):
-    alone = render(scene, c2w[view], intrinsics[view], 10, 12, supersample=2)
-    for field in ("rgb", "depth", "ids"):
-      np.testing.assert_array_equal(getattr(batch, field)[view], getattr(alone, field))

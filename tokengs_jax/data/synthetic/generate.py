@@ -31,7 +31,7 @@ from PIL import Image
 
 from tokengs_jax.data import chunks, kubric
 from tokengs_jax.data.synthetic import cameras, scenes, varied
-from tokengs_jax.data.synthetic.raytrace import render_views
+from tokengs_jax.data.synthetic.raytrace import render
 
 _SPLIT_IDS = {"train": 0, "test": 1}
 RE10K_FPS = 30  # RE10K timestamps are microseconds of the source video
@@ -76,10 +76,8 @@ def render_re10k_like_scene(
     scene, c2w = scenes.sample_room_scene(rng, frames, config.room)
   fov_x = np.deg2rad(rng.uniform(*config.fov_x_degrees))
   intrinsics = cameras.pinhole_intrinsics(height, width, fov_x)
-  views = render_views(
-    scene, c2w, np.broadcast_to(intrinsics, (len(c2w), 4)), height, width, config.supersample
-  )
-  images = np.round(views.rgb * 255.0).astype(np.uint8)
+  outputs = [render(scene, pose, intrinsics, height, width, config.supersample) for pose in c2w]
+  images = np.stack([np.round(o.rgb * 255.0).astype(np.uint8) for o in outputs])
   return {
     "key": scene_key(seed, split, index),
     "url": "",
@@ -87,7 +85,7 @@ def render_re10k_like_scene(
     "c2w": c2w.astype(np.float32),
     "intrinsics": np.broadcast_to(intrinsics, (frames, 4)).astype(np.float32),
     "images": images,
-    "depths": views.depth,
+    "depths": np.stack([o.depth for o in outputs]),
   }
 
 
@@ -280,11 +278,11 @@ def render_kubric_views(
   depths = np.zeros((num_cameras, frames, height, width), np.float32)
   for frame in range(frames):
     scene = scene_at(frame / frame_rate)
-    views = render_views(scene, c2w[:, frame], intrinsics, height, width, supersample)
-    images[:, frame] = np.round(views.rgb * 255.0)
     for camera in range(num_cameras):
+      output = render(scene, c2w[camera, frame], intrinsics[camera], height, width, supersample)
+      images[camera, frame] = np.round(output.rgb * 255.0)
       # The tracer gives planar z; real Kubric's depth_*.tiff holds the ray distance.
-      depths[camera, frame] = kubric.z_to_ray_depth(views.depth[camera], intrinsics[camera])
+      depths[camera, frame] = kubric.z_to_ray_depth(output.depth, intrinsics[camera])
   metadata = []
   for camera in range(num_cameras):
     positions, quaternions = kubric.opencv_to_kubric_pose(c2w[camera])

@@ -21,7 +21,7 @@ import numpy as np
 from tokengs_jax.data import chunks
 from tokengs_jax.data.synthetic import cameras, courtyards, scenes
 from tokengs_jax.data.synthetic.generate import RE10K_FPS, _run_jobs, write_true_depths
-from tokengs_jax.data.synthetic.raytrace import render_views
+from tokengs_jax.data.synthetic.raytrace import render
 
 # rng streams of the test families: disjoint from each other and from the rooms' train / test ids
 _HELD_OUT_STREAMS = {"galleries": 7, "courtyards": 11}
@@ -56,17 +56,15 @@ def _render_held_out_scene(
   scene, c2w = sample[family](rng, frames, config.scene)
   fov_x = np.deg2rad(rng.uniform(*config.fov_x_degrees))
   intrinsics = cameras.pinhole_intrinsics(height, width, fov_x)
-  views = render_views(
-    scene, c2w, np.broadcast_to(intrinsics, (len(c2w), 4)), height, width, config.supersample
-  )
+  outputs = [render(scene, pose, intrinsics, height, width, config.supersample) for pose in c2w]
   return {
     "key": f"{ {'galleries': 'gallery', 'courtyards': 'courtyard'}[family] }{seed}_{index:06d}",
     "url": "",
     "timestamps": np.arange(frames, dtype=np.int64) * (1_000_000 // RE10K_FPS),
     "c2w": c2w.astype(np.float32),
     "intrinsics": np.broadcast_to(intrinsics, (frames, 4)).astype(np.float32),
-    "images": np.round(views.rgb * 255.0).astype(np.uint8),
-    "depths": views.depth,
+    "images": np.stack([np.round(o.rgb * 255.0).astype(np.uint8) for o in outputs]),
+    "depths": np.stack([o.depth for o in outputs]),
   }
 
 

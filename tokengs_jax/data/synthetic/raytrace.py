@@ -397,46 +397,17 @@ def render(
 
   c2w: [4, 4] OpenCV camera-to-world; intrinsics: [4] pixels.
   """
-  views = render_views(
-    scene, np.asarray(c2w)[None], np.asarray(intrinsics)[None], height, width, supersample
-  )
-  return RenderOutput(*(field[0] for field in views))
-
-
-def render_views(
-  scene: Scene,
-  c2w: np.ndarray,
-  intrinsics: np.ndarray,
-  height: int,
-  width: int,
-  supersample: int = 1,
-) -> RenderOutput:
-  """`render` of several cameras of one scene, traced as one batch of rays: the tracer's cost is
-  mostly per numpy call (a loop over primitives), so one call for every view of a scene is
-  several times faster than a call per view, with the same per-ray arithmetic.
-
-  c2w: [V, 4, 4]; intrinsics: [V, 4] -> RenderOutput with a leading [V] on every field.
-  """
-  views = len(c2w)
-  centres = [camera_rays(c2w[v], intrinsics[v], height, width) for v in range(views)]
-  origins = [o.reshape(-1, 3) for o, _ in centres]
-  dirs = [d.reshape(-1, 3) for _, d in centres]
+  centre_o, centre_d = camera_rays(c2w, intrinsics, height, width)
+  centre = trace(scene, centre_o.reshape(-1, 3), centre_d.reshape(-1, 3))
   if supersample > 1:
     grid = (np.arange(supersample, dtype=np.float32) + 0.5) / supersample
     offsets = np.stack(np.meshgrid(grid, grid, indexing="xy"), -1).reshape(-1, 2)
-    subs = [camera_rays(c2w[v], intrinsics[v], height, width, offsets) for v in range(views)]
-    origins += [o.reshape(-1, 3) for o, _ in subs]
-    dirs += [d.reshape(-1, 3) for _, d in subs]
-  traced = trace(scene, np.concatenate(origins), np.concatenate(dirs))
-  pixels = height * width
-  centre = slice(0, views * pixels)
-  ids = traced.ids[centre].reshape(views, height, width)
-  if supersample > 1:
-    rgb = traced.rgb[views * pixels :].reshape(views, height, width, -1, 3).mean(axis=3)
+    sub_o, sub_d = camera_rays(c2w, intrinsics, height, width, offsets)
+    rgb = trace(scene, sub_o.reshape(-1, 3), sub_d.reshape(-1, 3)).rgb
+    rgb = rgb.reshape(height, width, -1, 3).mean(axis=2)
   else:
-    rgb = traced.rgb[centre].reshape(views, height, width, 3)
-  forward = np.asarray(c2w, np.float32)[:, :3, 2]  # [V, 3]
-  centre_dirs = np.stack(dirs[:views])  # [V, H*W, 3]
-  z = traced.distance[centre].reshape(views, pixels) * np.einsum("vpi,vi->vp", centre_dirs, forward)
-  depth = np.where(ids.reshape(views, pixels) >= 0, z, 0.0).astype(np.float32)
-  return RenderOutput(rgb.astype(np.float32), depth.reshape(views, height, width), ids)
+    rgb = centre.rgb.reshape(height, width, 3)
+  forward = np.asarray(c2w, np.float32)[:3, 2]
+  z = centre.distance * (centre_d.reshape(-1, 3) @ forward)
+  depth = np.where(centre.ids >= 0, z, 0.0).astype(np.float32).reshape(height, width)
+  return RenderOutput(rgb.astype(np.float32), depth, centre.ids.reshape(height, width))
