@@ -9,18 +9,19 @@
         --eval-index assets/evaluation_index_re10k.json --official-checkpoint tokengs.safetensors
 
 Presets:
-- `synthetic-tiny` (default): writes `outputs/synthetic_re10k` when missing (48 + 8 rooms, 24
-  frames, 32x32, filmed along a randomised walk: `experiments.config.RANDOMISED_WALK`), trains the
-  `tiny` model with 128 tokens x 16 Gaussians (`num_gs_tokens=128`, `dec_patch_size=4`: the
-  preset's 2048 Gaussians), a 150x larger head
-  initialisation (`clip_head_readout_std=0.3`: the official 0.002 starts every Gaussian in one
-  clump, which a few CPU minutes cannot spread over a room) and Gaussian colours read from the
-  input views (`gaussian_colours="inputs"`, not in the paper; docs/generalisation.md) for 1500 steps
-  (batch 4, 2 context + 2 target views, lr 3e-3 cosine, 100 warm-up) and scores the baselines
-  (mean colour, input-view average, nearest input view) / untrained / trained / trained + 50-step
-  token tuning (lr 1e-4, the paper's) on the 8 test rooms (3 targets each, never an input frame)
-  and on 24 out-of-distribution scenes of another generator (`galleries/`: polygonal rooms, other
-  textures, objects, light and orbit cameras; 64x64 read at 32x32; never trained on).
+- `synthetic-tiny` (default): writes `outputs/synthetic_re10k` when missing (960 + 8 scenes of
+  the varied synthetic family, 16 frames, 32x32: photographs on most surfaces, partitions,
+  floating / stacked objects, tinted light, walks and orbits; `--synthetic.family rooms` gives
+  session 7's rooms), trains the `tiny` model with 128 tokens x 16 Gaussians (`num_gs_tokens=128`,
+  `dec_patch_size=4`: the preset's 2048 Gaussians), a 150x larger head initialisation
+  (`clip_head_readout_std=0.3`: the official 0.002 starts every Gaussian in one clump, which a
+  few CPU minutes cannot spread over a room) and Gaussian colours read from the input views
+  (`gaussian_colours="inputs"`, not in the paper; docs/generalisation.md) for 1500 steps (batch
+  4, 2 context + 2 target views, lr 3e-3 cosine, 100 warm-up) and scores the baselines (mean
+  colour, input-view average, nearest input view) / untrained / trained / trained + 50-step token
+  tuning (lr 1e-4, the paper's) on three held-out sets: 8 test scenes of the training family, 24
+  galleries (another generator; a validation set) and 24 frozen courtyards (a third generator
+  nobody tuned on), with geometry columns (holes, depth AbsRel, delta < 1.25).
 - `smoke`: the same pipeline at 32x32 with a one-block model, for tests (seconds, not minutes).
 - `paper`: the paper's RE10K base training (256x256, 6/24 layers, 1024 tokens, global batch 64,
   150k steps, cosine lr 4e-4 with 2k warm-up, DepthSplat sampler, translation scale 0.25).
