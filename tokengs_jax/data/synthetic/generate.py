@@ -89,22 +89,45 @@ def render_re10k_like_scene(
   }
 
 
-def _write_re10k_chunk(
-  path: str,
-  seed: int,
-  split: str,
-  indices: Sequence[int],
-  height: int,
-  width: int,
-  frames: int,
-  config: Re10kLikeConfig,
-) -> list[str]:
-  rendered = [
-    render_re10k_like_scene(seed, split, i, height, width, frames, config) for i in indices
-  ]
-  chunks.write_chunk(path, rendered, jpeg_quality=config.jpeg_quality)
+def _write_chunk(path: str, indices: Sequence[int], render_scene, jpeg_quality: int) -> list[str]:
+  """Renders scenes `indices` (`render_scene(index)` -> a scene as `write_chunk` takes it) into
+  one chunk, with their true depths beside it.  -> their keys."""
+  rendered = [render_scene(i) for i in indices]
+  chunks.write_chunk(path, rendered, jpeg_quality=jpeg_quality)
   write_true_depths(path, rendered)
   return [scene["key"] for scene in rendered]
+
+
+def write_chunked_split(
+  directory: str | os.PathLike,
+  count: int,
+  render_scene,
+  *,
+  scenes_per_chunk: int,
+  jpeg_quality: int,
+  workers: int,
+) -> dict:
+  """Writes scenes 0..count-1 of a split as `<directory>/NNNNNN.torch` chunks of
+  `scenes_per_chunk` scenes (+ `.depth.npz`) and `index.json` (scene key -> chunk file name, as
+  pixelSplat's).
+
+  render_scene: index -> scene (picklable: it runs in the worker processes).
+  Returns the index.
+  """
+  directory = pathlib.Path(directory)
+  directory.mkdir(parents=True, exist_ok=True)
+  groups = [
+    list(range(start, min(start + scenes_per_chunk, count)))
+    for start in range(0, count, scenes_per_chunk)
+  ]
+  names = [f"{number:06d}.torch" for number in range(len(groups))]
+  jobs = [
+    (str(directory / name), group, render_scene, jpeg_quality) for name, group in zip(names, groups)
+  ]
+  keys = _run_jobs(_write_chunk, jobs, workers)
+  index = {key: name for name, chunk_keys in zip(names, keys) for key in chunk_keys}
+  (directory / "index.json").write_text(json.dumps(index, indent=1))
+  return index
 
 
 def true_depths_path(chunk_path: str | os.PathLike) -> pathlib.Path:
@@ -170,24 +193,18 @@ def generate_re10k_like(
   Returns:
     {split: {key: chunk file name}}, the contents of the index files.
   """
-  root = pathlib.Path(root)
-  indexes = {}
-  for split, count in (("train", num_train), ("test", num_test)):
-    directory = root / split
-    directory.mkdir(parents=True, exist_ok=True)
-    groups = [
-      list(range(start, min(start + config.scenes_per_chunk, count)))
-      for start in range(0, count, config.scenes_per_chunk)
-    ]
-    names = [f"{number:06d}.torch" for number in range(len(groups))]
-    jobs = [
-      (str(directory / name), seed, split, group, height, width, frames, config)
-      for name, group in zip(names, groups)
-    ]
-    keys = _run_jobs(_write_re10k_chunk, jobs, workers)
-    indexes[split] = {key: name for name, chunk_keys in zip(names, keys) for key in chunk_keys}
-    (directory / "index.json").write_text(json.dumps(indexes[split], indent=1))
-  return indexes
+  sizes = dict(height=height, width=width, frames=frames, config=config)
+  return {
+    split: write_chunked_split(
+      pathlib.Path(root) / split,
+      count,
+      functools.partial(render_re10k_like_scene, seed, split, **sizes),
+      scenes_per_chunk=config.scenes_per_chunk,
+      jpeg_quality=config.jpeg_quality,
+      workers=workers,
+    )
+    for split, count in (("train", num_train), ("test", num_test))
+  }
 
 
 # ----------------------------------------------------------------------------------------------
@@ -334,12 +351,19 @@ def _write_kubric_scene(
   num_cameras: int,
   config: KubricLikeConfig,
 ) -> None:
-  scene = render_kubric_like_scene(seed, index, height, width, frames, num_cameras, config)
+  write_kubric_scene(
+    directory, render_kubric_like_scene(seed, index, height, width, frames, num_cameras, config)
+  )
+
+
+def write_kubric_scene(directory: str | os.PathLike, scene: dict) -> None:
+  """Writes a rendered dynamic scene (`render_kubric_like_scene`'s fields) as one tar per camera,
+  `<directory>/output_{camera:03d}.tar`."""
   os.makedirs(directory, exist_ok=True)
-  for camera in range(num_cameras):
+  for camera, metadata in enumerate(scene["metadata"]):
     write_kubric_view(
       os.path.join(directory, f"output_{camera:03d}.tar"),
-      scene["metadata"][camera],
+      metadata,
       scene["images"][camera],
       scene["depths"][camera],
     )

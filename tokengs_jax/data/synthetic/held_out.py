@@ -12,15 +12,15 @@ Both write `<root>/test/NNNNNN.torch` chunks (+ `.depth.npz` true depths) + `ind
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import pathlib
 
 import numpy as np
 
-from tokengs_jax.data import chunks
 from tokengs_jax.data.synthetic import cameras, courtyards, scenes
-from tokengs_jax.data.synthetic.generate import RE10K_FPS, _run_jobs, write_true_depths
+from tokengs_jax.data.synthetic.generate import RE10K_FPS, write_chunked_split
 from tokengs_jax.data.synthetic.raytrace import render
 
 # rng streams of the test families: disjoint from each other and from the rooms' train / test ids
@@ -89,15 +89,6 @@ def gallery_views(frames: int, num_targets: int) -> dict:
   return {"context": [0, frames - 1], "target": [int(t) for t in targets]}
 
 
-def _write_held_out_chunk(path, family, seed, indices, height, width, frames, config) -> list[str]:
-  rendered = [
-    _render_held_out_scene(family, seed, i, height, width, frames, config) for i in indices
-  ]
-  chunks.write_chunk(path, rendered, jpeg_quality=config.jpeg_quality)
-  write_true_depths(path, rendered)
-  return [scene["key"] for scene in rendered]
-
-
 def _generate_held_out(
   family: str,
   root: str | os.PathLike,
@@ -115,20 +106,16 @@ def _generate_held_out(
 
   Returns the evaluation index.
   """
-  directory = pathlib.Path(root) / "test"
-  directory.mkdir(parents=True, exist_ok=True)
-  groups = [
-    list(range(start, min(start + config.scenes_per_chunk, num_scenes)))
-    for start in range(0, num_scenes, config.scenes_per_chunk)
-  ]
-  names = [f"{number:06d}.torch" for number in range(len(groups))]
-  jobs = [
-    (str(directory / name), family, seed, group, height, width, frames, config)
-    for name, group in zip(names, groups)
-  ]
-  keys = _run_jobs(_write_held_out_chunk, jobs, workers)
-  index = {key: name for name, chunk_keys in zip(names, keys) for key in chunk_keys}
-  (directory / "index.json").write_text(json.dumps(index, indent=1))
+  index = write_chunked_split(
+    pathlib.Path(root) / "test",
+    num_scenes,
+    functools.partial(
+      _render_held_out_scene, family, seed, height=height, width=width, frames=frames, config=config
+    ),
+    scenes_per_chunk=config.scenes_per_chunk,
+    jpeg_quality=config.jpeg_quality,
+    workers=workers,
+  )
   views = gallery_views(frames, config.num_targets)
   evaluation = {key: views for key in index}
   (pathlib.Path(root) / "eval_index.json").write_text(json.dumps(evaluation, indent=1))

@@ -29,7 +29,7 @@ import numpy as np
 
 from tokengs_jax.data import kubric
 from tokengs_jax.data.synthetic import cameras, photos
-from tokengs_jax.data.synthetic.generate import _run_jobs, render_kubric_views, write_kubric_view
+from tokengs_jax.data.synthetic.generate import _run_jobs, render_kubric_views, write_kubric_scene
 from tokengs_jax.data.synthetic.raytrace import Box, Plane, Scene, Sphere, Texture
 from tokengs_jax.data.synthetic.scenes import axis_angle, random_color, random_rotation
 from tokengs_jax.data.synthetic.varied import photo_texture
@@ -360,15 +360,9 @@ def render_kubric_ood_scene(
 def _write_scene(
   directory: str, index: int, height: int, width: int, frames: int, num_cameras: int, config
 ) -> None:
-  scene = render_kubric_ood_scene(index, height, width, frames, num_cameras, config)
-  os.makedirs(directory, exist_ok=True)
-  for camera in range(num_cameras):
-    write_kubric_view(
-      os.path.join(directory, f"output_{camera:03d}.tar"),
-      scene["metadata"][camera],
-      scene["images"][camera],
-      scene["depths"][camera],
-    )
+  write_kubric_scene(
+    directory, render_kubric_ood_scene(index, height, width, frames, num_cameras, config)
+  )
 
 
 def generate_kubric_ood(
