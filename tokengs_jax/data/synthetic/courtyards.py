@@ -25,7 +25,7 @@ import numpy as np
 
 from tokengs_jax.data.synthetic import cameras, photos
 from tokengs_jax.data.synthetic.raytrace import Box, Plane, Scene, Sphere, Texture
-from tokengs_jax.data.synthetic.scenes import random_color, yaw_rotation
+from tokengs_jax.data.synthetic.scenes import light_direction, random_color, yaw_rotation
 from tokengs_jax.data.synthetic.varied import photo_texture
 
 FROZEN_SEED = 20261125
@@ -167,17 +167,12 @@ def sample_courtyard(
     placed.append((xz, extent))
     objects.extend(parts)
   elevation, azimuth = rng.uniform(*config.sun_elevation), rng.uniform(0, 2 * np.pi)
-  sun = (
-    np.cos(elevation) * np.sin(azimuth),
-    np.sin(elevation),
-    np.cos(elevation) * np.cos(azimuth),
-  )
   warmth = rng.uniform(0.0, 1.0)
   sky = np.array(random_color(rng, saturation=(0.1, 0.6), value=(0.6, 1.0)))
   scene = Scene(
     planes=(ground,),
     objects=facades + tuple(objects),
-    light_direction=tuple(float(v) for v in sun),
+    light_direction=light_direction(elevation, azimuth),
     ambient=float(rng.uniform(*config.ambient)),
     light_color=(1.0, 1.0 - 0.1 * warmth, 1.0 - 0.3 * warmth),
     background=tuple(float(c) for c in sky),

@@ -31,7 +31,12 @@ from tokengs_jax.data import kubric
 from tokengs_jax.data.synthetic import cameras, photos
 from tokengs_jax.data.synthetic.generate import _run_jobs, render_kubric_views, write_kubric_scene
 from tokengs_jax.data.synthetic.raytrace import Box, Plane, Scene, Sphere, Texture
-from tokengs_jax.data.synthetic.scenes import axis_angle, random_color, random_rotation
+from tokengs_jax.data.synthetic.scenes import (
+  axis_angle,
+  light_direction,
+  random_color,
+  random_rotation,
+)
 from tokengs_jax.data.synthetic.varied import photo_texture
 
 FROZEN_SEED = 20261207
@@ -205,14 +210,9 @@ def _backdrop(rng: np.random.Generator, config: KubricOodConfig) -> tuple[Plane,
 def _sun(rng: np.random.Generator, config: KubricOodConfig) -> tuple[tuple, tuple]:
   """(direction towards a low sun, its colour: warm or cool, clearly tinted)."""
   elevation, azimuth = rng.uniform(*config.sun_elevation), rng.uniform(0, 2 * np.pi)
-  direction = (
-    np.cos(elevation) * np.sin(azimuth),
-    np.sin(elevation),
-    np.cos(elevation) * np.cos(azimuth),
-  )
   hue = rng.uniform(0.02, 0.12) if rng.uniform() < 0.5 else rng.uniform(0.55, 0.65)
   colour = colorsys.hsv_to_rgb(hue, rng.uniform(0.25, 0.5), 1.0)
-  return tuple(float(v) for v in direction), tuple(float(c) for c in colour)
+  return light_direction(elevation, azimuth), tuple(float(c) for c in colour)
 
 
 def sample_orbit_scene(

@@ -38,6 +38,16 @@ def random_texture(
   )
 
 
+def light_direction(elevation: float, azimuth: float) -> tuple[float, float, float]:
+  """Unit vector towards a directional light at `elevation` above the floor and `azimuth` about
+  +y (radians; 0 along +z)."""
+  return (
+    float(np.cos(elevation) * np.sin(azimuth)),
+    float(np.sin(elevation)),
+    float(np.cos(elevation) * np.cos(azimuth)),
+  )
+
+
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
   """Uniform random rotation (QR of a Gaussian matrix, sign-fixed).  -> [3, 3]."""
   q, r = np.linalg.qr(rng.normal(size=(3, 3)))
@@ -397,9 +407,6 @@ def sample_gallery_scene(
     objects.extend(parts)
 
   elevation, azimuth = rng.uniform(*config.light_elevation), rng.uniform(0, 2 * np.pi)
-  light = np.array(
-    [np.cos(elevation) * np.sin(azimuth), np.sin(elevation), np.cos(elevation) * np.cos(azimuth)]
-  )
   warmth = rng.uniform(-1.0, 1.0)  # > 0 warm (reddish), < 0 cool (bluish)
   tint = (
     (1.0, 1.0 - 0.15 * abs(warmth), 1.0 - 0.35 * warmth)
@@ -409,7 +416,7 @@ def sample_gallery_scene(
   scene = Scene(
     planes=planes,
     objects=tuple(objects),
-    light_direction=tuple(light),
+    light_direction=light_direction(elevation, azimuth),
     ambient=float(rng.uniform(*config.ambient)),
     light_color=tuple(float(c) for c in tint),
   )

@@ -29,6 +29,7 @@ from tokengs_jax.data.synthetic import cameras, photos
 from tokengs_jax.data.synthetic.raytrace import Box, Scene, Sphere, Texture
 from tokengs_jax.data.synthetic.scenes import (
   _PATTERNS,
+  light_direction,
   random_color,
   random_rotation,
   random_texture,
@@ -122,13 +123,8 @@ def _footprint(parts: tuple[Sphere | Box, ...]) -> float:
 def _light(rng: np.random.Generator, config: VariedRoomConfig) -> tuple[tuple, tuple]:
   """(direction towards the light, colour): any azimuth, a mild random tint."""
   elevation, azimuth = rng.uniform(*config.light_elevation), rng.uniform(0, 2 * np.pi)
-  direction = (
-    np.cos(elevation) * np.sin(azimuth),
-    np.sin(elevation),
-    np.cos(elevation) * np.cos(azimuth),
-  )
   colour = colorsys.hsv_to_rgb(rng.uniform(), rng.uniform(0.0, 0.3), 1.0)
-  return tuple(float(v) for v in direction), tuple(float(c) for c in colour)
+  return light_direction(elevation, azimuth), tuple(float(c) for c in colour)
 
 
 def sample_varied_room(
