@@ -97,8 +97,11 @@ class EvalSettings:
     video_frames: frames of the fly-through (0: no video).
     pixel_baseline: also train the pixel-aligned (GS-LRM-style) baseline with exactly TokenGS's
       data, loss, optimiser, steps and seed (`experiments.pixel_baseline`; saved beside the
-      weights as `pixel_baseline.msgpack`, read from beside `--checkpoint` by `eval`) and score it
+      weights as `pixel_aligned.msgpack`, read from beside `--checkpoint` by `eval`) and score it
       on every test set as the method `pixel_aligned`.
+    static_baseline: dynamic models only: also train the static-only model of the same Gaussian
+      budget (the dynamic tokens become static ones) the same way, scored as `static_only`
+      (saved as `static_only.msgpack`).
   """
 
   num_scenes: int = 8
@@ -110,6 +113,7 @@ class EvalSettings:
   grid_scenes: int = 4
   video_frames: int = 48
   pixel_baseline: bool = False
+  static_baseline: bool = False
 
 
 # The synthetic default's model: the `tiny` preset with 128 tokens x 16 Gaussians (the preset's

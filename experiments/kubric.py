@@ -11,8 +11,11 @@ times), validated against the held-out scenes before any work (with `--data-dir`
 names are the held-out ones and never trained on); without one, the default protocol: inputs at
 frames spread over `max_gap`, every target at an in-between time that is no input's, from unused
 and input cameras, so no target is an input view. Scores: PSNR / SSIM / LPIPS, and `psnr_moving`
-over the pixels where the scene moved since the nearest input time (`motion_mask`). Baselines:
-mean colour, input average, nearest view (camera centre), same camera and nearest time.
+over the pixels where the scene moved since the nearest input time (`motion_mask`: from the
+generator's segmentations and object poses where the data has them, else an image rule).
+Baselines: mean colour, input average, nearest view (camera centre), same camera, nearest time,
+and (`--eval.static-baseline`, on in `synthetic-tiny`) `static_only`: the same model with its
+dynamic tokens made static (same Gaussian budget), trained the same way.
 Synthetic runs score a second test set, `ood_kubric`: `synthetic.num_ood` scenes (default 8; 0:
 none) of a frozen dynamic family unlike the training scenes and never trained on (composite
 objects tumbling along curved paths, held-out photographs, a low tinted sun, another camera rig;
@@ -23,7 +26,11 @@ token tuning, grids, PLY, MP4), the evaluation writes `dynamic/`:
 - `in_between_times.png`: one target camera rendered at times between (and at) the input times;
 - `static_dynamic.png`: target | full render | static Gaussians only | dynamic Gaussians only;
 - `scene_flow.png`: trajectories of the most opaque dynamic Gaussians over time, projected into
-  the target camera, drawn over the first time's render (dark = early, bright = late).
+  the target camera, drawn over the first time's render (dark = early, bright = late);
+- `scene_flow_error.png`: per moving object, the median end-point error of the dynamic Gaussians
+  on it against its true displacement (`tokengs_jax.scene_flow`; where the data records object
+  poses and segmentations), whose numbers (relative EPE, dynamic coverage per object) are the
+  `scene_flow` entry of metrics.json.
 
 Presets:
 - `synthetic-tiny` (default): writes Kubric-4D-layout tars of synthetic dynamic scenes to
@@ -61,11 +68,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments import plot
+from experiments import plot, weights
 from experiments.cli import main
 from experiments.config import EvalSettings, Experiment, SyntheticSettings, TrainSettings
-from experiments.tasks import Task
-from tokengs_jax import evaluation, export, losses, model
+from experiments.tasks import Task, TrainedBaseline
+from tokengs_jax import evaluation, export, losses, model, scene_flow
 from tokengs_jax.camera import invert_rigid, project_points
 from tokengs_jax.data import (
   DATASET_PRESETS,
@@ -332,6 +339,29 @@ class KubricTask(Task):
       **super().methods(experiment, params, include_untrained),
     }
 
+  def trained_baselines(self, experiment: KubricExperiment) -> list[TrainedBaseline]:
+    """The common ones, and with `eval.static_baseline` the static-only model: every dynamic
+    token becomes a static one (the same Gaussian budget and input-time embedding), so its
+    Gaussians cannot depend on the target time."""
+    baselines = super().trained_baselines(experiment)
+    if not experiment.eval.static_baseline:
+      return baselines
+    config = experiment.model
+    static = config.replace(
+      num_gs_tokens=config.num_gs_tokens + config.num_dynamic_gs_tokens, num_dynamic_gs_tokens=0
+    )
+    return baselines + [
+      TrainedBaseline(
+        "static_only",
+        # from --checkpoint as the dynamic model, its dynamic tokens then fresh static ones
+        lambda key: weights.initial_params(
+          dataclasses.replace(experiment, model=static), finetune=False
+        ),
+        self.loss_fn(experiment, static),
+        lambda params: evaluation.feed_forward(params, static),
+      )
+    ]
+
   def loss_config(self, experiment: KubricExperiment) -> losses.LossConfig:
     """The official Kubric release loss, its auxiliary schedule scaled to `train.steps`."""
     steps = experiment.train.steps
@@ -402,6 +432,65 @@ class KubricTask(Task):
     plot.trajectory_plot(
       out / "scene_flow.png", tracks, title=f"scene flow, {key}", background=renders[0]
     )
+
+    # Scene flow against the generator's truth (`tokengs_jax.scene_flow`), over every evaluated
+    # scene that carries it: the Gaussians at times 0 and 1 (the truth's first and last frames),
+    # and every target view's opacity from all Gaussians and from the dynamic ones alone. A scene
+    # whose views share one camera centre (e.g. an index of one static camera) gives no scale to
+    # carry the truth into the example's frame: it is skipped, with the reason.
+    scenes, skipped = [], {}
+    for scene_key, scene in examples:
+      if "object_motions" not in scene:
+        continue
+      ends = [
+        jax.device_get(evaluation.reconstruct(params, scene, config, jnp.asarray([t])))
+        for t in (0.0, 1.0)
+      ]
+      alphas = []
+      for view in range(scene["target_images"].shape[1]):
+        at_view = jax.device_get(
+          evaluation.reconstruct(params, scene, config, scene["target_times"][:, view])
+        )
+        seen_by = (
+          scene["target_c2w"][:, view : view + 1],
+          scene["target_intrinsics"][:, view : view + 1],
+        )
+        alphas.append(
+          [
+            evaluation.render_targets(g, *seen_by, height=height, width=width).alpha[0, 0, ..., 0]
+            for g in (at_view, _subset_of(at_view, slice(split, None)))
+          ]
+        )
+      full_alpha, dynamic_alpha = np.moveaxis(np.asarray(alphas), 1, 0)  # [Vt, H, W] each
+      try:
+        scored = scene_flow.score_scene(
+          scene,
+          np.asarray(ends[0].means)[0, split:],
+          np.asarray(ends[1].means)[0, split:],
+          np.asarray(ends[0].opacities)[0, split:],
+          full_alpha,
+          dynamic_alpha,
+        )
+      except scene_flow.SimilarityError as error:
+        skipped[scene_key] = str(error)
+        continue
+      scenes.append({"scene": scene_key, **scored})
+    objects = [{"scene": s["scene"], **o} for s in scenes for o in s["objects"]]
+    tracked = [o for o in objects if o["moving"] and o["relative_epe"] is not None]
+    if scenes:  # data without motion truth has no error to draw
+      plot.scatter_plot(
+        out / "scene_flow_error.png",
+        {
+          "moving objects": (
+            [o["median_displacement"] for o in tracked],
+            [o["median_epe"] for o in tracked],
+          )
+        },
+        title=f"scene flow of the Gaussians on each moving object ({len(tracked)})",
+        xlabel="true displacement from time 0 to 1 (median over the object's Gaussians)",
+        ylabel="median EPE",
+        diagonal="Gaussians that stay put",
+      )
     motion = np.linalg.norm(dynamic[:, -1] - dynamic[:, 0], axis=-1)
     static_motion = np.linalg.norm(
       np.asarray(per_time[-1].means)[0, :split] - np.asarray(per_time[0].means)[0, :split], axis=-1
@@ -416,7 +505,13 @@ class KubricTask(Task):
         "median_dynamic_displacement_t0_t1": float(np.median(motion)),
         "median_tracked_displacement_t0_t1": float(np.median(motion[chosen])),
         "mean_static_displacement_t0_t1": float(static_motion.mean()),
-      }
+      },
+      "scene_flow": {
+        "scenes": len(scenes),
+        **scene_flow.summarise(scenes),
+        "skipped": skipped,
+        "per_object": objects,
+      },
     }
 
 
@@ -441,7 +536,12 @@ PRESETS = {
       steps=1200, batch_size=4, num_target_views=2, learning_rate=2e-3, warmup_steps=100
     ),
     eval=EvalSettings(
-      num_scenes=4, num_target_views=2, tuning_learning_rate=1e-2, grid_scenes=2, video_frames=24
+      num_scenes=4,
+      num_target_views=2,
+      tuning_learning_rate=1e-2,
+      grid_scenes=2,
+      video_frames=24,
+      static_baseline=True,
     ),
   ),
   "paper": KubricExperiment(

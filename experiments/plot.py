@@ -1,7 +1,7 @@
-"""Line plots and trajectory plots as PNG without matplotlib (PIL's ImageDraw + its bitmap font).
+"""Line, scatter and trajectory plots as PNG without matplotlib (PIL's ImageDraw + its bitmap font).
 
-matplotlib is not a dependency of the project; the studies only need labelled line charts and a
-2-D trajectory picture, which PIL draws well enough.
+matplotlib is not a dependency of the project; the studies only need labelled line and scatter
+charts and a 2-D trajectory picture, which PIL draws well enough.
 """
 
 from __future__ import annotations
@@ -52,9 +52,18 @@ def _label(value: float, ticks: np.ndarray | None = None) -> str:
   return f"{value:.3g}"
 
 
-def _draw_series(draw, points: list[tuple[float, float]], color, *, dashed: bool) -> None:
-  """Line segments (dashed: 5 dashes per segment) and a marker at every pixel point."""
-  for (u0, v0), (u1, v1) in itertools.pairwise(points):
+def _draw_series(
+  draw,
+  points: list[tuple[float, float]],
+  color,
+  *,
+  dashed: bool = False,
+  joined: bool = True,
+  markers: bool = True,
+) -> None:
+  """Line segments between the pixel points (`joined`; dashed: 5 dashes per segment) and a marker
+  at each (`markers`)."""
+  for (u0, v0), (u1, v1) in itertools.pairwise(points) if joined else ():
     if dashed:
       for t0 in np.arange(0.0, 1.0, 0.2):
         t1 = t0 + 0.1
@@ -65,7 +74,7 @@ def _draw_series(draw, points: list[tuple[float, float]], color, *, dashed: bool
         )
     else:
       draw.line([u0, v0, u1, v1], fill=color, width=2)
-  for u, v in points:
+  for u, v in points if markers else ():
     draw.ellipse([u - 3, v - 3, u + 3, v + 3], fill=color)
 
 
@@ -95,8 +104,9 @@ class _Axes:
   y_ticks: np.ndarray
 
   @classmethod
-  def fit(cls, clean: dict, log_x: bool, size: tuple[int, int]) -> _Axes:
-    """Axes spanning every point of the (finite) series; y widened to its outer round ticks."""
+  def fit(cls, clean: dict, log_x: bool, size: tuple[int, int], tick_each_x: bool = True) -> _Axes:
+    """Axes spanning every point of the (finite) series; y widened to its outer round ticks.
+    tick_each_x: with few distinct x values (or a log axis), a tick at each."""
     all_x = np.concatenate([xs for xs, _ in clean.values()] or [np.zeros(1)])
     all_y = np.concatenate([ys for _, ys in clean.values()] or [np.zeros(1)])
     if all_x.size == 0:
@@ -111,7 +121,8 @@ class _Axes:
       y_lo, y_hi = y_lo - 0.5, y_hi + 0.5
     # Few distinct x values (or a log axis): a tick at each, so every data point is labelled.
     distinct = sorted(set(all_x.tolist()))
-    x_ticks = distinct if log_x or len(distinct) <= 8 else _nice_ticks(x_lo, x_hi).tolist()
+    at_points = tick_each_x and (log_x or len(distinct) <= 8)
+    x_ticks = distinct if at_points else _nice_ticks(x_lo, x_hi).tolist()
     return cls(size, log_x, (x_lo, x_hi), (y_lo, y_hi), x_ticks, y_ticks)
 
   def u(self, x) -> float:
@@ -153,6 +164,27 @@ def _save(image: Image.Image, path) -> pathlib.Path:
   return path
 
 
+def _chart(axes: _Axes, *, title: str, xlabel: str, ylabel: str):
+  """A white canvas with the axes and the texts drawn.  -> (image, draw, font)."""
+  width, height = axes.size
+  image = Image.new("RGB", axes.size, "white")
+  draw = ImageDraw.Draw(image)
+  font = ImageFont.load_default()
+  _draw_axes(draw, axes, font)
+  draw.text((_LEFT, 10), title, fill=(0, 0, 0), font=font)
+  draw.text(((width - 6 * len(xlabel)) // 2, height - 18), xlabel, fill=(0, 0, 0), font=font)
+  draw.text((4, _TOP - 16), ylabel, fill=(0, 0, 0), font=font)
+  return image, draw, font
+
+
+def _legend(draw, font, width: int, entries: Sequence[tuple[str, tuple]]) -> None:
+  """(label, colour) entries listed at the top right, each after a stroke of its colour."""
+  for row, (name, color) in enumerate(entries):
+    y = _TOP + 6 + 14 * row
+    draw.line([width - _RIGHT - 150, y + 5, width - _RIGHT - 130, y + 5], fill=color, width=3)
+    draw.text((width - _RIGHT - 125, y), name, fill=(0, 0, 0), font=font)
+
+
 def line_plot(
   path,
   series: dict[str, tuple[Sequence[float], Sequence[float]]],
@@ -174,27 +206,55 @@ def line_plot(
     size: (width, height) in pixels.
     dashed: labels drawn with dashed lines.
   """
-  width, height = size
-  image = Image.new("RGB", size, "white")
-  draw = ImageDraw.Draw(image)
-  font = ImageFont.load_default()
   clean = _finite_series(series, log_x)
   axes = _Axes.fit(clean, log_x, size)
-  _draw_axes(draw, axes, font)
-  draw.text((_LEFT, 10), title, fill=(0, 0, 0), font=font)
-  draw.text(((width - 6 * len(xlabel)) // 2, height - 18), xlabel, fill=(0, 0, 0), font=font)
-  draw.text((4, _TOP - 16), ylabel, fill=(0, 0, 0), font=font)
-  legend_y = _TOP + 6
-  for index, (name, (xs, ys)) in enumerate(clean.items()):
-    color = PALETTE[index % len(PALETTE)]
+  image, draw, font = _chart(axes, title=title, xlabel=xlabel, ylabel=ylabel)
+  colors = [PALETTE[index % len(PALETTE)] for index in range(len(clean))]
+  for color, (name, (xs, ys)) in zip(colors, clean.items()):
     order = np.argsort(xs)
     points = [(axes.u(x), axes.v(y)) for x, y in zip(xs[order], ys[order])]
     _draw_series(draw, points, color, dashed=name in dashed)
-    draw.line(
-      [width - _RIGHT - 150, legend_y + 5, width - _RIGHT - 130, legend_y + 5], fill=color, width=3
-    )
-    draw.text((width - _RIGHT - 125, legend_y), name, fill=(0, 0, 0), font=font)
-    legend_y += 14
+  _legend(draw, font, size[0], list(zip(clean, colors)))
+  return _save(image, path)
+
+
+def scatter_plot(
+  path,
+  series: dict[str, tuple[Sequence[float], Sequence[float]]],
+  *,
+  title: str,
+  xlabel: str,
+  ylabel: str,
+  diagonal: str | None = None,
+  size: tuple[int, int] = (640, 420),
+) -> pathlib.Path:
+  """Writes a labelled scatter chart (a marker per point, no lines) as PNG.
+
+  Args:
+    path: output PNG path.
+    series: legend label -> (x values, y values); non-finite points are skipped.
+    title, xlabel, ylabel: texts.
+    diagonal: legend label of a dashed y = x line from 0 (or the lowest value) to the highest
+      value (None: no line).
+    size: (width, height) in pixels.
+  """
+  clean = _finite_series(series, log_x=False)
+  lines = {}
+  if diagonal is not None:
+    values = np.concatenate([np.concatenate(xy) for xy in clean.values()] or [np.zeros(0)])
+    ends = np.array([min(values.min(), 0.0), values.max()]) if values.size else np.array([0, 1])
+    lines[diagonal] = (ends, ends)
+  axes = _Axes.fit({**clean, **lines}, False, size, tick_each_x=False)
+  image, draw, font = _chart(axes, title=title, xlabel=xlabel, ylabel=ylabel)
+  for xs, ys in lines.values():
+    ends = [(axes.u(x), axes.v(y)) for x, y in zip(xs, ys)]
+    _draw_series(draw, ends, (127, 127, 127), dashed=True, markers=False)
+  colors = [PALETTE[index % len(PALETTE)] for index in range(len(clean))]
+  for color, (xs, ys) in zip(colors, clean.values()):
+    _draw_series(draw, [(axes.u(x), axes.v(y)) for x, y in zip(xs, ys)], color, joined=False)
+  _legend(
+    draw, font, size[0], list(zip(clean, colors)) + [(name, (127, 127, 127)) for name in lines]
+  )
   return _save(image, path)
 
 

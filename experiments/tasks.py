@@ -6,7 +6,8 @@ import dataclasses
 import json
 import pathlib
 import time
-from typing import Literal
+from collections.abc import Callable
+from typing import Any, Literal
 
 import jax
 
@@ -19,6 +20,25 @@ from tokengs_jax.tuning import TuningConfig
 
 Command = Literal["run", "train", "finetune", "eval"]
 COMMANDS: tuple[Command, ...] = ("run", "train", "finetune", "eval")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainedBaseline:
+  """A comparison model trained with exactly TokenGS's data, loss weights, optimiser, steps and
+  seed, scored beside it as the method `name` (before TokenGS's rows).
+
+  Attributes:
+    name: method name in the results; its weights are `<output_dir>/<name>.msgpack` (read from
+      beside `--checkpoint` by `eval`) and its checkpoints `<output_dir>/<name>/`.
+    init_params: `key -> params`.
+    loss_fn: `(params, batch, key, step) -> (loss, aux)`.
+    method: `params -> evaluation.Method`.
+  """
+
+  name: str
+  init_params: Callable[[jax.Array], Any]
+  loss_fn: Callable
+  method: Callable[[Any], evaluation.Method]
 
 
 class Task:
@@ -96,6 +116,33 @@ class Task:
       )
     return methods
 
+  def trained_baselines(self, experiment: Experiment) -> list[TrainedBaseline]:
+    """The comparison models the run trains and scores: the pixel-aligned (GS-LRM-style) model
+    when `eval.pixel_baseline` is set."""
+    if not experiment.eval.pixel_baseline:
+      return []
+    config = experiment.model
+
+    def init_params(key):
+      # trained the same way: from its own weights beside --checkpoint where TokenGS starts
+      # from a checkpoint (`run pretrain` writes both), else from scratch
+      start = experiment.checkpoint and weights.beside(experiment.checkpoint, "pixel_aligned")
+      if not start:
+        return pixel_baseline.init_params(key, config)
+      print(f"[pixel_aligned] starting from {start}", flush=True)
+      return weights.load_params(start)
+
+    return [
+      TrainedBaseline(
+        "pixel_aligned",
+        init_params,
+        pixel_baseline.loss_fn(
+          config, self.loss_config(experiment), objective=self.objective(experiment)
+        ),
+        lambda params: pixel_baseline.method(params, config),
+      )
+    ]
+
   def extra_visuals(
     self,
     experiment: Experiment,
@@ -142,23 +189,24 @@ def run_eval(
   include_untrained: bool = True,
   extra_info: dict | None = None,
   started: float | None = None,
-  pixel_params=None,
+  baseline_params: dict | None = None,
 ) -> dict:
   """Evaluates `params` (and the baselines) on every test set and writes the results folder.
 
   started: `time.perf_counter()` at the start of the command (for `total_seconds`).
-  pixel_params: the pixel-aligned baseline's weights (`eval.pixel_baseline`), scored as
-    `pixel_aligned`; None: not scored.
+  baseline_params: name -> weights of `task.trained_baselines` (`_trained_baselines`), each
+    scored as its method.
   """
   e = experiment.eval
   start = time.perf_counter()
   test_sets = task.test_sets(experiment)
   methods = task.methods(experiment, params, include_untrained)
-  if pixel_params is not None:  # a baseline: before TokenGS's rows, whose last one is exported
+  if baseline_params:  # baselines: before TokenGS's rows, whose last one is exported
     trained = {name: methods.pop(name) for name in list(methods) if name.startswith("trained")}
+    compared = {b.name: b for b in task.trained_baselines(experiment)}
     methods = {
       **methods,
-      "pixel_aligned": pixel_baseline.method(pixel_params, experiment.model),
+      **{name: compared[name].method(p) for name, p in baseline_params.items()},
       **trained,
     }
   print(
@@ -220,34 +268,34 @@ def _train(experiment: Experiment, task: Task, command: Command, writer, info: d
   return params
 
 
-def _pixel_baseline(experiment: Experiment, task: Task, command: Command):
-  """The pixel-aligned baseline's weights when `eval.pixel_baseline` is set (else None): trained
-  with TokenGS's data, loss, optimiser, steps and seed (its own checkpoints in
-  `<output_dir>/pixel_baseline/`) and saved as `<output_dir>/pixel_baseline.msgpack`, or, for
-  `eval`, read from beside `--checkpoint`."""
-  if not experiment.eval.pixel_baseline:
-    return None
+def _trained_baselines(experiment: Experiment, task: Task, command: Command) -> dict:
+  """name -> weights of each of `task.trained_baselines`: trained with TokenGS's data, loss,
+  optimiser, steps and seed (checkpoints in `<output_dir>/<name>/`) and saved as
+  `<output_dir>/<name>.msgpack`, or, for `eval`, read from beside `--checkpoint`."""
   out = pathlib.Path(experiment.output_dir)
-  if command == "eval":
-    path = pathlib.Path(experiment.checkpoint or out / "params.msgpack").parent
-    path = path / "pixel_baseline.msgpack"
-    if not path.exists():
-      raise FileNotFoundError(f"--eval.pixel-baseline: {path} is missing (written by `run`)")
-    return weights.load_params(path)
-  config = experiment.model
-  print("[pixel baseline] training the pixel-aligned baseline the same way", flush=True)
-  params, _, seconds = training.train_model(
-    dataclasses.replace(experiment, output_dir=str(out / "pixel_baseline")),
-    pixel_baseline.init_params(jax.random.key(experiment.seed), config),
-    pixel_baseline.loss_fn(
-      config, task.loss_config(experiment), objective=task.objective(experiment)
-    ),
-    iter(task.training_batches(experiment)),
-  )
-  print(f"[pixel baseline] trained in {seconds:.0f} s", flush=True)
-  if evaluation.writes_results():
-    weights.save_params(out / "pixel_baseline.msgpack", params)
-  return params
+  trained = {}
+  for baseline in task.trained_baselines(experiment):
+    if command == "eval":
+      path = weights.beside(experiment.checkpoint or out / "params.msgpack", baseline.name)
+      if path is None:
+        raise FileNotFoundError(
+          f"baseline {baseline.name}: no {baseline.name}.msgpack beside the checkpoint "
+          "(written by `run`)"
+        )
+      trained[baseline.name] = weights.load_params(path)
+      continue
+    print(f"[{baseline.name}] training the baseline the same way", flush=True)
+    params, _, seconds = training.train_model(
+      dataclasses.replace(experiment, output_dir=str(out / baseline.name)),
+      baseline.init_params(jax.random.key(experiment.seed)),
+      baseline.loss_fn,
+      iter(task.training_batches(experiment)),
+    )
+    print(f"[{baseline.name}] trained in {seconds:.0f} s", flush=True)
+    if evaluation.writes_results():
+      weights.save_params(out / f"{baseline.name}.msgpack", params)
+    trained[baseline.name] = params
+  return trained
 
 
 def execute(
@@ -281,10 +329,10 @@ def execute(
         writer=writer,
         extra_info=info,
         include_untrained=not experiment.official_checkpoint,
-        pixel_params=_pixel_baseline(experiment, task, command),
+        baseline_params=_trained_baselines(experiment, task, command),
       )
     params = _train(experiment, task, command, writer, info)
-    pixel_params = _pixel_baseline(experiment, task, command)
+    baseline_params = _trained_baselines(experiment, task, command)
     if command in ("train", "finetune"):
       return None
     return run_eval(
@@ -295,7 +343,7 @@ def execute(
       step=experiment.train.steps,
       extra_info=info,
       started=started,
-      pixel_params=pixel_params,
+      baseline_params=baseline_params,
     )
   finally:
     if writer is not None:

@@ -1,8 +1,17 @@
-"""Network weights on disk: msgpack params, and the starting weights of a command."""
+"""Network weights on disk: msgpack params, the starting weights of a command, and the weights
+shipped in the repository (`ship`).
+
+    python -m experiments.weights ship outputs/re10k/pretrain experiments/pretrained/re10k_synthetic
+"""
 
 from __future__ import annotations
 
+import hashlib
+import json
 import pathlib
+import shutil
+import subprocess
+import sys
 
 import jax
 
@@ -26,6 +35,13 @@ def load_params(path) -> dict:
   return serialization.msgpack_restore(pathlib.Path(path).read_bytes())
 
 
+def beside(params_path, name: str) -> pathlib.Path | None:
+  """`<name>.msgpack` in the folder of `params_path` if it exists: where a run keeps its trained
+  baselines' weights beside its own."""
+  path = pathlib.Path(params_path).parent / f"{name}.msgpack"
+  return path if path.exists() else None
+
+
 def initial_params(experiment: Experiment, *, finetune: bool):
   """Fresh weights, or (finetune / eval) the given checkpoint grown into the model if needed."""
   config = experiment.model
@@ -44,3 +60,42 @@ def initial_params(experiment: Experiment, *, finetune: bool):
   for line in report:
     print(f"[params] {line}", flush=True)
   return params
+
+
+def sha256(path) -> str:
+  return hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()
+
+
+def ship(run_dir, destination) -> dict:
+  """Copies a finished run's weights (`params.msgpack` and its trained baselines'
+  `<name>.msgpack`) to `destination` with `provenance.json`: the command, the experiment, the
+  training time, the commit and each file's SHA-256, so the shipped weights can be reproduced
+  and checked (`tests/test_pretrained.py`)."""
+  run_dir, destination = pathlib.Path(run_dir), pathlib.Path(destination)
+  metrics = json.loads((run_dir / "metrics.json").read_text())
+  destination.mkdir(parents=True, exist_ok=True)
+  files = {}
+  for source in sorted(run_dir.glob("*.msgpack")):
+    shutil.copyfile(source, destination / source.name)
+    files[source.name] = sha256(source)
+  commit = subprocess.run(
+    ["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=False
+  ).stdout.strip()
+  provenance = {
+    "command": metrics["command"],
+    "commit": commit or None,
+    "experiment": metrics["experiment"],
+    "train_steps": metrics.get("train_steps"),
+    "train_seconds": metrics.get("train_seconds"),
+    "total_seconds": metrics.get("total_seconds"),
+    "devices": metrics.get("devices"),
+    "files": files,
+  }
+  (destination / "provenance.json").write_text(json.dumps(provenance, indent=1) + "\n")
+  return provenance
+
+
+if __name__ == "__main__":
+  if len(sys.argv) != 4 or sys.argv[1] != "ship":
+    sys.exit("usage: python -m experiments.weights ship RUN_DIR DESTINATION")
+  print(json.dumps(ship(sys.argv[2], sys.argv[3])["files"], indent=1))

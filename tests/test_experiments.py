@@ -233,7 +233,7 @@ def test_entry_point_end_to_end(tmp_path):
     assert len(method["per_scene"]) == 2
     for value in method["mean"].values():
       assert math.isfinite(value)
-  assert (out / "pixel_baseline.msgpack").stat().st_size > 0
+  assert (out / "pixel_aligned.msgpack").stat().st_size > 0
   for name in ("test", "ood_galleries", "frozen_courtyards"):  # geometry where it renders
     scores = payload if name == "test" else payload["other_test_sets"][name]
     means = {method: v["mean"] for method, v in scores["metrics"].items()}
@@ -334,10 +334,12 @@ def test_kubric_entry_point_end_to_end(tmp_path):
     "same_camera",
     "nearest_time",
     "untrained",
+    "static_only",  # the preset's static-only model of the same budget
     "trained",
     "trained+token_tuning",
   }
-  for method in ("same_camera", "trained", "trained+token_tuning"):
+  assert (out / "static_only.msgpack").stat().st_size > 0
+  for method in ("same_camera", "static_only", "trained", "trained+token_tuning"):
     assert math.isfinite(payload["metrics"][method]["mean"]["psnr"])
     assert math.isfinite(payload["metrics"][method]["mean"]["psnr_moving"])
   assert "trained beats same_camera" in payload["checks"]

@@ -1,6 +1,7 @@
-"""Kubric evaluation (issue 24 item 1): novel views at novel times. The (camera, frame) index and
-its validation, the default protocol (no target is an input view, targets at in-between times),
-the moving-pixel masks, and the batches `experiments.kubric` scores."""
+"""Kubric evaluation (issue 24 items 1 and 4): novel views at novel times. The (camera, frame)
+index and its validation, the default protocol (no target is an input view, targets at in-between
+times), the moving-pixel masks (from the generator's truth, else the image rule), the scene-flow
+truth carried into the example's frame, and the batches `experiments.kubric` scores."""
 
 import dataclasses
 import json
@@ -13,7 +14,16 @@ from experiments import cli
 from experiments import kubric as kubric_experiment
 from experiments.config import SyntheticSettings
 from experiments.tasks import execute
-from tokengs_jax.data import EvaluationIndexError, NotEnoughFramesError, kubric
+from tokengs_jax import scene_flow
+from tokengs_jax.data import (
+  DATASET_PRESETS,
+  EvaluationIndexError,
+  NotEnoughFramesError,
+  kubric,
+  make_example,
+)
+from tokengs_jax.data.synthetic import kubric_ood
+from tokengs_jax.data.synthetic.raytrace import Box
 from tokengs_jax.data.transforms import resize_and_center_crop_mask
 
 H = W = 16
@@ -277,8 +287,10 @@ def test_motion_masks_follow_the_images_resize_and_crop():
   np.testing.assert_array_equal(resize_and_center_crop_mask(wide, (2, 2)), [[[0, 1], [0, 1]]])
 
 
-def test_a_tar_without_depth_compares_the_same_pixel(data_root, tmp_path):
-  scene = tmp_path / "v0" / "scene_000000"
+def _copy_without(data_root, root, dropped: tuple[str, ...]) -> dict:
+  """Scene 0 of `data_root`'s test split copied to `root` without the tar members whose names
+  hold any of `dropped`.  -> its record."""
+  scene = root / "v0" / "scene_000000"
   scene.mkdir(parents=True)
   for camera in range(CAMERAS):
     name = f"output_{camera:03d}.tar"
@@ -287,13 +299,19 @@ def test_a_tar_without_depth_compares_the_same_pixel(data_root, tmp_path):
       tarfile.open(scene / name, "w") as copy,
     ):
       for member in source.getmembers():
-        if "depth" not in member.name:
+        if not any(word in member.name for word in dropped):
           copy.addfile(member, source.extractfile(member))
-  record = kubric.KubricSceneSource(tmp_path, ["v0"], num_cameras=CAMERAS)[0]
+  return kubric.KubricSceneSource(root, ["v0"], num_cameras=CAMERAS)[0]
+
+
+def test_a_tar_without_depth_or_segmentation_compares_the_same_pixel(data_root, tmp_path):
+  """The fallback for data without motion truth: the image rule."""
+  record = _copy_without(data_root, tmp_path, ("depth", "segmentation"))
   views = (np.array([[0, 0], [1, 4]]), np.array([[2, 3], [0, 1]]))
   fields = kubric.evaluation_fields(record, views, (H, W))
   np.testing.assert_array_equal(fields["context_cameras"], [0, 1])
   np.testing.assert_array_equal(fields["target_cameras"], [2, 0])
+  assert "object_motions" not in fields  # no scene-flow truth either
   for view, (camera, frame, reference) in enumerate([(2, 3, 4), (0, 1, 0)]):
     at, before = camera * FRAMES + frame, camera * FRAMES + reference
     expected = kubric.motion_mask(
@@ -305,3 +323,135 @@ def test_a_tar_without_depth_compares_the_same_pixel(data_root, tmp_path):
       record["intrinsics"][at],
     )
     np.testing.assert_array_equal(fields["target_motion_masks"][view], expected)
+
+
+# ----------------------------------------------------------------------------------------------
+# Motion truth
+
+
+def test_truth_masks_mark_where_moved_objects_are_now_or_were():
+  poses = np.tile(np.eye(4), (3, 1, 1))
+  later = poses.copy()
+  later[1, 0, 3] = 0.5  # object 1 slides
+  later[2, :3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]  # object 2 turns
+  later[0, 1, 3] = 1e-8  # object 0: float noise is no motion
+  moved = kubric.moved_objects(later, poses)
+  np.testing.assert_array_equal(moved, [False, True, True])
+  now, then = np.zeros((4, 4), int), np.zeros((4, 4), int)
+  now[0, :2], then[3, 2:] = 2, 2  # object 1 left the bottom right for the top left
+  now[1, 0] = then[1, 0] = 3  # object 2 turns in place
+  now[2] = then[2] = 1  # object 0 stays
+  expected = np.zeros((4, 4), bool)
+  expected[0, :2] = expected[3, 2:] = expected[1, 0] = True
+  np.testing.assert_array_equal(kubric.truth_motion_mask(now, then, moved), expected)
+  assert not kubric.truth_motion_mask(now, then, np.zeros(3, bool)).any()
+
+
+TRUTH_SIZE = 24
+
+
+@pytest.fixture(scope="module")
+def ood_record(tmp_path_factory):
+  """Scene 0 of the held-out family (composites that tumble) at 24x24, 3 cameras x 6 frames."""
+  root = tmp_path_factory.mktemp("kubric_truth")
+  config = kubric_ood.KubricOodConfig(supersample=1)
+  kubric_ood.generate_kubric_ood(root, 1, TRUTH_SIZE, TRUTH_SIZE, FRAMES, CAMERAS, config=config)
+  return kubric.KubricSceneSource(root, ["ood_kubric"], num_cameras=CAMERAS)[0]
+
+
+TRUTH_VIEWS = (np.array([[0, 1], [1, 5]]), np.array([[2, 3], [0, 4]]))  # frames 1-5, refs 1 and 5
+
+
+def test_motion_masks_come_from_the_truth_where_the_scene_has_it(ood_record):
+  fields = kubric.evaluation_fields(ood_record, TRUTH_VIEWS, (TRUTH_SIZE, TRUTH_SIZE))
+  poses, segmentations = ood_record["object_poses"], ood_record["segmentations"]
+  for view, (camera, frame, reference) in enumerate([(2, 3, 1), (0, 4, 5)]):
+    moved = kubric.moved_objects(poses[:, frame], poses[:, reference])
+    assert moved.all()  # every composite of the family moves
+    now, then = segmentations[camera * FRAMES + frame], segmentations[camera * FRAMES + reference]
+    np.testing.assert_array_equal(fields["target_motion_masks"][view], (now > 0) | (then > 0))
+    for k in range(len(poses)):
+      np.testing.assert_array_equal(fields["target_object_masks"][view, k], now == k + 1)
+
+
+def _gap(parts, points: np.ndarray) -> np.ndarray:
+  """Distance [N] of points [N, 3] to the nearest surface of a composite's posed parts."""
+  gaps = []
+  for part in parts:
+    local = (points - part.center) @ part.rotation
+    if isinstance(part, Box):
+      gaps.append(np.abs(np.max(np.abs(local) - part.half_size, axis=-1)))
+    else:
+      gaps.append(np.abs(np.linalg.norm(local, axis=-1) - part.radius))
+  return np.min(gaps, axis=0)
+
+
+def test_flow_truth_points_ride_the_objects_from_the_first_frame_to_the_last(ood_record):
+  fields = kubric.evaluation_fields(ood_record, TRUTH_VIEWS, (TRUTH_SIZE, TRUTH_SIZE))
+  np.testing.assert_array_equal(
+    fields["world_c2w"], ood_record["c2w"][[0 * FRAMES + 1, 1 * FRAMES + 5, 2 * FRAMES + 3, 4]]
+  )
+  scene = kubric_ood.sample_scene(0, FRAMES, CAMERAS)[0]
+  frame_rate = kubric_ood.KubricOodConfig().frame_rate
+  first, last = scene.at(1 / frame_rate).objects, scene.at(5 / frame_rate).objects
+  start = 0
+  for k, parts in enumerate(scene.parts):
+    points = fields["object_points"][k]
+    assert points.shape == (kubric.OBJECT_POINTS, 3) and np.isfinite(points).all()
+    mine = slice(start, start + len(parts))
+    start += len(parts)
+    assert _gap(first[mine], points).max() < 1e-3
+    motion = fields["object_motions"][k]
+    assert _gap(last[mine], points @ motion[:3, :3].T + motion[:3, 3]).max() < 1e-3
+
+
+def test_the_truth_goes_into_the_example_frame_as_the_cameras_do(ood_record):
+  config = dataclasses.replace(
+    DATASET_PRESETS["kubric"], image_shape=(TRUTH_SIZE, TRUTH_SIZE), random_flip=False
+  )
+  example = make_example(
+    ood_record, config, np.random.default_rng(0), views=kubric.flat_views(ood_record, TRUTH_VIEWS)
+  )
+  fields = kubric.evaluation_fields(ood_record, TRUTH_VIEWS, (TRUTH_SIZE, TRUTH_SIZE))
+  model_c2w = np.concatenate([example["context_c2w"], example["target_c2w"]])
+  similarity = scene_flow.example_similarity(fields["world_c2w"], model_c2w)
+  # the scale is the pipeline's own: the pointmap of the inputs' depth maps, carried into the
+  # example's frame, has mean distance `translation_scale` (1) from its origin
+  context = kubric.flat_views(ood_record, TRUTH_VIEWS)[0]
+  depths = np.stack([ood_record["depths"][i] for i in context])
+  carried = similarity @ fields["world_c2w"][:2]
+  intrinsics = ood_record["intrinsics"][context]
+  assert kubric.pointmap_scale(depths, carried, intrinsics) == pytest.approx(1.0, rel=1e-5)
+  # a point moved by an object's motion is seen at the same pixel in the example's target
+  # camera (its motion carried into the example's frame) as in the data's
+  motions = scene_flow.motions_in_frame(similarity, fields["object_motions"])
+  for view in range(2):
+    world_camera, (fx, fy, cx, cy) = (
+      fields["world_c2w"][2 + view],
+      example["target_intrinsics"][view],
+    )
+    for k, points in enumerate(fields["object_points"]):
+      moved = scene_flow.transform_points(fields["object_motions"][k], points)
+      in_frame = scene_flow.transform_points(
+        motions[k], scene_flow.transform_points(similarity, points)
+      )
+      pixels = []
+      for c2w, xyz in ((world_camera, moved), (example["target_c2w"][view], in_frame)):
+        local = (xyz - c2w[:3, 3]) @ np.asarray(c2w[:3, :3], np.float64)
+        pixels.append(np.stack([fx * local[:, 0], fy * local[:, 1]], -1) / local[:, 2:] + [cx, cy])
+      np.testing.assert_allclose(pixels[1], pixels[0], atol=1e-3)
+
+
+def test_a_scene_with_segmentations_but_no_depth_has_truth_masks_and_no_flow_truth(
+  data_root, tmp_path
+):
+  record = _copy_without(data_root, tmp_path, ("depth",))
+  views = (np.array([[0, 0], [1, 4]]), np.array([[2, 3]]))
+  fields = kubric.evaluation_fields(record, views, (H, W))
+  assert "object_motions" not in fields and "target_object_masks" not in fields
+  poses, segmentations = record["object_poses"], record["segmentations"]
+  moved = kubric.moved_objects(poses[:, 3], poses[:, 4])
+  expected = kubric.truth_motion_mask(
+    segmentations[2 * FRAMES + 3], segmentations[2 * FRAMES + 4], moved
+  )
+  np.testing.assert_array_equal(fields["target_motion_masks"][0], expected)

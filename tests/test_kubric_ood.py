@@ -1,6 +1,6 @@
 """The held-out dynamic family (`synthetic.kubric_ood`): frozen and deterministic, unlike the
-Kubric-like training scenes, written in the Kubric-4D layout (ray-distance depth) and scored as a
-second test set of every synthetic Kubric run."""
+Kubric-like training scenes, written in the Kubric-4D layout (ray-distance depth, segmentations
+and object poses) and scored as a second test set of every synthetic Kubric run."""
 
 import dataclasses
 
@@ -123,6 +123,27 @@ def test_written_scenes_read_back_through_the_kubric_reader(written):
   for camera, frame in ((0, 0), (1, FRAMES - 1)):
     at = camera * FRAMES + frame
     np.testing.assert_array_equal(record["images"][at], expected["images"][camera, frame])
+
+
+def test_written_scenes_carry_each_composites_segmentation_and_poses(written):
+  """The motion truth, as Kubric writes it: one instance per composite (all its parts), its pose
+  (`OrbitScene.poses`) at every frame."""
+  root, _ = written
+  record = kubric.KubricSceneSource(root, ["ood_kubric"], num_cameras=CAMERAS)[1]
+  scene, c2w, focal = kubric_ood.sample_scene(1, FRAMES, CAMERAS)
+  owner = np.concatenate(
+    [[0] * len(scene.backdrop)] + [[k + 1] * len(p) for k, p in enumerate(scene.parts)]
+  )
+  for frame in range(FRAMES):
+    rotations, origins = scene.poses(frame / CONFIG.frame_rate)
+    np.testing.assert_allclose(record["object_poses"][:, frame, :3, :3], rotations, atol=1e-6)
+    np.testing.assert_allclose(record["object_poses"][:, frame, :3, 3], origins, atol=1e-6)
+  for camera, frame in ((0, 1), (1, FRAMES - 1)):
+    intrinsics = kubric.intrinsics_from_metadata(focal[camera], CONFIG.sensor_width, H, W)
+    ids = render(scene.at(frame / CONFIG.frame_rate), c2w[camera, frame], intrinsics, H, W).ids
+    expected = np.where(ids >= 0, owner[ids], 0)
+    np.testing.assert_array_equal(record["segmentations"][camera * FRAMES + frame], expected)
+  assert record["segmentations"][FRAMES].max() > 0  # an object in view
 
 
 def test_stored_depth_is_the_ray_distance(written):

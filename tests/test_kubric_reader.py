@@ -1,4 +1,5 @@
-"""Kubric reader: the depth convention (ray distance, as real Kubric) on a ray-traced plane, and
+"""Kubric reader: the depth convention (ray distance, as real Kubric) on a ray-traced plane, the
+motion truth (segmentations, object poses) read back as the generator drew it and optional, and
 the scenes it refuses (a missing camera tar, a tar without every frame its metadata lists) with
 errors naming the tar and member, through the pipeline's `skip_bad` like any bad data."""
 
@@ -14,8 +15,8 @@ import tifffile
 from PIL import Image
 
 from tokengs_jax.data import DATASET_PRESETS, BadExampleError, InputPipeline, kubric, make_example
-from tokengs_jax.data.synthetic import generate
-from tokengs_jax.data.synthetic.raytrace import Plane, Scene, render
+from tokengs_jax.data.synthetic import generate, scenes
+from tokengs_jax.data.synthetic.raytrace import Box, Plane, Scene, render
 from tokengs_jax.data.synthetic.scenes import random_rotation
 
 H, W, FRAMES, CAMERAS = 8, 8, 4, 3
@@ -68,6 +69,8 @@ def test_depth_of_a_traced_plane_is_the_ray_distance_and_unprojects_onto_the_pla
 
   on_plane = (kubric.unproject_ray_depth(depth, pose, read_intrinsics) - point) @ normal
   np.testing.assert_allclose(on_plane, 0.0, atol=1e-4)
+  # a tar without segmentations or object instances (as the official loader expects) loads
+  assert "object_poses" not in record and not record["segmentations"].present(1)
   # Read as planar z (the previous convention), the corner points leave the plane by decimetres.
   as_z = np.stack([(cols - cx) / fx * depth, (rows - cy) / fy * depth, depth], -1)
   off_plane = (as_z @ np.asarray(pose[:3, :3], np.float64).T + pose[:3, 3] - point) @ normal
@@ -225,6 +228,100 @@ def test_frame_errors_name_the_tar_and_member(generated, tmp_path, change, messa
   assert isinstance(error.value.__cause__, kubric.KubricError)
   # frames of the scene's sound members still make examples
   make_example(record, CONFIG, np.random.default_rng(0), views=_views(0, 1))
+
+
+# ---- motion truth: segmentations and object poses
+
+
+def _surface_gap(primitive, points: np.ndarray) -> np.ndarray:
+  """How far points [N, 3] are from a sphere's or box's surface.  -> [N]."""
+  local = (points - primitive.center) @ np.asarray(primitive.rotation)
+  if isinstance(primitive, Box):
+    return np.abs(np.max(np.abs(local) - primitive.half_size, axis=-1))
+  return np.abs(np.linalg.norm(local, axis=-1) - primitive.radius)
+
+
+def test_segmentations_and_object_poses_read_back_as_the_generator_drew_them(generated):
+  record = kubric.KubricSceneSource(generated.parent.parent, num_cameras=CAMERAS)[0]
+  config = generate.KubricLikeConfig(supersample=1)
+  drawn = generate.render_kubric_like_scene(2, 0, H, W, FRAMES, CAMERAS, config)
+  dynamic = scenes.sample_dynamic_scene(generate.scene_rng(2, "train", 0), config.dynamic)
+  poses = record["object_poses"]
+  assert poses.shape == (len(dynamic.objects), FRAMES, 4, 4)
+  with tarfile.open(generated / "output_001.tar") as tar:  # Kubric's palette PNG
+    assert Image.open(tar.extractfile("./segmentation_00002.png")).mode == "P"
+  seen = set()
+  for camera, frame in ((0, 0), (1, 2), (2, FRAMES - 1)):
+    at = camera * FRAMES + frame
+    segmentation = record["segmentations"][at]
+    np.testing.assert_array_equal(segmentation, drawn["segmentations"][camera, frame])
+    moved = dynamic.at(frame / config.dynamic.frame_rate).objects
+    points = kubric.unproject_ray_depth(
+      record["depths"][at], record["c2w"][at], record["intrinsics"][at]
+    )
+    for k, start in enumerate(dynamic.objects):
+      np.testing.assert_allclose(poses[k, frame, :3, 3], moved[k].center, atol=1e-6)
+      np.testing.assert_allclose(poses[k, frame, :3, :3], moved[k].rotation, atol=1e-6)
+      # every pixel numbered k + 1 sees object k: carried back to time 0 by the poses read
+      # from the files, its surface point lies on the object as it started
+      mine = points[segmentation == k + 1]
+      back = poses[k, 0] @ np.linalg.inv(poses[k, frame])
+      at_start = mine @ back[:3, :3].T + back[:3, 3]
+      assert (_surface_gap(start, at_start) < 1e-3).all(), (camera, frame, k)
+      seen |= {k} if len(mine) else set()
+  assert len(seen) >= 2
+
+
+def _metadata(tar) -> dict:
+  with tarfile.open(tar) as handle:
+    return json.load(handle.extractfile("./metadata.json"))
+
+
+def test_cameras_listing_other_instances_leave_the_motion_truth_out(generated, tmp_path, caplog):
+  scene = _copy(generated, tmp_path)
+  metadata = _metadata(scene / "output_001.tar")
+  metadata["instances"] = metadata["instances"][1:]  # e.g. only the objects this camera sees
+  _rewrite(scene / "output_001.tar", {"./metadata.json": json.dumps(metadata).encode()})
+  record = kubric.KubricSceneSource(tmp_path, num_cameras=CAMERAS)[0]
+  assert "object_poses" not in record
+  assert "output_001.tar lists other object instances than output_000.tar" in caplog.text
+  assert record["segmentations"].present(0)  # the frames still read
+
+
+@pytest.mark.parametrize(
+  "change, message",
+  [
+    (lambda m: m["instances"][0].pop("quaternions"), r"bad metadata.json instances \(KeyError"),
+    (
+      lambda m: m["instances"][1].update(positions=[[0.0, 0.0, 0.0]]),
+      r"instance 1 positions \[1, 3\] / quaternions \[4, 4\] must be \[4, 3\] / \[4, 4\]",
+    ),
+    (
+      lambda m: m["instances"][0]["positions"][2].__setitem__(0, float("nan")),
+      "instance 0: NaN/inf",
+    ),
+  ],
+)
+def test_malformed_instances_are_kubric_errors_naming_the_tar(generated, tmp_path, change, message):
+  scene = _copy(generated, tmp_path)
+  metadata = _metadata(scene / "output_002.tar")
+  change(metadata)
+  _rewrite(scene / "output_002.tar", {"./metadata.json": json.dumps(metadata).encode()})
+  with pytest.raises(kubric.KubricError, match=rf"output_002\.tar: (metadata.json )?{message}"):
+    kubric.KubricSceneSource(tmp_path, num_cameras=CAMERAS)[0]
+
+
+def test_segmentations_are_all_or_none_and_one_number_per_pixel(generated, tmp_path):
+  scene = _copy(generated, tmp_path)
+  _rewrite(scene / "output_000.tar", {"./segmentation_00002.png": None})
+  with pytest.raises(kubric.KubricError, match=r"member \./segmentation_00002\.png is missing"):
+    kubric.KubricSceneSource(tmp_path, num_cameras=CAMERAS)[0]
+  _rewrite(scene / "output_000.tar", {f"./segmentation_{f:05d}.png": None for f in range(FRAMES)})
+  _rewrite(scene / "output_001.tar", {"./segmentation_00001.png": _small_png((H, W))})
+  record = kubric.KubricSceneSource(tmp_path, num_cameras=CAMERAS)[0]
+  assert not record["segmentations"].present(1) and record["segmentations"].present(FRAMES)
+  with pytest.raises(kubric.KubricError, match=r"segmentation_00001\.png: a segmentation holds"):
+    record["segmentations"][FRAMES + 1]
 
 
 def test_refused_scenes_are_counted_rejections_under_skip_bad(generated, tmp_path):

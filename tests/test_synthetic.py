@@ -131,6 +131,28 @@ def test_box_front_face_depth():
   np.testing.assert_allclose(out.depth, 2.5, rtol=1e-5)
 
 
+def test_segmentation_numbers_each_pixel_by_the_object_instance_it_sees():
+  # a floor, a wall and three boxes side by side in front of the camera; the last two are the
+  # parts of one rigid instance
+  boxes = tuple(
+    raytrace.Box(center=np.array([x, 0.0, 3.0]), half_size=np.array([0.3, 0.3, 0.3]))
+    for x in (-1.0, 0.0, 1.0)
+  )
+  planes = (_plane((0, 0, 6), (0, 0, -1)), _plane((0, 1, 0), (0, -1, 0)))
+  out = raytrace.render(raytrace.Scene(planes=planes, objects=boxes), np.eye(4), INTRINSICS, H, W)
+  assert set(np.unique(out.ids)) == {0, 1, 2, 3, 4}
+  expected = np.select([out.ids == 2, out.ids == 3, out.ids == 4], [1, 2, 2], 0)
+  grouped = raytrace.Scene(planes=planes, objects=boxes, instances=(0, 1, 1))
+  np.testing.assert_array_equal(grouped.segmentation(out.ids), expected)
+  # by default every object is its own instance; rays that hit nothing are background too
+  alone = raytrace.Scene(planes=planes, objects=boxes)
+  np.testing.assert_array_equal(
+    alone.segmentation(np.array([-1, 0, 1, 2, 3, 4])), [0, 0, 0, 1, 2, 3]
+  )
+  with pytest.raises(ValueError, match="2 instance numbers for 3 objects"):
+    raytrace.Scene(objects=boxes, instances=(0, 1)).segmentation(out.ids)
+
+
 def test_object_shadow_leaves_only_ambient_light():
   floor = _plane((0, 0, 0), (0, 1, 0), raytrace.Texture("solid", (1.0, 1.0, 1.0)))
   sphere = raytrace.Sphere(center=np.array([0.0, 1.0, 0.0]), radius=0.3)

@@ -11,6 +11,13 @@ pixel's ray: Kubric's `z_to_depth` of the planar z, not z itself). From the meta
   translation `camera.positions[f]`, in Blender/OpenGL axes (+y up, looking down -z); OpenCV
   is obtained by negating the y and z columns.
 
+Motion truth, optional (the official loader reads neither; the synthetic writers write both):
+`./segmentation_{frame:05d}.png` (palette PNG of object instance numbers, 0 the background, k + 1
+the metadata's `instances[k]`) and `instances[k]["positions"]` / `["quaternions"]` (each object's
+pose at every frame), as Kubric writes them. Records carry them as `segmentations` and
+`object_poses`; the evaluation takes its moving pixels and scene-flow truth from them
+(`evaluation`).
+
 Examples are built by the shared input pipeline: `KubricSceneSource` yields scene records (the C
 cameras x F frames flattened camera-major, lazy PNG/TIFF members) and `kubric_view_selector`
 draws the official views (`_get_indices_dynamic` + `_curate_batch_dynamic`): `num_context`
@@ -25,13 +32,14 @@ Every failure to read a scene raises `KubricError` naming the file, and for a fr
 (`.../output_002.tar member ./rgba_00007.png`): an unreadable or truncated tar, bad metadata, a
 scene without all of its `num_cameras` tars (`KubricSceneSource`, official 9), a tar without
 every frame its metadata lists (`metadata.num_frames`, else the number of poses; a tar cut at a
-member boundary), a corrupt frame, a depth map whose size is not the metadata's resolution. The
+member boundary; depth maps and segmentations are optional, but all or none), malformed
+`instances`, a corrupt frame, a depth map whose size is not the metadata's resolution. The
 pipeline's `skip_bad` counts such a scene as a rejection (reason `KubricError`).
 
 Modules: `camera_tar` (one camera's tar: metadata, poses, frames, depth conventions), `source` (scene listing and
 `KubricSceneSource`), `sampling` (`kubric_view_selector`, `pointmap_scale`), `evaluation` (the
 evaluation's (camera, frame) views: index and default protocol of novel views at novel times,
-moving-pixel masks).
+moving-pixel masks, scene-flow truth).
 """
 
 from tokengs_jax.data.kubric.camera_tar import (
@@ -42,6 +50,7 @@ from tokengs_jax.data.kubric.camera_tar import (
   kubric_pose_to_opencv,
   opencv_to_kubric_pose,
   parse_kubric_view,
+  pose_matrices,
   quat_wxyz_to_rotation,
   ray_depth_to_z,
   read_kubric_view,
@@ -51,11 +60,14 @@ from tokengs_jax.data.kubric.camera_tar import (
 )
 from tokengs_jax.data.kubric.evaluation import (
   MOTION_THRESHOLD,
+  OBJECT_POINTS,
   default_evaluation_views,
   evaluation_fields,
   flat_views,
   load_kubric_evaluation_index,
   motion_mask,
+  moved_objects,
+  truth_motion_mask,
   validate_kubric_evaluation_index,
 )
 from tokengs_jax.data.kubric.sampling import (
@@ -67,6 +79,7 @@ from tokengs_jax.data.kubric.source import KubricSceneSource, list_kubric_scenes
 
 __all__ = [
   "MOTION_THRESHOLD",
+  "OBJECT_POINTS",
   "KubricError",
   "KubricSceneSource",
   "KubricView",
@@ -80,14 +93,17 @@ __all__ = [
   "list_kubric_scenes",
   "load_kubric_evaluation_index",
   "motion_mask",
+  "moved_objects",
   "opencv_to_kubric_pose",
   "parse_kubric_view",
   "pointmap_scale",
+  "pose_matrices",
   "quat_wxyz_to_rotation",
   "ray_depth_to_z",
   "read_kubric_view",
   "rotation_to_quat_wxyz",
   "sample_dynamic_indices",
+  "truth_motion_mask",
   "unproject_ray_depth",
   "validate_kubric_evaluation_index",
   "z_to_ray_depth",

@@ -9,6 +9,11 @@ resolution. Every failure is a `KubricError` naming the file and, for a frame, t
 Depth: `depth_{frame:05d}.tiff` holds, as in real Kubric (its `z_to_depth`), the distance from the
 camera centre to the surface along each pixel's ray, not the planar camera z
 (`z_to_ray_depth`, `ray_depth_to_z`, `unproject_ray_depth` convert).
+
+Motion truth (optional; the official loader reads neither): `segmentation_{frame:05d}.png`, an
+8-bit palette PNG of object instance numbers (0 the background, k + 1 the metadata's instance k),
+and the metadata's `instances[k]["positions"]` [F, 3] / `["quaternions"]` [F, 4] (wxyz), each
+object's pose (object-to-world, in the cameras' world) at every frame, as Kubric writes them.
 """
 
 from __future__ import annotations
@@ -77,13 +82,23 @@ def rotation_to_quat_wxyz(rotation: np.ndarray) -> np.ndarray:
   return quats * np.where(quats[..., :1] < 0, -1.0, 1.0)
 
 
+def pose_matrices(positions: np.ndarray, quats: np.ndarray) -> np.ndarray:
+  """Kubric poses (position, wxyz rotation to the world) -> rigid 4x4 object-to-world matrices.
+
+  positions: [..., 3], quats: [..., 4] -> [..., 4, 4] float64.
+  """
+  positions = np.asarray(positions, np.float64)
+  poses = np.zeros(positions.shape[:-1] + (4, 4))
+  poses[..., :3, :3] = quat_wxyz_to_rotation(quats)
+  poses[..., :3, 3] = positions
+  poses[..., 3, 3] = 1.0
+  return poses
+
+
 def kubric_pose_to_opencv(positions: np.ndarray, quats: np.ndarray) -> np.ndarray:
   """Kubric camera poses -> OpenCV c2w.  positions: [F, 3], quats: [F, 4] wxyz -> [F, 4, 4]."""
-  positions = np.asarray(positions, np.float64)
-  c2w = np.zeros(positions.shape[:-1] + (4, 4))
-  c2w[..., :3, :3] = quat_wxyz_to_rotation(quats) @ _GL_TO_CV
-  c2w[..., :3, 3] = positions
-  c2w[..., 3, 3] = 1.0
+  c2w = pose_matrices(positions, quats)
+  c2w[..., :3, :3] = c2w[..., :3, :3] @ _GL_TO_CV
   return c2w
 
 
@@ -129,6 +144,8 @@ class KubricView:
     intrinsics: [4] float32 (fx, fy, cx, cy) pixels, the same for every frame.
     height, width: the metadata's resolution.
     members: member name (without "./") -> (byte offset, size).
+    object_poses: [K, F, 4, 4] float64 object-to-world pose of each of the metadata's `instances`
+      at every frame; None when the metadata has no `instances`.
   """
 
   path: str
@@ -137,6 +154,7 @@ class KubricView:
   height: int
   width: int
   members: dict
+  object_poses: np.ndarray | None = None
 
   @property
   def num_frames(self) -> int:
@@ -203,18 +221,57 @@ def parse_kubric_view(tar_path: str | os.PathLike) -> KubricView:
     raise KubricError(f"{path}: metadata.json {error}") from None
   _check_every_frame_is_present(view, num_frames)
   c2w = kubric_pose_to_opencv(positions, quats).astype(np.float32)
-  return dataclasses.replace(view, c2w=c2w, intrinsics=intrinsics, height=height, width=width)
+  return dataclasses.replace(
+    view,
+    c2w=c2w,
+    intrinsics=intrinsics,
+    height=height,
+    width=width,
+    object_poses=_object_poses(meta, num_frames, path),
+  )
+
+
+def _object_poses(meta: dict, num_frames: int, path: str) -> np.ndarray | None:
+  """The metadata's `instances` as object-to-world poses [K, F, 4, 4] (None without the key);
+  `KubricError` unless every instance has finite `positions` [F, 3] and `quaternions` [F, 4]."""
+  if "instances" not in meta:
+    return None
+  try:
+    instances = [
+      (np.asarray(i["positions"], np.float64), np.asarray(i["quaternions"], np.float64))
+      for i in meta["instances"]
+    ]
+  except (KeyError, TypeError, ValueError) as error:  # ragged lists are ValueErrors
+    raise KubricError(
+      f"{path}: bad metadata.json instances ({type(error).__name__}: {error})"
+    ) from error
+  poses = []
+  for k, (positions, quats) in enumerate(instances):
+    if positions.shape != (num_frames, 3) or quats.shape != (num_frames, 4):
+      raise KubricError(
+        f"{path}: metadata.json instance {k} positions {list(positions.shape)} / quaternions "
+        f"{list(quats.shape)} must be [{num_frames}, 3] / [{num_frames}, 4]"
+      )
+    if not (np.isfinite(positions).all() and np.isfinite(quats).all()):
+      raise KubricError(f"{path}: metadata.json instance {k}: NaN/inf in its poses")
+    poses.append(pose_matrices(positions, quats))
+  return np.stack(poses) if poses else np.zeros((0, num_frames, 4, 4))
 
 
 def _check_every_frame_is_present(view: KubricView, num_frames: int) -> None:
   """`KubricError` unless the tar holds an RGBA PNG for every frame the metadata lists, and a depth
-  TIFF for every frame when it holds any (depth is optional, a partial set is not).
+  TIFF (a segmentation PNG) for every frame when it holds any (both are optional, a partial set
+  is not).
 
   A tar cut exactly at a member boundary reads as a valid, shorter tar; without this check the
   scene would still give every example that avoids its missing frames.
   """
-  has_depth = any(name.startswith("depth_") for name in view.members)
-  for pattern in ("rgba_{:05d}.png",) + (("depth_{:05d}.tiff",) if has_depth else ()):
+  optional = [
+    pattern
+    for pattern in ("depth_{:05d}.tiff", "segmentation_{:05d}.png")
+    if any(name.startswith(pattern.split("{")[0]) for name in view.members)
+  ]
+  for pattern in ["rgba_{:05d}.png", *optional]:
     missing = [f for f in range(num_frames) if pattern.format(f) not in view.members]
     if missing:
       raise KubricError(
@@ -267,16 +324,27 @@ def read_kubric_view(
 
 
 def decode_member(view: KubricView, name: str, shape: tuple[int, int]) -> np.ndarray:
-  """Member `name` as uint8 [H, W, 3] RGB (PNG, alpha dropped as official) or float32 [H, W]
-  depth (TIFF, read with PIL as official), whose size must be `shape` (the metadata's resolution:
-  the intrinsics are derived from it). Every failure is a `KubricError` naming tar and member."""
+  """Member `name` as uint8 [H, W, 3] RGB (`rgba_*.png`, alpha dropped as official), float32
+  [H, W] depth (`depth_*.tiff`, read with PIL as official) or int32 [H, W] instance numbers
+  (`segmentation_*.png`, the palette indices), whose size must be `shape` (the metadata's
+  resolution: the intrinsics are derived from it). Every failure is a `KubricError` naming tar
+  and member."""
+  segmentation = name.startswith("segmentation_")
   try:
     with Image.open(io.BytesIO(view.read(name))) as image:
-      pixels = (
-        np.asarray(image.convert("RGB")) if name.endswith(".png") else np.asarray(image, np.float32)
-      )
+      if segmentation:
+        pixels = np.asarray(image).astype(np.int32)
+      elif name.endswith(".png"):
+        pixels = np.asarray(image.convert("RGB"))
+      else:
+        pixels = np.asarray(image, np.float32)
   except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as error:
     raise KubricError(f"{view.where(name)}: corrupt image ({error})") from error
+  if segmentation and pixels.ndim != 2:
+    raise KubricError(
+      f"{view.where(name)}: a segmentation holds one instance number per pixel, found "
+      f"{list(pixels.shape)}"
+    )
   pixels = pixels[..., 0] if name.endswith(".tiff") and pixels.ndim == 3 else pixels
   if pixels.shape[:2] != shape:
     raise KubricError(

@@ -1,5 +1,6 @@
 """Kubric evaluation views: novel views at novel times, fixed by an index or by the default
-protocol, and the moving-pixel masks the evaluation scores on.
+protocol, the moving-pixel masks the evaluation scores on, and the object motion truth the
+scene-flow metric (`tokengs_jax.scene_flow`) compares with.
 
 A view is a (camera, frame) pair: `camera` numbers the tar `output_{camera:03d}.tar`, `frame` the
 member `rgba_{frame:05d}.png`; pairs are int arrays [V, 2].
@@ -16,12 +17,20 @@ the clip); every target is at a frame strictly inside the span that is no input'
 cameras no input uses and the input cameras in turn. So no target is an input view, every target
 is at an in-between time, and both a new viewpoint and an input viewpoint are scored there.
 
-**Moving pixels** (`motion_mask`): where the scene changed between the nearest input time and the
-target, seen by the target's own camera. The same camera's frame at the nearest input time is the
-reference; each target pixel's surface point (its stored depth along the pixel-centre ray) is
-projected into that reference camera, which may have moved, and the pixel is moving when the
-reference colour there (bilinear) differs by more than `MOTION_THRESHOLD` in any channel. Kubric
-records no motion truth, so this is an image rule; see `MOTION_THRESHOLD` for its accuracy.
+**Moving pixels**: where the scene changed between the nearest input time and the target, seen by
+the target's own camera, whose frame at the nearest input time is the reference. From the
+generator's truth where the scene has it (segmentations and object poses, as Kubric writes them;
+`truth_motion_mask`): the pixels of the target or of the reference where an object is whose pose
+differs between the two frames. Otherwise (data without that truth) an image rule,
+`motion_mask`: each target pixel's surface point (its stored depth along the pixel-centre ray) is
+projected into the reference camera, which may have moved, and the pixel is moving when the
+reference colour there (bilinear) differs by more than `MOTION_THRESHOLD` in any channel; see
+`MOTION_THRESHOLD` for its accuracy against the truth.
+
+**Scene-flow truth** (`evaluation_fields`, scenes with that truth): each object's rigid motion
+between the example's first and last frames (its times 0 and 1), points on its surface at the
+first frame (every camera's depth and segmentation there) and its pixels in each target view, all
+in the data's world; `tokengs_jax.scene_flow` carries them into the example's frame.
 """
 
 from __future__ import annotations
@@ -50,7 +59,11 @@ from tokengs_jax.data.transforms import resize_and_center_crop_mask
 # static; comparing the same pixel instead, IoU 0.59 with 31 % static (0.42 and 58 % at 4/255:
 # the drift shifts every texture); reprojected at 4/255, IoU 0.44 (bilinear resampling of fine
 # textures). It also leaves a margin for the sampling noise of path-traced (real Kubric) frames.
+# Only data without motion truth uses it (`truth_motion_mask`).
 MOTION_THRESHOLD = 16 / 255
+# Surface points per object in the scene-flow truth (`object_points`): plenty for a nearest-point
+# test, whatever the resolution and object size.
+OBJECT_POINTS = 1024
 
 ViewPairs = tuple[np.ndarray, np.ndarray]  # (context [Vc, 2], target [Vt, 2]) (camera, frame)
 
@@ -288,25 +301,122 @@ def motion_mask(
   return seen & (change > MOTION_THRESHOLD)
 
 
+def moved_objects(poses: np.ndarray, reference_poses: np.ndarray) -> np.ndarray:
+  """Which objects' poses differ between two times (beyond float noise).
+
+  poses, reference_poses: [K, 4, 4] object-to-world -> bool [K].
+  """
+  return ~np.isclose(poses, reference_poses, rtol=0.0, atol=1e-6).all(axis=(-2, -1))
+
+
+def truth_motion_mask(
+  segmentation: np.ndarray, reference_segmentation: np.ndarray, moved: np.ndarray
+) -> np.ndarray:
+  """Pixels of a view where an object that moved since the reference time is, now or then.
+
+  segmentation, reference_segmentation: int [H, W] instance numbers (k + 1 for object k, 0 the
+  background) of one camera at the target and the reference time; moved: bool [K]
+  (`moved_objects`).  -> bool [H, W].
+  """
+  moving = np.flatnonzero(moved) + 1
+  return np.isin(segmentation, moving) | np.isin(reference_segmentation, moving)
+
+
+def _object_points(record: dict, frame: int) -> np.ndarray:
+  """`OBJECT_POINTS` points on each object's surface at `frame`: every camera's depth points there
+  whose segmentation is the object, evenly subsampled (repeated when fewer).  -> float64
+  [K, OBJECT_POINTS, 3] in the record's world; NaN for an object no camera sees."""
+  num_frames = record["num_frames"]
+  points, labels = [], []
+  for camera in range(record["num_cameras"]):
+    at = camera * num_frames + frame
+    depth, segmentation = record["depths"][at], record["segmentations"][at]
+    seen = (depth > 0) & (segmentation > 0)
+    points.append(unproject_ray_depth(depth, record["c2w"][at], record["intrinsics"][at])[seen])
+    labels.append(segmentation[seen])
+  points, labels = np.concatenate(points), np.concatenate(labels)
+  sampled = np.full((len(record["object_poses"]), OBJECT_POINTS, 3), np.nan)
+  for k in range(len(sampled)):
+    mine = points[labels == k + 1]
+    if len(mine):
+      sampled[k] = mine[np.linspace(0, len(mine) - 1, OBJECT_POINTS).round().astype(np.int64)]
+  return sampled
+
+
+def _motion_truth(
+  record: dict, views: ViewPairs, image_shape: tuple[int, int], first: int, last: int
+) -> dict:
+  """The scene-flow truth fields of `evaluation_fields` (see there), between the example's
+  `first` and `last` frames."""
+  target = views[1]
+  num_frames = record["num_frames"]
+  poses = record["object_poses"]
+  instances = np.arange(1, len(poses) + 1)[:, None, None]
+  masks = np.concatenate(
+    [record["segmentations"][c * num_frames + f][None] == instances for c, f in target.tolist()]
+  )  # [Vt * K, H, W]
+  resized = (
+    resize_and_center_crop_mask(masks, image_shape) if len(masks) else np.zeros((0, *image_shape))
+  )
+  return {
+    "world_c2w": np.asarray(record["c2w"], np.float64)[np.concatenate(flat_views(record, views))],
+    "object_motions": poses[:, last] @ np.linalg.inv(poses[:, first]),
+    "object_points": _object_points(record, first),
+    "target_object_masks": resized.reshape(len(target), len(poses), *image_shape).astype(bool),
+  }
+
+
 def evaluation_fields(record: dict, views: ViewPairs, image_shape: tuple[int, int]) -> dict:
   """What a Kubric evaluation example carries besides `make_example`'s fields.
 
   Returns:
     `context_cameras [Vc]`, `target_cameras [Vt]` (int: the same-camera baseline reads them) and
-    `target_motion_masks` bool [Vt, H, W] (`motion_mask` of each target against its camera's
-    frame at the nearest input time, `nearest_context_frames`, at the stored resolution with the
-    target's depth map where its tar has one, then resized and cropped as the images; all False
-    for a target at an input time).
+    `target_motion_masks` bool [Vt, H, W]: each target's moving pixels against its camera's frame
+    at the nearest input time (`nearest_context_frames`; module docstring), from the truth where
+    the record has it (`truth_motion_mask`), else the image rule (`motion_mask`, with the
+    target's depth map where its tar has one), at the stored resolution, then resized and cropped
+    as the images; all False for a target at an input time.
+    The truth needs the record's `object_poses` and the segmentations of the targets and their
+    references. With depth maps and segmentations of every camera at the example's first frame
+    as well, also the scene-flow truth, in the record's world:
+    - `world_c2w [Vc + Vt, 4, 4]`: the views' cameras before the example normalised them (context
+      views first), from which `scene_flow.example_similarity` reads that normalisation;
+    - `object_motions [K, 4, 4]`: each object's rigid motion from the example's first frame to its
+      last (its times 0 and 1): pose(last) pose(first)^-1;
+    - `object_points [K, OBJECT_POINTS, 3]`: points on each object at the first frame
+      (`_object_points`; NaN for an object no camera sees);
+    - `target_object_masks` bool [Vt, K, H, W]: each object's pixels in each target view
+      (resized and cropped as the images).
 
   record: a `KubricSceneSource` record; views: (context [Vc, 2], target [Vt, 2]) pairs.
   """
   context, target = views
   num_frames = record["num_frames"]
+  references = nearest_context_frames(views)
+  frames = np.concatenate([context[:, 1], target[:, 1]])
+  first, last = int(frames.min()), int(frames.max())
+  at_first = np.arange(record["num_cameras"]) * num_frames + first
+
+  def present(field: str, items) -> bool:
+    return all(record[field].present(i) for i in np.ravel(items).tolist())
+
+  truth = "object_poses" in record and present(
+    "segmentations",
+    [target[:, 0] * num_frames + target[:, 1], target[:, 0] * num_frames + references],
+  )
+  flow_truth = truth and present("segmentations", at_first) and present("depths", at_first)
   masks = []
-  for (camera, frame), reference in zip(target.tolist(), nearest_context_frames(views).tolist()):
+  for (camera, frame), reference in zip(target.tolist(), references.tolist()):
     at, before = camera * num_frames + frame, camera * num_frames + reference
-    masks.append(
-      motion_mask(
+    if truth:
+      poses = record["object_poses"]
+      mask = truth_motion_mask(
+        record["segmentations"][at],
+        record["segmentations"][before],
+        moved_objects(poses[:, frame], poses[:, reference]),
+      )
+    else:
+      mask = motion_mask(
         record["images"][at],
         record["images"][before],
         record["depths"][at] if record["depths"].present(at) else None,
@@ -314,9 +424,10 @@ def evaluation_fields(record: dict, views: ViewPairs, image_shape: tuple[int, in
         record["c2w"][before],
         record["intrinsics"][at],
       )
-    )
+    masks.append(mask)
   return {
     "context_cameras": context[:, 0].copy(),
     "target_cameras": target[:, 0].copy(),
     "target_motion_masks": resize_and_center_crop_mask(np.stack(masks), image_shape),
+    **(_motion_truth(record, views, image_shape, first, last) if flow_truth else {}),
   }

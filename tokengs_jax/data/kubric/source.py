@@ -8,6 +8,7 @@ members read only for the views a sample picks.
 from __future__ import annotations
 
 import collections
+import logging
 import os
 import pathlib
 from typing import Sequence
@@ -50,8 +51,9 @@ class _TarFrames:
   camera c, frame f. `member` is a format string of the frame, e.g. "rgba_{:05d}.png".
 
   The pipeline reads only the items it picks. They are decoded here (images uint8 [H, W, 3], depth
-  maps float32 [H, W], each of the metadata's resolution), not by the pipeline, so that a bad
-  frame's `KubricError` names its tar and member rather than a flattened index.
+  maps float32 [H, W], segmentations int32 [H, W], each of the metadata's resolution), not by the
+  pipeline, so that a bad frame's `KubricError` names its tar and member rather than a flattened
+  index.
   """
 
   def __init__(self, views: Sequence[KubricView], num_frames: int, member: str):
@@ -80,11 +82,16 @@ class KubricSceneSource:
   """Random-access source of Kubric scene records in the pipeline's record contract.
 
   A scene's C cameras x F frames are flattened camera-major into C*F "frames": `c2w [C*F, 4, 4]`
-  (OpenCV), `intrinsics [C*F, 4]`, lazily decoded `images` (uint8 [H, W, 3]) and `depths`
+  (OpenCV), `intrinsics [C*F, 4]`, lazily decoded `images` (uint8 [H, W, 3]), `depths`
   (float32 [H, W], the stored distance along each pixel's ray; the pipeline's "pointmap" scale
-  reads the context views' ones), and `times [C*F]` = the frame index (the pipeline min-max
-  normalises times per example, as official), plus `num_cameras`, `num_frames` for
-  `kubric_view_selector`.
+  reads the context views' ones) and `segmentations` (int32 [H, W] object instance numbers, 0
+  the background; `.present(i)` says whether the tar has them), and `times [C*F]` = the frame
+  index (the pipeline min-max normalises times per example, as official), plus `num_cameras`,
+  `num_frames` for `kubric_view_selector`. When every camera's metadata lists the same object
+  `instances`, the record also has `object_poses [K, F, 4, 4]` (object-to-world at every frame,
+  in the cameras' world; instance k is segmentation number k + 1); the evaluation's motion
+  truth (`evaluation.evaluation_fields`). Cameras that list different instances (e.g. only
+  those each one sees) leave it out, with a warning: their numbers need not agree.
 
   Each scene's tars are parsed once per process (metadata and member offsets, cached for the
   last 64 scenes); a sample then reads only its views' members. A malformed scene raises
@@ -162,6 +169,26 @@ def _camera_tars(scene_dir: pathlib.Path, num_cameras: int | None) -> list[pathl
   return [scene_dir / f"output_{c:03d}.tar" for c in range(count)]
 
 
+def _shared_object_poses(scene_dir: pathlib.Path, views: Sequence[KubricView]):
+  """The object poses [K, F, 4, 4] every camera's metadata lists; None when the first lists none
+  or the cameras disagree (then with a warning)."""
+  poses = views[0].object_poses
+  if poses is None:
+    return None
+  for view in views[1:]:
+    if view.object_poses is None or not (
+      view.object_poses.shape == poses.shape and np.allclose(view.object_poses, poses, atol=1e-6)
+    ):
+      logging.getLogger("tokengs_jax.data").warning(
+        "%s: %s lists other object instances than %s; the scene has no object motion truth",
+        scene_dir,
+        pathlib.Path(view.path).name,
+        pathlib.Path(views[0].path).name,
+      )
+      return None
+  return poses
+
+
 def _read_scene(scene_dir: pathlib.Path, num_cameras: int | None) -> dict:
   views = [parse_kubric_view(path) for path in _camera_tars(scene_dir, num_cameras)]
   first = views[0]
@@ -170,6 +197,7 @@ def _read_scene(scene_dir: pathlib.Path, num_cameras: int | None) -> dict:
     for v in views
   ):
     raise KubricError(f"{scene_dir}: cameras differ in frame count or resolution")
+  object_poses = _shared_object_poses(scene_dir, views)
   return {
     "key": scene_dir.name,
     "source": str(scene_dir),
@@ -181,7 +209,9 @@ def _read_scene(scene_dir: pathlib.Path, num_cameras: int | None) -> dict:
     "width": first.width,
     "images": _TarFrames(views, first.num_frames, "rgba_{:05d}.png"),
     "depths": _TarFrames(views, first.num_frames, "depth_{:05d}.tiff"),
+    "segmentations": _TarFrames(views, first.num_frames, "segmentation_{:05d}.png"),
     "times": np.tile(np.arange(first.num_frames, dtype=np.float64), len(views)),
     "num_cameras": len(views),
     "num_frames": first.num_frames,
+    **({} if object_poses is None else {"object_poses": object_poses}),
   }

@@ -5,8 +5,10 @@
 - The held-out static test families (galleries, the frozen courtyards): `held_out`.
 - `generate_kubric_like`: dynamic scenes seen by a 9-camera rig -> the Kubric-4D layout
   `<root>/<subset>/<scene>/output_{view:03d}.tar`, each tar holding `metadata.json`,
-  `rgba_{frame:05d}.png` and `depth_{frame:05d}.tiff` (float32 distance along each pixel's ray,
-  as Kubric's).
+  `rgba_{frame:05d}.png`, `depth_{frame:05d}.tiff` (float32 distance along each pixel's ray,
+  as Kubric's) and `segmentation_{frame:05d}.png` (palette PNG of object instance numbers, 0 the
+  background, as Kubric's), the metadata listing every object's pose at every frame
+  (`instances[k]["positions"]`, `["quaternions"]`, as Kubric's): the generator's motion truth.
 
 Every scene is a pure function of (seed, split, index): `np.random.default_rng([seed, split_id,
 index])`. That makes generation deterministic, lets scenes be generated in any order or in
@@ -15,6 +17,7 @@ parallel, and lets a test regenerate a single scene to compare with what was wri
 
 from __future__ import annotations
 
+import colorsys
 import concurrent.futures
 import dataclasses
 import functools
@@ -236,8 +239,10 @@ def render_kubric_like_scene(
   Returns:
     dict with `images` uint8 [C, F, H, W, 3], `depths` float32 [C, F, H, W] (distance from the
     camera centre along each pixel-centre ray, Kubric's convention; 0 where nothing was hit),
+    `segmentations` uint8 [C, F, H, W] (object instance k + 1 per pixel, 0 the background),
     `c2w` [C, F, 4, 4] (OpenCV), `intrinsics` [4] (pixels, the values the Kubric reader derives
-    from the metadata) and `metadata` [C] (the per-camera `metadata.json` dicts).
+    from the metadata) and `metadata` [C] (the per-camera `metadata.json` dicts, with every
+    object's poses).
   """
   rng = scene_rng(seed, "train", index)
   dynamic = scenes.sample_dynamic_scene(rng, config.dynamic)
@@ -247,8 +252,9 @@ def render_kubric_like_scene(
   intrinsics = kubric.intrinsics_from_metadata(
     config.focal_length, config.sensor_width, height, width
   )
-  images, depths, metadata = render_kubric_views(
+  images, depths, segmentations, metadata = render_kubric_views(
     dynamic.at,
+    functools.partial(_object_poses, dynamic.at),
     c2w,
     np.broadcast_to(intrinsics, (num_cameras, 4)),
     np.full(num_cameras, config.focal_length),
@@ -261,14 +267,27 @@ def render_kubric_like_scene(
   return {
     "images": images,
     "depths": depths,
+    "segmentations": segmentations,
     "c2w": c2w,
     "intrinsics": intrinsics,
     "metadata": metadata,
   }
 
 
+def _object_poses(scene_at, time: float) -> tuple[np.ndarray, np.ndarray]:
+  """The poses of a scene whose every object is one rigid primitive with a rotation (as the
+  Kubric-like scenes'): (rotations [K, 3, 3] object-to-world, positions [K, 3]) of
+  `scene_at(time)`'s objects."""
+  objects = scene_at(time).objects
+  return (
+    np.asarray([o.rotation for o in objects], np.float64).reshape(-1, 3, 3),
+    np.asarray([o.center for o in objects], np.float64).reshape(-1, 3),
+  )
+
+
 def render_kubric_views(
   scene_at,
+  poses_at,
   c2w,
   intrinsics,
   focal_lengths,
@@ -277,22 +296,28 @@ def render_kubric_views(
   height: int,
   width: int,
   supersample: int,
-) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict]]:
   """A dynamic scene from every camera at every frame, in Kubric's conventions.
 
   Args:
     scene_at: time (seconds) -> the static `Scene` at that time.
+    poses_at: time (seconds) -> (rotations [K, 3, 3] object-to-world, positions [K, 3]) of the
+      scene's K object instances (`Scene.instances`) at that time.
     c2w: [C, F, 4, 4] OpenCV; intrinsics: [C, 4] pixels (as the Kubric reader derives them from
       `focal_lengths` [C] mm and `sensor_width` mm); frame_rate: frames per second.
 
   Returns:
     images uint8 [C, F, H, W, 3]; depths float32 [C, F, H, W], the distance along each
-    pixel-centre ray (Kubric's `z_to_depth`; 0 where nothing was hit); metadata [C], each
-    camera's `metadata.json`.
+    pixel-centre ray (Kubric's `z_to_depth`; 0 where nothing was hit); segmentations uint8
+    [C, F, H, W] (`Scene.segmentation` at the pixel centres); metadata [C], each camera's
+    `metadata.json`, with `instances` [K] (each `positions` [F, 3] and wxyz `quaternions`
+    [F, 4] of its object-to-world pose, as Kubric's object metadata).
   """
   num_cameras, frames = c2w.shape[:2]
   images = np.zeros((num_cameras, frames, height, width, 3), np.uint8)
   depths = np.zeros((num_cameras, frames, height, width), np.float32)
+  segmentations = np.zeros((num_cameras, frames, height, width), np.uint8)
+  object_rotations, object_positions = [], []
   for frame in range(frames):
     scene = scene_at(frame / frame_rate)
     for camera in range(num_cameras):
@@ -300,6 +325,17 @@ def render_kubric_views(
       images[camera, frame] = np.round(output.rgb * 255.0)
       # The tracer gives planar z; real Kubric's depth_*.tiff holds the ray distance.
       depths[camera, frame] = kubric.z_to_ray_depth(output.depth, intrinsics[camera])
+      segmentations[camera, frame] = scene.segmentation(output.ids)
+    rotation, position = poses_at(frame / frame_rate)
+    object_rotations.append(rotation)
+    object_positions.append(position)
+  instances = [
+    {"positions": p.tolist(), "quaternions": q.tolist()}
+    for p, q in zip(
+      np.stack(object_positions, 1),  # [K, F, 3]
+      kubric.rotation_to_quat_wxyz(np.stack(object_rotations, 1)),  # [K, F, 4]
+    )
+  ]
   metadata = []
   for camera in range(num_cameras):
     positions, quaternions = kubric.opencv_to_kubric_pose(c2w[camera])
@@ -312,9 +348,10 @@ def render_kubric_views(
           "positions": positions.tolist(),
           "quaternions": quaternions.tolist(),
         },
+        "instances": instances,
       }
     )
-  return images, depths, metadata
+  return images, depths, segmentations, metadata
 
 
 def _add_member(tar: tarfile.TarFile, name: str, data: bytes) -> None:
@@ -323,12 +360,32 @@ def _add_member(tar: tarfile.TarFile, name: str, data: bytes) -> None:
   tar.addfile(info, io.BytesIO(data))
 
 
+def _segmentation_png(segmentation: np.ndarray) -> bytes:
+  """An instance segmentation [H, W] (values 0-255) as an 8-bit palette PNG, as Kubric's
+  `write_palette_png` (the indices are the values; the palette only makes it viewable)."""
+  count = int(segmentation.max()) + 1
+  colours = [(0.0, 0.0, 0.0)] + [colorsys.hls_to_rgb(k / count, 0.5, 0.8) for k in range(1, count)]
+  height, width = segmentation.shape
+  image = Image.frombytes("P", (width, height), np.ascontiguousarray(segmentation, np.uint8))
+  image.putpalette([round(255 * c) for colour in colours for c in colour])
+  png = io.BytesIO()
+  image.save(png, format="PNG")
+  return png.getvalue()
+
+
 def write_kubric_view(
-  path: str | os.PathLike, metadata: dict, images: np.ndarray, depths: np.ndarray
+  path: str | os.PathLike,
+  metadata: dict,
+  images: np.ndarray,
+  depths: np.ndarray,
+  segmentations: np.ndarray | None = None,
 ) -> None:
   """Writes one camera's tar: images uint8 [F, H, W, 3] as opaque RGBA PNGs, depths [F, H, W] as
-  float32 TIFFs (written as given: Kubric's are ray distances, `kubric.z_to_ray_depth`), member
-  names prefixed with './' as in the released data."""
+  float32 TIFFs (written as given: Kubric's are ray distances, `kubric.z_to_ray_depth`) and, when
+  given, segmentations [F, H, W] (instance numbers 0-255) as palette PNGs, member names prefixed
+  with './' as in the released data."""
+  if segmentations is not None and not 0 <= np.min(segmentations) <= np.max(segmentations) <= 255:
+    raise ValueError("Kubric's 8-bit segmentation PNGs hold instance numbers 0-255")
   with tarfile.open(path, "w") as tar:
     _add_member(tar, "./metadata.json", json.dumps(metadata).encode())
     for frame, (image, depth) in enumerate(zip(images, depths)):
@@ -339,6 +396,8 @@ def write_kubric_view(
       tiff = io.BytesIO()
       tifffile.imwrite(tiff, depth.astype(np.float32))
       _add_member(tar, f"./depth_{frame:05d}.tiff", tiff.getvalue())
+      if segmentations is not None:
+        _add_member(tar, f"./segmentation_{frame:05d}.png", _segmentation_png(segmentations[frame]))
 
 
 def _write_kubric_scene(
@@ -366,6 +425,7 @@ def write_kubric_scene(directory: str | os.PathLike, scene: dict) -> None:
       metadata,
       scene["images"][camera],
       scene["depths"][camera],
+      scene["segmentations"][camera],
     )
 
 

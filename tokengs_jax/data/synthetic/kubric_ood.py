@@ -15,7 +15,9 @@ seed. Change nothing here to move a score: a changed family is a new, unfrozen o
 | cameras | one ring 7-10 m out, elevation 14-34 degrees, all aimed at one point, azimuth drift up to 0.15 rad, 35 mm | 5-12 m out, elevation 7-54 degrees drifting up to 11 either way, each aimed up to 1.2 m off the middle, azimuth drift 0.25-0.6 rad, dolly up to 10 %, 28-45 mm lenses |
 
 Motion is analytic (`OrbitScene.poses` is a pure function of time) and cameras are re-drawn
-(bounded) until every one keeps its distance from every object at every frame.
+(bounded) until every one keeps its distance from every object at every frame. The written scenes
+carry that truth as Kubric does (`generate.render_kubric_views`): each composite is one instance,
+with its segmentation and its pose at every frame; adding them changed no drawn byte.
 """
 
 from __future__ import annotations
@@ -175,7 +177,8 @@ class OrbitScene:
     return rotations, origins
 
   def at(self, time: float) -> Scene:
-    """The static `Scene` at `time` seconds: every part carried by its object's pose."""
+    """The static `Scene` at `time` seconds: every part carried by its object's pose, each part
+    of object k in instance k."""
     rotations, origins = self.poses(time)
     moved = [
       dataclasses.replace(
@@ -190,6 +193,7 @@ class OrbitScene:
       light_direction=self.light_direction,
       ambient=self.ambient,
       light_color=self.light_color,
+      instances=tuple(k for k, parts in enumerate(self.parts) for _ in parts),
     )
 
 
@@ -329,16 +333,19 @@ def render_kubric_ood_scene(
 
   Returns:
     `images` uint8 [C, F, H, W, 3], `depths` float32 [C, F, H, W] (distance along each
-    pixel-centre ray, Kubric's convention; 0 where nothing was hit), `c2w` [C, F, 4, 4] (OpenCV),
+    pixel-centre ray, Kubric's convention; 0 where nothing was hit), `segmentations` uint8
+    [C, F, H, W] (composite k + 1 per pixel, 0 the backdrop), `c2w` [C, F, 4, 4] (OpenCV),
     `intrinsics` [C, 4] (pixels, as the Kubric reader derives them) and `metadata` [C] (each
-    camera's `metadata.json`), as `generate.render_kubric_like_scene`.
+    camera's `metadata.json`, with each composite's poses `OrbitScene.poses`), as
+    `generate.render_kubric_like_scene`.
   """
   scene, c2w, focal = sample_scene(index, frames, num_cameras, config)
   intrinsics = np.stack(
     [kubric.intrinsics_from_metadata(f, config.sensor_width, height, width) for f in focal]
   )
-  images, depths, metadata = render_kubric_views(
+  images, depths, segmentations, metadata = render_kubric_views(
     scene.at,
+    scene.poses,
     c2w,
     intrinsics,
     focal,
@@ -351,6 +358,7 @@ def render_kubric_ood_scene(
   return {
     "images": images,
     "depths": depths,
+    "segmentations": segmentations,
     "c2w": c2w,
     "intrinsics": intrinsics,
     "metadata": metadata,

@@ -7,7 +7,7 @@ so the Python loop over primitives is cheap.
 
 Conventions: OpenCV camera axes (+x right, +y down, +z forward), `c2w [4, 4]` camera-to-world,
 intrinsics (fx, fy, cx, cy) in pixels, pixel (row i, column j) centred at (j + 0.5, i + 0.5).
-Depth is the camera z-depth (the convention of the Kubric depth maps the official loader reads).
+Depth is the planar camera z (the Kubric writers convert it to Kubric's ray distance).
 
 Shading: Lambert + ambient under one directional (optionally coloured) light, with hard shadows
 cast by the objects (boxes and spheres) only; the enclosing planes (floor, walls) do not cast
@@ -278,6 +278,9 @@ class Scene:
   """A scene: enclosing `planes` (no shadows cast) and `objects` (cast shadows).
 
   Primitive ids (as in `RenderOutput.ids`) number the planes first, then the objects.
+  `instances` groups objects into rigid object instances (a composite of several parts is one
+  instance): object j belongs to instance `instances[j]`, numbered from 0; empty: each object is
+  its own instance, in order. Only `segmentation` reads it.
   """
 
   planes: tuple[Plane, ...] = ()
@@ -286,10 +289,26 @@ class Scene:
   ambient: float = 0.35
   light_color: tuple[float, float, float] = (1.0, 1.0, 1.0)  # scales the direct (Lambert) term
   background: tuple[float, float, float] = (0.55, 0.7, 0.9)
+  instances: tuple[int, ...] = ()
 
   @property
   def primitives(self) -> tuple[Primitive, ...]:
     return tuple(self.planes) + tuple(self.objects)
+
+  def segmentation(self, ids: np.ndarray) -> np.ndarray:
+    """Primitive ids (`RenderOutput.ids`, -1 where nothing was hit) -> the instance segmentation
+    Kubric writes: 0 for the background (nothing, or a plane), k + 1 for object instance k.
+
+    ids: [...] int -> [...] int32.
+    """
+    instances = self.instances or range(len(self.objects))
+    if len(instances) != len(self.objects):
+      raise ValueError(f"{len(instances)} instance numbers for {len(self.objects)} objects")
+    # index 0: nothing hit (id -1); then the planes (background); then each object's instance
+    table = np.concatenate(
+      [np.zeros(1 + len(self.planes), np.int32), np.asarray(instances, np.int32) + 1]
+    )
+    return table[np.asarray(ids) + 1]
 
 
 class TraceResult(NamedTuple):
