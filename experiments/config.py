@@ -8,6 +8,7 @@ and it is the single source of the image size and the number of input views
 from __future__ import annotations
 
 import dataclasses
+import pathlib
 from typing import Literal
 
 from tokengs_jax import model
@@ -131,6 +132,13 @@ SYNTHETIC_MODEL = model.preset(
   clip_head_readout_std=0.3,
   gaussian_colours="inputs",
 )
+
+
+# Weights shipped in the repository (`experiments.weights.ship`; `provenance.json` beside them
+# says how they were trained): the synthetic default's TokenGS model (`params.msgpack`) and its
+# pixel-aligned baseline (`pixel_aligned.msgpack`), both trained for 6000 steps by
+# `python -m experiments.re10k run pretrain`.
+PRETRAINED_SYNTHETIC = pathlib.Path(__file__).parent / "pretrained" / "re10k_synthetic"
 
 
 @dataclasses.dataclass(frozen=True)

@@ -34,10 +34,13 @@ token tuning, grids, PLY, MP4), the evaluation writes `dynamic/`:
 
 Presets:
 - `synthetic-tiny` (default): writes Kubric-4D-layout tars of synthetic dynamic scenes to
-  `outputs/synthetic_kubric` when missing (train subset `v0`, held-out subset `test` drawn with
-  another seed, 8 scenes of the held-out family in `ood_kubric`), trains the `tiny` model with 8
-  dynamic tokens and a time embedding at 32x32, 2 input views + 2 targets at one target time, for
-  1200 steps. Tokens start 100x larger than official (`gs_token_std=1.0`; the head readout 100x
+  `outputs/synthetic_kubric` when missing (96 scenes in the train subset `v0`, held-out subset
+  `test` drawn with another seed, 8 scenes of the held-out family in `ood_kubric`), trains the
+  `tiny` model with 8 dynamic tokens and a time embedding at 32x32, 2 input views + 2 targets at
+  one target time, for 1200 steps, with colours read from the input views
+  (`gaussian_colours="inputs"`) and the input views' mean colour behind the Gaussians
+  (`background="input_mean"`, a deviation: targets from other cameras see much that no input
+  saw; docs/experiments.md, "Kubric default"), and trains the static-only model beside it. Tokens start 100x larger than official (`gs_token_std=1.0`; the head readout 100x
   smaller, 0.003, so the first Gaussians are those of the RE10K default): with the official 0.01
   the target-time embedding, shared by all dynamic tokens and trained at lr 2e-3, outgrows them
   (norm ~4 vs ~0.14 in trained weights) and every dynamic token collapses onto one (cosine 0.999
@@ -65,15 +68,13 @@ import time
 from typing import Literal
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from experiments import plot, weights
+from experiments import dynamic_pictures, weights
 from experiments.cli import main
 from experiments.config import EvalSettings, Experiment, SyntheticSettings, TrainSettings
 from experiments.tasks import Task, TrainedBaseline
-from tokengs_jax import evaluation, export, losses, model, scene_flow
-from tokengs_jax.camera import invert_rigid, project_points
+from tokengs_jax import evaluation, losses, model
 from tokengs_jax.data import (
   DATASET_PRESETS,
   EvaluationIndexReport,
@@ -94,7 +95,6 @@ from tokengs_jax.data.kubric import (
 from tokengs_jax.data.synthetic import generate_kubric_like
 from tokengs_jax.data.synthetic.kubric_ood import FROZEN_SEED as OOD_SEED
 from tokengs_jax.data.synthetic.kubric_ood import generate_kubric_ood
-from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.train.supervision import ObjectiveConfig
 
 # The held-out dynamic family's subset is also its test set's name in the results.
@@ -118,6 +118,10 @@ class KubricExperiment(Experiment):
     dyn_aux_hold_fraction / dyn_aux_decay_fraction: the auxiliary weight is held for this
       fraction of `train.steps`, then decays linearly to 0 over the next fraction (official
       5k / 10k of 50k steps).
+    background: what every render of training, token tuning and evaluation composites behind
+      the Gaussians: "grey" (official `bg_color`, 0.5) or "input_mean" (each example's mean
+      input colour: targets seen from other cameras show regions no input saw, which render
+      as background; `ObjectiveConfig.background`).
   """
 
   num_cameras: int = 4
@@ -129,6 +133,7 @@ class KubricExperiment(Experiment):
   lambda_dyn_aux: float = 0.3
   dyn_aux_hold_fraction: float = 0.1
   dyn_aux_decay_fraction: float = 0.2
+  background: Literal["grey", "input_mean"] = "grey"
 
 
 def kubric_example_config(experiment: KubricExperiment, *, training: bool) -> ExampleConfig:
@@ -147,10 +152,6 @@ def kubric_views(experiment: KubricExperiment, num_targets: int):
   return kubric_view_selector(
     experiment.num_context_views, num_targets, experiment.min_gap, experiment.max_gap
   )
-
-
-def _subset_of(gaussians: Gaussians, part: slice) -> Gaussians:
-  return jax.tree.map(lambda x: x[:, part], gaussians)
 
 
 class KubricTask(Task):
@@ -358,7 +359,7 @@ class KubricTask(Task):
           dataclasses.replace(experiment, model=static), finetune=False
         ),
         self.loss_fn(experiment, static),
-        lambda params: evaluation.feed_forward(params, static),
+        lambda params: evaluation.feed_forward(params, static, self.objective(experiment)),
       )
     ]
 
@@ -377,7 +378,12 @@ class KubricTask(Task):
 
   def objective(self, experiment: KubricExperiment) -> ObjectiveConfig:
     # every target view of a Kubric example shares one time: decode once (official)
-    return ObjectiveConfig(view_chunk_size=experiment.train.view_chunk_size, decode_times="first")
+    objective = ObjectiveConfig(
+      view_chunk_size=experiment.train.view_chunk_size, decode_times="first"
+    )
+    if experiment.background == "input_mean":
+      return dataclasses.replace(objective, background="input_mean")
+    return objective
 
   def loss_fn(self, experiment: KubricExperiment, config: model.ModelConfig):
     if not config.time_embedding:
@@ -388,130 +394,18 @@ class KubricTask(Task):
     self, experiment: KubricExperiment, config, params, examples, writer, step
   ) -> dict:
     out = pathlib.Path(experiment.output_dir) / "dynamic"
-    key, batch = examples[0]
-    height, width = batch["target_images"].shape[-3:-1]
-    camera = (batch["target_c2w"][:, :1], batch["target_intrinsics"][:, :1])
-    times = np.linspace(0.0, 1.0, experiment.flow_times, dtype=np.float32)
-    per_time = [
-      jax.device_get(evaluation.reconstruct(params, batch, config, jnp.asarray([t]))) for t in times
-    ]
-    renders = [
-      evaluation.render_targets(g, *camera, height=height, width=width).rgb[0, 0] for g in per_time
-    ]
-    inputs_row = list(batch["context_images"][0])
-    grid = export.image_grid([inputs_row, renders])
-    export.save_png(out / "in_between_times.png", grid)
-    if writer is not None:
-      writer.add_image("dynamic/in_between_times", grid, step, dataformats="HWC")
-
-    split = config.num_static_gaussians
-    at_target = jax.device_get(
-      evaluation.reconstruct(params, batch, config, batch["target_times"][:, 0])
-    )
-    parts = [
-      at_target,
-      _subset_of(at_target, slice(0, split)),
-      _subset_of(at_target, slice(split, None)),
-    ]
-    row = [batch["target_images"][0, 0]] + [
-      evaluation.render_targets(g, *camera, height=height, width=width).rgb[0, 0] for g in parts
-    ]
-    export.save_png(out / "static_dynamic.png", export.image_grid([row]))
-
-    # Scene flow: centres of the most opaque dynamic Gaussians over time, in the target camera.
-    dynamic = np.stack([np.asarray(g.means)[0, split:] for g in per_time], axis=1)  # [Nd, T, 3]
-    opacity = np.mean([np.asarray(g.opacities)[0, split:] for g in per_time], axis=0)
-    chosen = np.argsort(-opacity)[: experiment.flow_tracks]
-    uv, depth = project_points(
-      jnp.asarray(dynamic[chosen].reshape(-1, 3)),
-      invert_rigid(jnp.asarray(camera[0][0])),
-      jnp.asarray(camera[1][0]),
-    )
-    tracks = np.where((np.asarray(depth)[0] > 0)[:, None], np.asarray(uv)[0], np.nan)
-    tracks = tracks.reshape(len(chosen), len(times), 2)
-    plot.trajectory_plot(
-      out / "scene_flow.png", tracks, title=f"scene flow, {key}", background=renders[0]
-    )
-
-    # Scene flow against the generator's truth (`tokengs_jax.scene_flow`), over every evaluated
-    # scene that carries it: the Gaussians at times 0 and 1 (the truth's first and last frames),
-    # and every target view's opacity from all Gaussians and from the dynamic ones alone. A scene
-    # whose views share one camera centre (e.g. an index of one static camera) gives no scale to
-    # carry the truth into the example's frame: it is skipped, with the reason.
-    scenes, skipped = [], {}
-    for scene_key, scene in examples:
-      if "object_motions" not in scene:
-        continue
-      ends = [
-        jax.device_get(evaluation.reconstruct(params, scene, config, jnp.asarray([t])))
-        for t in (0.0, 1.0)
-      ]
-      alphas = []
-      for view in range(scene["target_images"].shape[1]):
-        at_view = jax.device_get(
-          evaluation.reconstruct(params, scene, config, scene["target_times"][:, view])
-        )
-        seen_by = (
-          scene["target_c2w"][:, view : view + 1],
-          scene["target_intrinsics"][:, view : view + 1],
-        )
-        alphas.append(
-          [
-            evaluation.render_targets(g, *seen_by, height=height, width=width).alpha[0, 0, ..., 0]
-            for g in (at_view, _subset_of(at_view, slice(split, None)))
-          ]
-        )
-      full_alpha, dynamic_alpha = np.moveaxis(np.asarray(alphas), 1, 0)  # [Vt, H, W] each
-      try:
-        scored = scene_flow.score_scene(
-          scene,
-          np.asarray(ends[0].means)[0, split:],
-          np.asarray(ends[1].means)[0, split:],
-          np.asarray(ends[0].opacities)[0, split:],
-          full_alpha,
-          dynamic_alpha,
-        )
-      except scene_flow.SimilarityError as error:
-        skipped[scene_key] = str(error)
-        continue
-      scenes.append({"scene": scene_key, **scored})
-    objects = [{"scene": s["scene"], **o} for s in scenes for o in s["objects"]]
-    tracked = [o for o in objects if o["moving"] and o["relative_epe"] is not None]
-    if scenes:  # data without motion truth has no error to draw
-      plot.scatter_plot(
-        out / "scene_flow_error.png",
-        {
-          "moving objects": (
-            [o["median_displacement"] for o in tracked],
-            [o["median_epe"] for o in tracked],
-          )
-        },
-        title=f"scene flow of the Gaussians on each moving object ({len(tracked)})",
-        xlabel="true displacement from time 0 to 1 (median over the object's Gaussians)",
-        ylabel="median EPE",
-        diagonal="Gaussians that stay put",
-      )
-    motion = np.linalg.norm(dynamic[:, -1] - dynamic[:, 0], axis=-1)
-    static_motion = np.linalg.norm(
-      np.asarray(per_time[-1].means)[0, :split] - np.asarray(per_time[0].means)[0, :split], axis=-1
-    )
     return {
-      "dynamic": {
-        "scene": key,
-        "times": times.tolist(),
-        "mean_dynamic_displacement_t0_t1": float(motion.mean()),
-        # the mean is dominated by a few far, faint Gaussians: also the typical
-        # motion, and that of the drawn (most opaque) tracks
-        "median_dynamic_displacement_t0_t1": float(np.median(motion)),
-        "median_tracked_displacement_t0_t1": float(np.median(motion[chosen])),
-        "mean_static_displacement_t0_t1": float(static_motion.mean()),
-      },
-      "scene_flow": {
-        "scenes": len(scenes),
-        **scene_flow.summarise(scenes),
-        "skipped": skipped,
-        "per_object": objects,
-      },
+      "dynamic": dynamic_pictures.write_pictures(
+        out,
+        params,
+        config,
+        examples[0],
+        experiment.flow_times,
+        experiment.flow_tracks,
+        writer,
+        step,
+      ),
+      "scene_flow": dynamic_pictures.scene_flow_report(out, params, config, examples),
     }
 
 
@@ -528,8 +422,10 @@ PRESETS = {
       time_embedding=True,
       gs_token_std=1.0,
       clip_head_readout_std=0.003,
+      gaussian_colours="inputs",
     ),
-    synthetic=SyntheticSettings(num_train=24, num_test=4, frames=12, num_ood=8, workers=2),
+    synthetic=SyntheticSettings(num_train=96, num_test=4, frames=12, num_ood=8, workers=2),
+    background="input_mean",
     min_gap=3,
     max_gap=8,
     train=TrainSettings(

@@ -123,6 +123,7 @@ def loss_fn(config: ModelConfig, loss_config=None, render_config=None, objective
       render_config,
       objective,
       depths=batch.get("target_depths"),
+      context_images=batch["context_images"],
     )
 
   return compute
@@ -133,12 +134,15 @@ def jitted_reconstruct(params, images, c2w, intrinsics, config):
   return reconstruct(params, images, c2w, intrinsics, config=config)
 
 
-def method(params, config: ModelConfig):
-  """The trained baseline as an evaluation method (its Gaussians rendered at the targets)."""
+def method(params, config: ModelConfig, objective=None):
+  """The trained baseline as an evaluation method: its Gaussians rendered at the targets with
+  the objective it was trained with (`loss_fn`'s; None: `ObjectiveConfig()`)."""
   from tokengs_jax import evaluation
+  from tokengs_jax.train.supervision import ObjectiveConfig
 
   return evaluation.Method(
     reconstruct=lambda batch: jitted_reconstruct(
       params, batch["context_images"], batch["context_c2w"], batch["context_intrinsics"], config
-    )
+    ),
+    objective=ObjectiveConfig() if objective is None else objective,
   )

@@ -99,20 +99,23 @@ class Task:
   def methods(
     self, experiment: Experiment, params, include_untrained: bool
   ) -> dict[str, evaluation.Method]:
-    """The image baselines, (untrained,) trained and trained + token tuning."""
+    """The image baselines, (untrained,) trained and trained + token tuning; the models'
+    Gaussians rendered (and tuned) with the run's objective."""
     config, e = experiment.model, experiment.eval
+    objective = self.objective(experiment)
     methods = evaluation.baselines()
     if include_untrained:
       methods["untrained"] = evaluation.feed_forward(
-        model.init_params(jax.random.key(experiment.seed), config), config
+        model.init_params(jax.random.key(experiment.seed), config), config, objective
       )
-    methods["trained"] = evaluation.feed_forward(params, config)
+    methods["trained"] = evaluation.feed_forward(params, config, objective)
     if e.tuning_steps > 0:
       methods["trained+token_tuning"] = evaluation.tuned(
         params,
         config,
         TuningConfig(steps=e.tuning_steps, learning_rate=e.tuning_learning_rate),
         loss_config=self.loss_config(experiment),
+        objective=objective,
       )
     return methods
 
@@ -139,7 +142,7 @@ class Task:
         pixel_baseline.loss_fn(
           config, self.loss_config(experiment), objective=self.objective(experiment)
         ),
-        lambda params: pixel_baseline.method(params, config),
+        lambda params: pixel_baseline.method(params, config, self.objective(experiment)),
       )
     ]
 
@@ -307,7 +310,7 @@ def execute(
   task = Task() if task is None else task
   task.prepare(experiment)  # synthetic data only (real data is never written), before JAX starts
   initialize()  # multi-host runs (no-op otherwise); before any other JAX call
-  info = {"command": invocation}
+  info = {"command": invocation, "commit": weights.source_commit()}
   if command in ("run", "eval"):  # a bad index fails now, not after training
     info["evaluation_index"] = task.check_evaluation(experiment)
   out = pathlib.Path(experiment.output_dir)

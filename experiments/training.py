@@ -42,11 +42,16 @@ def train_model(
   experiment: Experiment, params, loss_fn, batches, writer=None
 ) -> tuple[dict, list[dict], float]:
   """Trains with the library loop (sharded over every device); returns (params, history, seconds).
+  With `train.steps == 0` the starting weights come back unchanged (`run` then evaluates them).
 
   loss_fn: `(params, batch, key, step) -> (loss, aux)`.
   batches: iterator of this process's batches.
   """
   from tokengs_jax.train import LoopConfig, train
+
+  if experiment.train.steps == 0:
+    print("[train] 0 steps: the starting weights are the trained ones", flush=True)
+    return jax.device_get(params), [], 0.0
 
   out = pathlib.Path(experiment.output_dir)
   loop = LoopConfig(

@@ -62,6 +62,27 @@ def initial_params(experiment: Experiment, *, finetune: bool):
   return params
 
 
+def source_commit() -> str | None:
+  """The checkout's commit (`git rev-parse HEAD`, "+" appended when files differ from it), or
+  None outside a git checkout: recorded in metrics.json, so shipped weights name their code."""
+  root = pathlib.Path(__file__).resolve().parent.parent
+
+  def git(*args):
+    try:
+      return subprocess.run(
+        ["git", *args], cwd=root, capture_output=True, text=True, check=False, timeout=30
+      )
+    except (OSError, subprocess.TimeoutExpired):
+      return None
+
+  head = git("rev-parse", "HEAD")
+  if head is None or head.returncode != 0:
+    return None
+  status = git("status", "--porcelain", "--untracked-files=no")
+  dirty = status is None or bool(status.stdout.strip())
+  return head.stdout.strip() + ("+" if dirty else "")
+
+
 def sha256(path) -> str:
   return hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()
 
@@ -78,12 +99,9 @@ def ship(run_dir, destination) -> dict:
   for source in sorted(run_dir.glob("*.msgpack")):
     shutil.copyfile(source, destination / source.name)
     files[source.name] = sha256(source)
-  commit = subprocess.run(
-    ["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=False
-  ).stdout.strip()
   provenance = {
     "command": metrics["command"],
-    "commit": commit or None,
+    "commit": metrics.get("commit"),
     "experiment": metrics["experiment"],
     "train_steps": metrics.get("train_steps"),
     "train_seconds": metrics.get("train_seconds"),

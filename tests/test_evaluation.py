@@ -182,6 +182,60 @@ def test_evaluate_renders_gaussian_methods_and_keeps_pictures():
   assert len(scored.scores["splats"].predict_seconds) == 1
 
 
+def test_evaluation_renders_each_method_with_its_objective(monkeypatch):
+  """A method's Gaussians are rendered with the objective its model trained with ("input_mean":
+  the render on black plus (1 - alpha) x the batch's mean input colour), and the model methods
+  of a run carry (and tune with) the run's objective."""
+  from experiments import pixel_baseline
+  from experiments.kubric import KubricExperiment, KubricTask
+  from tokengs_jax import model, tuning
+  from tokengs_jax.train.supervision import ObjectiveConfig
+
+  batch = _batch(np.random.default_rng(9), [0, 4], [1, 3])
+  batch["context_images"] *= 0.4  # a mean colour near 0.2, far from the official grey
+  gaussians = _gaussians((1,))
+  input_mean = ObjectiveConfig(background="input_mean")
+  methods = {
+    "grey": evaluation.Method(reconstruct=lambda b: gaussians),
+    "input_mean": evaluation.Method(reconstruct=lambda b: gaussians, objective=input_mean),
+  }
+  scored = evaluation.evaluate([("s", batch)], methods, evaluation.Scorer(lpips=False), keep=1)
+  black = evaluation.render_targets(
+    gaussians,
+    batch["target_c2w"],
+    batch["target_intrinsics"],
+    height=HEIGHT,
+    width=WIDTH,
+    objective=ObjectiveConfig(background=(0.0, 0.0, 0.0)),
+  )
+  uncovered = 1.0 - black.alpha[0]
+  assert 0.1 < uncovered.mean() < 0.9  # the background shows, but not everywhere
+  mean = batch["context_images"][0].mean(axis=(0, 1, 2))
+  for name, colour in (("grey", 0.5), ("input_mean", mean)):
+    expected = black.rgb[0] + uncovered * colour
+    np.testing.assert_allclose(scored.kept[0][name]["rgb"], expected, atol=1e-6)
+
+  config = model.preset("tiny")
+  seen = {}
+
+  def fake_tune(*args, objective, **kwargs):
+    seen["objective"] = objective
+    return tuning.TuningResult(gaussians, jnp.zeros(1))
+
+  monkeypatch.setattr(evaluation.tuning, "tune", fake_tune)
+  tuned = evaluation.tuned(None, config, TuningConfig(), objective=input_mean)
+  tuned.reconstruct(batch)
+  assert seen["objective"] == tuned.objective == input_mean
+  assert evaluation.feed_forward(None, config, input_mean).objective == input_mean
+  assert pixel_baseline.method(None, config, input_mean).objective == input_mean
+  experiment = KubricExperiment(background="input_mean")
+  run = KubricTask().methods(experiment, None, include_untrained=False)
+  rendered = {name: m.objective for name, m in run.items() if m.reconstruct is not None}
+  assert set(rendered) == {"trained", "trained+token_tuning"}
+  assert all(o == KubricTask().objective(experiment) for o in rendered.values())
+  assert KubricTask().objective(experiment).background == "input_mean"
+
+
 def test_evaluate_sets_scores_each_named_set():
   rng = np.random.default_rng(6)
   sets = {

@@ -193,9 +193,25 @@ def test_trajectory_plot_on_background(tmp_path):
   assert Image.open(path).size == (64, 64)
 
 
+# The `smoke` preset's sizes as flags, to run another preset at its scale.
+SMOKE_SCALE = [
+  *("--synthetic.num-train 4 --synthetic.num-test 2 --synthetic.frames 10").split(),
+  *("--synthetic.num-ood 2 --synthetic.workers 1").split(),
+  *("--model.enc-depth 1 --model.dec-depth 1 --model.enc-embed-dim 32").split(),
+  *("--model.enc-num-heads 2 --model.num-gs-tokens 4").split(),
+  *("--train.steps 3 --train.batch-size 2 --train.min-context-gap 3").split(),
+  *("--train.max-context-gap 6 --train.warmup-steps 1 --train.log-every 1").split(),
+  *("--eval.num-scenes 2 --eval.num-target-views 2 --eval.context-gap 6").split(),
+  *("--eval.tuning-steps 2 --eval.tuning-learning-rate 1e-3 --eval.grid-scenes 1").split(),
+  *("--eval.video-frames 4").split(),
+]
+
+
 def test_entry_point_end_to_end(tmp_path):
-  """`python -m experiments.re10k run smoke`: generate (the varied family), train TokenGS and
-  the pixel-aligned baseline, evaluate with geometry, write every file."""
+  """`python -m experiments.re10k run pretrain` (the command that trained the shipped weights)
+  at the smoke preset's scale: generate (the varied family), train TokenGS and the
+  pixel-aligned baseline from scratch, evaluate with geometry, write every file; then ship the
+  run's weights as the shipped ones were (`experiments.weights ship`)."""
   out = tmp_path / "results"
   completed = subprocess.run(
     [
@@ -203,14 +219,12 @@ def test_entry_point_end_to_end(tmp_path):
       "-m",
       "experiments.re10k",
       "run",
-      "smoke",
+      "pretrain",
       "--output-dir",
       str(out),
       "--synthetic-dir",
       str(tmp_path / "data"),
-      "--synthetic.family",
-      "varied",
-      "--eval.pixel-baseline",
+      *SMOKE_SCALE,
     ],
     cwd=REPO,
     capture_output=True,
@@ -263,6 +277,19 @@ def test_entry_point_end_to_end(tmp_path):
   assert list((out / "tensorboard").glob("events.out.tfevents.*"))
   ply = export.read_ply(out / "gaussians.ply")
   assert ply["means"].shape == (64, 3) and np.isfinite(ply["means"]).all()
+
+  shipped = subprocess.run(
+    [sys.executable, "-m", "experiments.weights", "ship", str(out), str(tmp_path / "shipped")],
+    cwd=REPO,
+    capture_output=True,
+    text=True,
+    check=False,
+  )
+  assert shipped.returncode == 0, shipped.stderr[-4000:]
+  provenance = json.loads((tmp_path / "shipped" / "provenance.json").read_text())
+  assert set(provenance["files"]) == {"params.msgpack", "pixel_aligned.msgpack"}
+  assert provenance["experiment"] == payload["experiment"]
+  assert provenance["command"].startswith("python -m experiments.re10k run pretrain")
 
 
 @pytest.mark.slow
@@ -351,6 +378,9 @@ def test_kubric_entry_point_end_to_end(tmp_path):
     assert math.isfinite(payload["dynamic"][f"{name}_displacement_t0_t1"]), name
   for name in ("in_between_times.png", "static_dynamic.png", "scene_flow.png"):
     assert (out / "dynamic" / name).stat().st_size > 0, name
+  # the generator's truth reaches the scene-flow scores (tokengs_jax.scene_flow)
+  assert payload["scene_flow"]["scenes"] == 1 and payload["scene_flow"]["per_object"]
+  assert (out / "dynamic" / "scene_flow_error.png").stat().st_size > 0
 
 
 def test_kubric_loss_is_the_official_release_scaled_to_the_run():

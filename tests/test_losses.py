@@ -248,3 +248,87 @@ def test_supervision_adds_the_depth_term_only_with_depths_and_a_weight():
 
   # The term pulls the Gaussians back towards the true depth (+z).
   assert float(jax.grad(depth_of)(means)[..., 2].sum()) < 0
+
+
+def _scene_of_two_examples():
+  """Gaussians [2, N] that cover part of two views, and two examples' input views
+  [2, 3, 16, 16, 3] of different mean colours (neither of them grey)."""
+  from tokengs_jax.gaussians import Gaussians
+
+  n = 24
+  key = jax.random.split(jax.random.key(1), 3)
+  means = jax.random.uniform(key[0], (2, n, 3), minval=-0.6, maxval=0.6).at[..., 2].add(2.0)
+  gaussians = Gaussians(
+    means=means,
+    opacities=jnp.full((2, n), 0.8),
+    scales=jnp.full((2, n, 3), 0.08),
+    quats=jnp.tile(jnp.array([1.0, 0, 0, 0]), (2, n, 1)),
+    colors=jax.random.uniform(key[1], (2, n, 3)),
+  )
+  tint = jnp.array([[0.2, 0.9, 0.5], [0.8, 0.1, 0.3]])[:, None, None, None]
+  context = tint * jax.random.uniform(key[2], (2, 3, 16, 16, 3), minval=0.5, maxval=1.5)
+  return gaussians, context
+
+
+def test_input_mean_background_is_composited_behind_the_render():
+  from tokengs_jax import splatting
+  from tokengs_jax.train.supervision import ObjectiveConfig, render_views
+
+  gaussians, context = _scene_of_two_examples()
+  w2c = jnp.tile(jnp.eye(4), (2, 2, 1, 1)).at[:, 1, 0, 3].set(0.3)
+  intrinsics = jnp.tile(jnp.array([16.0, 16.0, 8.0, 8.0]), (2, 2, 1))
+  args = (gaussians, w2c, intrinsics, 16, 16, splatting.RenderConfig())
+  composited = render_views(*args, ObjectiveConfig(background="input_mean"), context)
+  black = render_views(*args, ObjectiveConfig(background=(0.0, 0.0, 0.0)))
+  uncovered = 1.0 - black.alpha
+  assert 0.2 < float(jnp.mean(uncovered)) < 0.8  # the background shows, but not everywhere
+  mean = jnp.mean(context, axis=(1, 2, 3))[:, None, None, None]  # each example's own
+  np.testing.assert_allclose(composited.rgb, black.rgb + uncovered * mean, atol=1e-6)
+  with pytest.raises(ValueError, match="context images"):
+    render_views(*args, ObjectiveConfig(background="input_mean"))
+  with pytest.raises(ValueError, match="background"):
+    ObjectiveConfig(background="grey")
+
+
+def test_objectives_with_input_mean_use_each_examples_own_input_colour():
+  """Two examples with different inputs, scored together (in view chunks), lose exactly what
+  each loses alone over the fixed RGB of its own inputs' mean colour: static and time-conditioned
+  objectives, the dynamic auxiliary render included."""
+  from tokengs_jax import splatting
+  from tokengs_jax.train.objective import time_conditioned_loss
+  from tokengs_jax.train.supervision import ObjectiveConfig, supervision_loss
+
+  gaussians, context = _scene_of_two_examples()
+  images = jax.random.uniform(jax.random.key(2), (2, 2, 16, 16, 3))
+  w2c = jnp.tile(jnp.eye(4), (2, 2, 1, 1)).at[:, 1, 0, 3].set(0.3)
+  intrinsics = jnp.tile(jnp.array([16.0, 16.0, 8.0, 8.0]), (2, 2, 1))
+  times = jnp.array([[0.2, 0.7], [0.4, 0.9]])
+  loss_config = losses.LossConfig(lambda_dyn_aux=0.3)
+  render = splatting.RenderConfig()
+
+  def static(g, views, objective, ctx=None):
+    return supervision_loss(g, *views, loss_config, render, objective, context_images=ctx)[0]
+
+  def timed(g, views, t, objective, ctx=None):
+    def at(t):  # the same Gaussians at every time: [B, T]
+      return jax.tree.map(lambda x: jnp.repeat(x[:, None], t.shape[1], axis=1), g)
+
+    return time_conditioned_loss(
+      at, t, *views, loss_config, render, objective, num_static_gaussians=12, context_images=ctx
+    )[0]
+
+  together = ObjectiveConfig(view_chunk_size=1, background="input_mean")
+  alone = [
+    ObjectiveConfig(background=tuple(float(c) for c in jnp.mean(context[b], axis=(0, 1, 2))))
+    for b in range(2)
+  ]
+  views = (images, w2c, intrinsics)
+  one = lambda x, b: jax.tree.map(lambda y: y[b : b + 1], x)
+  each = np.mean([static(one(gaussians, b), one(views, b), alone[b]) for b in range(2)])
+  np.testing.assert_allclose(static(gaussians, views, together, context), each, rtol=1e-5)
+  # the swapped inputs' colours give another loss: each example reads its own
+  assert abs(float(static(gaussians, views, together, context[::-1])) - each) > 1e-4
+  each = np.mean(
+    [timed(one(gaussians, b), one(views, b), times[b : b + 1], alone[b]) for b in range(2)]
+  )
+  np.testing.assert_allclose(timed(gaussians, views, times, together, context), each, rtol=1e-5)

@@ -58,6 +58,24 @@ def test_chunked_objective_matches_one_shot(tiny):
 
 
 @pytest.mark.slow
+def test_input_mean_objective_uses_each_examples_own_inputs(tiny):
+  """The loss of two examples with different inputs is the mean of each one's loss over the fixed
+  RGB of its own inputs' mean colour (the inputs', not the targets')."""
+  config, params = tiny
+  batch = synthetic_batch(batch_size=2, target_views=1)
+  batch["target_images"] = 1.0 - batch["target_images"]  # mean colours unlike the inputs'
+  key = jax.random.PRNGKey(0)
+  input_mean = tokengs_loss_fn(config, objective=ObjectiveConfig(background="input_mean"))
+  alone = []
+  for b in range(2):
+    one = {name: value[b : b + 1] for name, value in batch.items()}
+    mean = tuple(float(c) for c in one["context_images"].mean(axis=(0, 1, 2, 3)))
+    loss_fn = tokengs_loss_fn(config, objective=ObjectiveConfig(background=mean))
+    alone.append(float(loss_fn(params, one, key, 0)[0]))
+  np.testing.assert_allclose(input_mean(params, batch, key, 0)[0], np.mean(alone), rtol=1e-5)
+
+
+@pytest.mark.slow
 def test_tiny_training_loss_falls(tiny):
   config, params = tiny
   batch = synthetic_batch()

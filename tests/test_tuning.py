@@ -138,6 +138,34 @@ def test_times_need_a_time_conditioned_model(tiny):
 
 
 @pytest.mark.slow
+def test_tuning_renders_the_input_views_over_their_mean_colour(tiny):
+  """With an "input_mean" background the input-view loss is the loss over the fixed RGB of the
+  inputs' mean colour (here far from the official grey, which gives another loss)."""
+  from tokengs_jax.camera import invert_rigid
+  from tokengs_jax.losses import LossConfig
+  from tokengs_jax.train.supervision import ObjectiveConfig, supervision_loss
+
+  config, params = tiny
+  images, c2w, intrinsics = scene()
+  images = 0.4 * images  # mean colour about 0.2
+  result = tune(
+    params,
+    images,
+    c2w,
+    intrinsics,
+    model_config=config,
+    tuning=TuningConfig(steps=0),
+    objective=ObjectiveConfig(background="input_mean"),
+  )
+  mean = tuple(float(c) for c in images.mean(axis=(0, 1, 2, 3)))
+  views = (images, invert_rigid(c2w), intrinsics, LossConfig(), RenderConfig())
+  expected = supervision_loss(result.gaussians, *views, ObjectiveConfig(background=mean))[0]
+  np.testing.assert_allclose(result.losses[0], expected, rtol=1e-5)
+  grey = supervision_loss(result.gaussians, *views, ObjectiveConfig())[0]
+  assert abs(float(grey) - float(expected)) > 1e-4
+
+
+@pytest.mark.slow
 def test_dynamic_tuning_decodes_at_each_views_time():
   from test_train_dynamic import DYNAMIC_CONFIG, dynamic_batch, dynamic_params
 

@@ -8,9 +8,10 @@ Entry points (`experiments.*`), the studies and the tests all score through `eva
     evaluation.scores["trained"].summary()            # {"psnr": ..., "ssim": ..., "lpips": ...}
 
 A `Method` either reconstructs Gaussians from a batch (rendered at the target cameras by
-`render_targets`, the single place where evaluation renders) or predicts the target images
-directly (the image baselines). Scores follow the pixelSplat / MVSplat protocol: per target view,
-averaged per scene over its targets, then over scenes (`metrics.mean_over_scenes`).
+`render_targets`, the single place where evaluation renders, with the objective the method's model
+was trained with: its background, near / far) or predicts the target images directly (the image
+baselines). Scores follow the pixelSplat / MVSplat protocol: per target view, averaged per scene
+over its targets, then over scenes (`metrics.mean_over_scenes`).
 
 Clipping policy: the scorer clips predictions and targets to [0, 1] once, before every metric.
 The protocol's PSNR clips (pixelSplat `compute_psnr`), and a render composited over the
@@ -64,12 +65,9 @@ from tokengs_jax.copies import (
 from tokengs_jax.camera import invert_rigid
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.train.objective import decode_at_times
-from tokengs_jax.train.supervision import ObjectiveConfig
+from tokengs_jax.train.supervision import ObjectiveConfig, background_colours
 
 Scene = tuple[str, dict]  # (scene key, batch of one in the data contract)
-
-# Evaluation renders the targets as training supervises them (background, near / far).
-_OBJECTIVE = ObjectiveConfig()
 
 
 def writes_results() -> bool:
@@ -89,10 +87,13 @@ class Method:
     reconstruct: batch -> Gaussians [B] (one set for every target) or [B, Vt] (one set per
       target view, e.g. a dynamic model decoded at each target's time); rendered at the targets.
     images: batch -> target-view images [B, Vt, H, W, 3] (image baselines; nothing rendered).
+    objective: how `reconstruct`'s Gaussians are rendered (background, near / far): the one
+      their model was trained with, so that evaluation sees what training supervised.
   """
 
   reconstruct: Callable[[dict], Gaussians] | None = None
   images: Callable[[dict], np.ndarray] | None = None
+  objective: ObjectiveConfig = ObjectiveConfig()
 
   def __post_init__(self):
     if (self.reconstruct is None) == (self.images is None):
@@ -130,18 +131,26 @@ def reconstruct(params, batch: dict, config: model.ModelConfig, target_times=Non
   )
 
 
-def feed_forward(params, config: model.ModelConfig) -> Method:
-  """The network's Gaussians (dynamic models: at every target view's time)."""
-  return Method(reconstruct=lambda batch: reconstruct(params, batch, config))
+def feed_forward(
+  params, config: model.ModelConfig, objective: ObjectiveConfig = ObjectiveConfig()
+) -> Method:
+  """The network's Gaussians (dynamic models: at every target view's time), rendered with the
+  training `objective`."""
+  return Method(reconstruct=lambda batch: reconstruct(params, batch, config), objective=objective)
 
 
 def tuned(
-  params, config: model.ModelConfig, settings: tuning.TuningConfig, loss_config=None
+  params,
+  config: model.ModelConfig,
+  settings: tuning.TuningConfig,
+  loss_config=None,
+  objective: ObjectiveConfig = ObjectiveConfig(),
 ) -> Method:
   """The network's Gaussians after test-time tuning on the input views (`tuning.tune`).
 
   Dynamic models tune with every input view at its own time and return the Gaussians at every
   target view's time. loss_config: the tuning loss (`losses.LossConfig`; None: the default).
+  objective: the training objective, which renders both the tuned input views and the targets.
   """
 
   def predict(batch):
@@ -156,10 +165,11 @@ def tuned(
       model_config=config,
       tuning=settings,
       loss_config=loss_config,
+      objective=objective,
       **timed,
     ).gaussians
 
-  return Method(reconstruct=predict)
+  return Method(reconstruct=predict, objective=objective)
 
 
 def baselines(dynamic: bool = False) -> dict[str, Method]:
@@ -198,8 +208,10 @@ def render_targets(
   height: int,
   width: int,
   render_config: splatting.RenderConfig | None = None,
+  objective: ObjectiveConfig = ObjectiveConfig(),
+  context_images=None,
 ) -> Rendered:
-  """Renders cameras as training supervises them (grey background, near / far culling).
+  """Renders cameras as training supervises them (the objective's background, near / far).
 
   The single render of evaluation (scores, grids, fly-throughs, studies): exact by construction
   (`splatting.render_exact` re-renders any camera whose intersection budget overflowed).
@@ -210,6 +222,8 @@ def render_targets(
     intrinsics: [B, V, 4] in pixels.
     height, width: image size.
     render_config: renderer settings (default `RenderConfig()`).
+    objective: background and near / far (default: the official grey background).
+    context_images: [B, Vi, H, W, 3] the input views, behind an "input_mean" background.
   """
   render_config = splatting.RenderConfig() if render_config is None else render_config
   gaussians = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), gaussians)
@@ -224,9 +238,9 @@ def render_targets(
     intrinsics,
     height=height,
     width=width,
-    background=jnp.asarray(_OBJECTIVE.background, jnp.float32),
-    near=_OBJECTIVE.near,
-    far=_OBJECTIVE.far,
+    background=background_colours(objective, context_images, world_to_camera),
+    near=objective.near,
+    far=objective.far,
     config=render_config,
   )
   views = [np.asarray(x) for x in (result.rgb, result.depth, result.alpha)]
@@ -323,6 +337,8 @@ def _predict(method: Method, batch: dict, render_config) -> tuple[dict, float]:
     height=height,
     width=width,
     render_config=render_config,
+    objective=method.objective,
+    context_images=batch["context_images"],
   )
   return {
     "rgb": rendered.rgb,

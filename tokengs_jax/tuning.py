@@ -151,7 +151,8 @@ def tune(
     loss_config: `losses.LossConfig` (default: the training loss).
     render_config: `splatting.RenderConfig`.
     objective: view chunking, background, near/far of the input-view renders (default
-      `ObjectiveConfig()`; its `decode_times` is ignored: input views have their own times).
+      `ObjectiveConfig()`; its `decode_times` is ignored: input views have their own times;
+      an "input_mean" background is the mean colour of `images`).
     times: [B, V] normalised input-view times (time-conditioned models).
     output_times: [B, T] times at which to return the tuned Gaussians (default `times`).
 
@@ -245,10 +246,18 @@ def _tune_once(
         render_config,
         per_view,
         num_static_gaussians=model_config.num_static_gaussians if with_aux else None,
+        context_images=images,
       )
     else:
       loss, terms = supervision_loss(
-        gaussians_of(v), images, world_to_camera, intrinsics, loss_config, render_config, objective
+        gaussians_of(v),
+        images,
+        world_to_camera,
+        intrinsics,
+        loss_config,
+        render_config,
+        objective,
+        context_images=images,
       )
     return loss, (terms["render_overflow"] > 0, terms["render_pairs_needed"])
 

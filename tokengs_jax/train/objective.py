@@ -80,6 +80,7 @@ def time_conditioned_loss(
   *,
   num_static_gaussians: int | None = None,
   step: jax.Array | int = 0,
+  context_images: jax.Array | None = None,
 ):
   """Loss of time-conditioned Gaussians against views taken at different times.
 
@@ -109,6 +110,8 @@ def time_conditioned_loss(
     num_static_gaussians: where the dynamic Gaussians start (`ModelConfig.num_static_gaussians`);
       None: no auxiliary loss.
     step: [] int, the training step the auxiliary weight's schedule reads.
+    context_images: [B, Vi, H, W, 3] input views: their mean colour is every render's background
+      (the auxiliary one's too) under `objective.background == "input_mean"`.
 
   Returns:
     `(loss, terms)`: as `supervision_loss`, plus "dyn_aux" (the auxiliary loss, 0 while its
@@ -116,8 +119,7 @@ def time_conditioned_loss(
   """
   from tokengs_jax import losses
 
-  world_to_camera = world_to_camera.astype(jnp.float32)
-  intrinsics = intrinsics.astype(jnp.float32)
+  world_to_camera, intrinsics = world_to_camera.astype(jnp.float32), intrinsics.astype(jnp.float32)
   aux_weight = losses.dynamic_aux_weight(step, loss_config)
 
   shared = _float32(gaussians_at(times[:, :1])) if objective.decode_times == "first" else None
@@ -129,6 +131,7 @@ def time_conditioned_loss(
     render_config=render_config,
     objective=objective,
     lpips_params=lpips_params,
+    context_images=context_images,
   )
 
   def chunk_loss(views):
@@ -156,12 +159,14 @@ def _score_at_times(
   render_config,
   objective: ObjectiveConfig,
   lpips_params,
+  context_images,
 ):
   """Loss of Gaussians [B, Vc or 1, N] (one set per view time) rendered into a chunk's views.
 
   views: the chunk's "world_to_camera" [B, Vc, 4, 4], "intrinsics" [B, Vc, 4] and "images"
   [B, Vc, H, W, 3]; world_to_camera [B, V, 4, 4] / intrinsics [B, V, 4]: all the views, which
-  the visibility term projects every time's Gaussians into.
+  the visibility term projects every time's Gaussians into; context_images: the input views
+  [B, Vi, H, W, 3] behind an "input_mean" background, or None.
   Returns `(loss, terms, render stats [B, Vc, 1])`.
   """
   height, width = views["images"].shape[-3], views["images"].shape[-2]
@@ -173,6 +178,7 @@ def _score_at_times(
     width,
     render_config,
     objective,
+    context_images,
   )
   loss, terms = photometric_loss(rendered.rgb[:, :, 0], views["images"], loss_config, lpips_params)
   # the Gaussians of each time against every view: [B, Vc or 1]
@@ -255,6 +261,7 @@ def static_model_loss(
     objective,
     lpips_params,
     depths=batch.get("target_depths"),
+    context_images=batch["context_images"],
   )
 
 
@@ -301,6 +308,7 @@ def dynamic_model_loss(
     lpips_params,
     num_static_gaussians=model_config.num_static_gaussians if with_aux else None,
     step=step,
+    context_images=batch["context_images"],
   )
 
 

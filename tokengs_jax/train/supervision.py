@@ -60,7 +60,10 @@ class ObjectiveConfig:
   Attributes:
     view_chunk_size: target views rendered (and differentiated) together; None: all at once.
       Time-conditioned models also decode per chunk, so this bounds the decoder's memory too.
-    background: RGB behind the Gaussians (official `bg_color` default "grey" = 0.5).
+    background: what is composited behind the Gaussians in every render of the objective
+      (`background_colours`): an RGB (official `bg_color` default "grey" = 0.5), or
+      "input_mean": each example's mean colour of its input (context) views, so that what no
+      input view saw renders as the scene's average colour instead of a grey it may not have.
     near, far: renderer depth culling (official znear / zfar).
     decode_times: time-conditioned models only. "per_view": decode the Gaussians at every target
       view's own time; "first": decode once, at the first target view's time, and render every
@@ -70,7 +73,7 @@ class ObjectiveConfig:
   """
 
   view_chunk_size: int | None = None
-  background: tuple[float, float, float] = (0.5, 0.5, 0.5)
+  background: tuple[float, float, float] | Literal["input_mean"] = (0.5, 0.5, 0.5)
   near: float = 0.025
   far: float = 125.0
   decode_times: Literal["per_view", "first"] = "per_view"
@@ -78,6 +81,25 @@ class ObjectiveConfig:
   def __post_init__(self):
     if self.decode_times not in ("per_view", "first"):
       raise ValueError(f"decode_times must be 'per_view' or 'first', got {self.decode_times!r}")
+    rgb = not isinstance(self.background, str) and len(self.background) == 3
+    if not (rgb or self.background == "input_mean"):
+      raise ValueError(f"background must be an RGB or 'input_mean', got {self.background!r}")
+
+
+def background_colours(objective: ObjectiveConfig, context_images, world_to_camera) -> jax.Array:
+  """What is composited behind the Gaussians in renders into views `world_to_camera`
+  [B, ..., V, 4, 4] (`splatting.render`'s background).
+
+  A fixed `objective.background`: that RGB [3]. "input_mean": the mean colour of each example's
+  context views `context_images` [B, Vi, H, W, 3], as [B, 1, ..., 1, 3] (one colour behind every
+  view of the example, whatever the view axes).
+  """
+  if objective.background != "input_mean":
+    return jnp.asarray(objective.background, jnp.float32)
+  if context_images is None:
+    raise ValueError("the 'input_mean' background needs the context images")
+  mean = jnp.mean(jnp.asarray(context_images, jnp.float32), axis=(1, 2, 3))  # [B, 3]
+  return mean.reshape(mean.shape[:1] + (1,) * (jnp.ndim(world_to_camera) - 3) + (3,))
 
 
 def render_views(
@@ -88,8 +110,10 @@ def render_views(
   width: int,
   render_config,
   objective: ObjectiveConfig,
+  context_images=None,
 ):
-  """Float32 renders of Gaussians [B(, ...)] into views [B, V(, ...)] (`splatting.render`)."""
+  """Float32 renders of Gaussians [B(, ...)] into views [B(, ...), V] (`splatting.render`) over
+  `background_colours` (context_images [B, Vi, H, W, 3]: needed by "input_mean" only)."""
   from tokengs_jax import splatting  # the heavy areas only when this objective is used
 
   return splatting.render(
@@ -98,7 +122,7 @@ def render_views(
     intrinsics,
     height=height,
     width=width,
-    background=jnp.asarray(objective.background, jnp.float32),
+    background=background_colours(objective, context_images, world_to_camera),
     near=objective.near,
     far=objective.far,
     config=render_config,
@@ -177,6 +201,7 @@ def supervision_loss(
   objective: ObjectiveConfig = ObjectiveConfig(),
   lpips_params=None,
   depths=None,
+  context_images=None,
 ):
   """Loss of Gaussians against supervision views (training targets, or the inputs when tuning).
 
@@ -195,6 +220,8 @@ def supervision_loss(
     lpips_params: VGG weights when `loss_config.lambda_lpips > 0`.
     depths: [B, V, H, W] true depth of the views (0: unknown), or None; with
       `loss_config.lambda_depth > 0` it adds `lambda_depth * losses.depth_loss` (term "depth").
+    context_images: [B, Vi, H, W, 3] the examples' input views, whose mean colour is the
+      background under `objective.background == "input_mean"` (unused otherwise).
 
   Returns:
     `(loss, terms)`: the loss terms, "psnr", and `render_diagnostics`.
@@ -216,6 +243,7 @@ def supervision_loss(
       width,
       render_config,
       objective,
+      context_images,
     )
     loss, terms = photometric_loss(rendered.rgb, views["images"], loss_config, lpips_params)
     if with_depth:
