@@ -11,7 +11,7 @@
 Presets:
 - `synthetic-tiny` (default): evaluates the weights shipped in `experiments/pretrained/
   re10k_synthetic/` (0 training steps; `--train.steps N` trains on from them at a constant 1e-4,
-  `--checkpoint None --train.steps 1500` trains from scratch). It writes `outputs/synthetic_re10k`
+  `run pretrain` trains from scratch). It writes `outputs/synthetic_re10k`
   when missing (240 + 8 scenes of the varied synthetic family, 16 frames, 32x32: photographs on
   most surfaces, partitions, floating / stacked objects, tinted light, walks and orbits) and
   scores the baselines (mean colour, input-view average, nearest input view) / untrained /
