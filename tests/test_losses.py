@@ -213,21 +213,29 @@ def test_depth_loss_is_opacity_weighted_relative_error_over_known_pixels():
   assert np.isfinite(np.asarray(grad)).all()
 
 
+def _gaussians_in_front(means_key, colours_key, shape, *, spread, opacity, scale):
+  """Round Gaussians [*shape] of one opacity and size, centred within `spread` of (0, 0, 2):
+  in front of an identity camera looking down +z."""
+  from tokengs_jax.gaussians import Gaussians
+
+  means = jax.random.uniform(means_key, (*shape, 3), minval=-spread, maxval=spread)
+  return Gaussians(
+    means=means.at[..., 2].add(2.0),
+    opacities=jnp.full(shape, opacity),
+    scales=jnp.full((*shape, 3), scale),
+    quats=jnp.tile(jnp.array([1.0, 0, 0, 0]), (*shape, 1)),
+    colors=jax.random.uniform(colours_key, (*shape, 3)),
+  )
+
+
 def test_supervision_adds_the_depth_term_only_with_depths_and_a_weight():
   from tokengs_jax import splatting
   from tokengs_jax.gaussians import Gaussians
   from tokengs_jax.train.supervision import supervision_loss
 
-  n = 64
   key = jax.random.split(jax.random.key(0), 2)
-  means = jax.random.uniform(key[0], (1, n, 3), minval=-0.5, maxval=0.5).at[..., 2].add(2.0)
-  gaussians = Gaussians(
-    means=means,
-    opacities=jnp.full((1, n), 0.9),
-    scales=jnp.full((1, n, 3), 0.2),
-    quats=jnp.tile(jnp.array([1.0, 0, 0, 0]), (1, n, 1)),
-    colors=jax.random.uniform(key[1], (1, n, 3)),
-  )
+  gaussians = _gaussians_in_front(*key, (1, 64), spread=0.5, opacity=0.9, scale=0.2)
+  means = gaussians.means
   images = jnp.full((1, 1, 16, 16, 3), 0.5)
   w2c = jnp.eye(4)[None, None]
   intrinsics = jnp.array([[[16.0, 16.0, 8.0, 8.0]]])
@@ -253,18 +261,8 @@ def test_supervision_adds_the_depth_term_only_with_depths_and_a_weight():
 def _scene_of_two_examples():
   """Gaussians [2, N] that cover part of two views, and two examples' input views
   [2, 3, 16, 16, 3] of different mean colours (neither of them grey)."""
-  from tokengs_jax.gaussians import Gaussians
-
-  n = 24
   key = jax.random.split(jax.random.key(1), 3)
-  means = jax.random.uniform(key[0], (2, n, 3), minval=-0.6, maxval=0.6).at[..., 2].add(2.0)
-  gaussians = Gaussians(
-    means=means,
-    opacities=jnp.full((2, n), 0.8),
-    scales=jnp.full((2, n, 3), 0.08),
-    quats=jnp.tile(jnp.array([1.0, 0, 0, 0]), (2, n, 1)),
-    colors=jax.random.uniform(key[1], (2, n, 3)),
-  )
+  gaussians = _gaussians_in_front(key[0], key[1], (2, 24), spread=0.6, opacity=0.8, scale=0.08)
   tint = jnp.array([[0.2, 0.9, 0.5], [0.8, 0.1, 0.3]])[:, None, None, None]
   context = tint * jax.random.uniform(key[2], (2, 3, 16, 16, 3), minval=0.5, maxval=1.5)
   return gaussians, context
