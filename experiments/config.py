@@ -66,6 +66,8 @@ class TrainSettings:
     view_chunk_size: target views rendered per rematerialised chunk (None: all at once).
     lambda_depth: weight of the depth loss on the training targets (`losses.depth_loss`; needs
       true depths, which the synthetic sets record); 0: off, as in the paper.
+    lambda_lpips: weight of the LPIPS (VGG) term of the training loss (official LPIPS presets:
+      0.5); 0: off, as the official base. Token tuning leaves it out.
   """
 
   steps: int = 1500
@@ -81,6 +83,7 @@ class TrainSettings:
   num_workers: int = 0
   view_chunk_size: int | None = None
   lambda_depth: float = 0.0
+  lambda_lpips: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -139,6 +142,10 @@ SYNTHETIC_MODEL = model.preset(
 # pixel-aligned baseline (`pixel_aligned.msgpack`), both trained for 6000 steps by
 # `python -m experiments.re10k run pretrain`.
 PRETRAINED_SYNTHETIC = pathlib.Path(__file__).parent / "pretrained" / "re10k_synthetic"
+# The Kubric default's dynamic model (`params.msgpack`, finetuned from PRETRAINED_SYNTHETIC) and
+# its static-only baseline (`static_only.msgpack`), trained by `python -m experiments.kubric run
+# pretrain`.
+PRETRAINED_KUBRIC = pathlib.Path(__file__).parent / "pretrained" / "kubric_synthetic"
 
 
 @dataclasses.dataclass(frozen=True)

@@ -96,8 +96,11 @@ def reconstruct(
   return Gaussians.from_flat(flat)
 
 
-def loss_fn(config: ModelConfig, loss_config=None, render_config=None, objective=None):
-  """The TokenGS training objective with this model in place of TokenGS (same terms, same renders)."""
+def loss_fn(
+  config: ModelConfig, loss_config=None, render_config=None, objective=None, lpips_params=None
+):
+  """The TokenGS training objective with this model in place of TokenGS (same terms, same renders;
+  `lpips_params`: VGG weights when `loss_config.lambda_lpips > 0`)."""
   from tokengs_jax import losses, splatting
   from tokengs_jax.train.supervision import ObjectiveConfig, supervision_loss
 
@@ -124,6 +127,7 @@ def loss_fn(config: ModelConfig, loss_config=None, render_config=None, objective
       objective,
       depths=batch.get("target_depths"),
       context_images=batch["context_images"],
+      lpips_params=lpips_params,
     )
 
   return compute

@@ -79,12 +79,27 @@ class Task:
     return sets
 
   def loss_config(self, experiment: Experiment):
-    """The training (and token-tuning) loss weights: the library's defaults (official base),
-    plus the depth term's `train.lambda_depth` (tuning supervises input views, which carry no
-    depth, so it never applies there)."""
+    """The training loss weights: the library's defaults (official base), plus the depth term's
+    `train.lambda_depth` (tuning supervises input views, which carry no depth, so it never
+    applies there) and the LPIPS term's `train.lambda_lpips`."""
     from tokengs_jax.losses import LossConfig
 
-    return LossConfig(lambda_depth=experiment.train.lambda_depth)
+    return LossConfig(
+      lambda_depth=experiment.train.lambda_depth, lambda_lpips=experiment.train.lambda_lpips
+    )
+
+  def tuning_loss_config(self, experiment: Experiment):
+    """Token tuning's loss: the training loss without the LPIPS term (VGG's cost per tuning
+    step is not paid at test time)."""
+    return dataclasses.replace(self.loss_config(experiment), lambda_lpips=0.0)
+
+  def lpips_params(self, experiment: Experiment):
+    """The VGG weights the training loss needs (None when `train.lambda_lpips` is 0)."""
+    if self.loss_config(experiment).lambda_lpips <= 0:
+      return None
+    from tokengs_jax.lpips import load_vgg_params
+
+    return load_vgg_params()
 
   def objective(self, experiment: Experiment) -> ObjectiveConfig:
     return ObjectiveConfig(view_chunk_size=experiment.train.view_chunk_size)
@@ -93,7 +108,10 @@ class Task:
     from tokengs_jax.train.objective import tokengs_loss_fn
 
     return tokengs_loss_fn(
-      config, self.loss_config(experiment), objective=self.objective(experiment)
+      config,
+      self.loss_config(experiment),
+      objective=self.objective(experiment),
+      lpips_params=self.lpips_params(experiment),
     )
 
   def methods(
@@ -114,7 +132,7 @@ class Task:
         params,
         config,
         TuningConfig(steps=e.tuning_steps, learning_rate=e.tuning_learning_rate),
-        loss_config=self.loss_config(experiment),
+        loss_config=self.tuning_loss_config(experiment),
         objective=objective,
       )
     return methods
@@ -140,7 +158,10 @@ class Task:
         "pixel_aligned",
         init_params,
         pixel_baseline.loss_fn(
-          config, self.loss_config(experiment), objective=self.objective(experiment)
+          config,
+          self.loss_config(experiment),
+          objective=self.objective(experiment),
+          lpips_params=self.lpips_params(experiment),
         ),
         lambda params: pixel_baseline.method(params, config, self.objective(experiment)),
       )

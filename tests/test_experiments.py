@@ -8,12 +8,13 @@ import subprocess
 import sys
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from PIL import Image
 
 from experiments import cli, data, pictures, plot, re10k, results, tasks
-from tokengs_jax import evaluation, export
+from tokengs_jax import evaluation, export, model
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
 
@@ -294,13 +295,31 @@ def test_entry_point_end_to_end(tmp_path):
 
 @pytest.mark.slow
 def test_kubric_entry_point_end_to_end(tmp_path):
-  """`python -m experiments.kubric` on two tiny generated scenes: dynamic pictures and metrics."""
+  """`python -m experiments.kubric` on two tiny generated scenes: dynamic pictures and metrics.
+  As the default, it starts from static weights (here a tiny static model's, for the shipped
+  ones' architecture is too large for the test) and grows the dynamic tokens from them."""
+  from experiments import kubric, weights
+
   out = tmp_path / "results"
+  static = kubric.PRESETS["synthetic-tiny"].model.replace(
+    enc_depth=1,
+    dec_depth=1,
+    enc_embed_dim=32,
+    enc_num_heads=2,
+    num_gs_tokens=4,
+    num_dynamic_gs_tokens=0,
+    time_embedding=False,
+  )
+  start = weights.save_params(
+    tmp_path / "static.msgpack", model.init_params(jax.random.key(3), static)
+  )
   completed = subprocess.run(
     [
       sys.executable,
       "-m",
       "experiments.kubric",
+      "--checkpoint",
+      str(start),
       "--output-dir",
       str(out),
       "--synthetic-dir",
@@ -353,6 +372,7 @@ def test_kubric_entry_point_end_to_end(tmp_path):
     check=False,
   )
   assert completed.returncode == 0, completed.stderr[-4000:]
+  assert "gs_tokens_dynamic: from static gs_tokens" in completed.stdout
   payload = json.loads((out / "metrics.json").read_text())
   assert set(payload["metrics"]) == {
     "mean_colour",
@@ -555,3 +575,30 @@ def test_training_batches_carry_true_depths_for_the_depth_loss(tmp_path):
   assert tasks.Task().loss_config(experiment).lambda_depth == 0.1
   plain = dataclasses.replace(experiment, train=smoke.train)
   assert "target_depths" not in next(iter(data.training_batches(plain)))
+
+
+def test_lpips_term_reaches_both_trained_models_but_not_token_tuning(tmp_path):
+  smoke = re10k.PRESETS["smoke"]
+  experiment = dataclasses.replace(
+    smoke,
+    synthetic_dir=str(tmp_path / "data"),
+    synthetic=dataclasses.replace(smoke.synthetic, num_train=2, num_test=1, workers=1),
+    train=dataclasses.replace(smoke.train, lambda_lpips=0.5),
+    eval=dataclasses.replace(smoke.eval, pixel_baseline=True),
+  )
+  task = tasks.Task()
+  assert task.loss_config(experiment).lambda_lpips == 0.5
+  assert task.tuning_loss_config(experiment).lambda_lpips == 0.0
+  assert task.lpips_params(dataclasses.replace(experiment, train=smoke.train)) is None
+  batch = next(iter(data.training_batches(experiment)))
+  key, step = jax.random.key(0), jnp.asarray(0)
+  params = model.init_params(key, experiment.model)
+  loss, terms = task.loss_fn(experiment, experiment.model)(params, batch, key, step)
+  assert float(terms["lpips"]) > 0
+  plain = dataclasses.replace(experiment, train=smoke.train)
+  plain_loss, plain_terms = task.loss_fn(plain, experiment.model)(params, batch, key, step)
+  assert "lpips" not in plain_terms
+  np.testing.assert_allclose(loss, plain_loss + 0.5 * terms["lpips"], rtol=1e-5)
+  (pixel,) = task.trained_baselines(experiment)
+  _, pixel_terms = pixel.loss_fn(pixel.init_params(key), batch, key, step)
+  assert float(pixel_terms["lpips"]) > 0

@@ -195,3 +195,59 @@ def test_tuned_scene_latents_keep_reading_colours_from_the_views():
     np.asarray(expected)[np.asarray(seen)],
     atol=1e-6,
   )
+
+
+def test_per_view_positions_read_each_view_where_the_point_was_then():
+  """A point that moved between the views' times: read at one place it averages 0.2 and 0.8
+  images' pixels as any static point; with its position per view, each view is read there."""
+  views = _two_views()
+  images = np.zeros((1, 2, H, W, 3), np.float32)
+  images[0, 0, :, :4] = 1.0  # view 0: left half white; view 1: right half white
+  images[0, 1, :, 4:] = 1.0
+  views = views.replace(images=jnp.asarray(images))
+  # view 0 (camera at x = 0) saw it at x = -0.5; view 1 (camera at x = 0.2) at x = 0.7
+  per_view = jnp.array([[[[-0.5, 0.0, 2.0]], [[0.7, 0.0, 2.0]]]])
+  colours, seen = input_colours(per_view, views)
+  assert bool(seen[0, 0])
+  np.testing.assert_allclose(np.asarray(colours[0, 0]), 1.0, atol=1e-6)  # white in both
+  still, _ = input_colours(per_view[:, 0], views)  # where view 0 saw it, read in both views
+  np.testing.assert_allclose(np.asarray(still[0, 0]), 0.5, atol=1e-6)
+  # a point outside view 1's image at its time counts only view 0
+  colours, seen = input_colours(per_view.at[0, 1, 0, 0].set(5.0), views)
+  np.testing.assert_allclose(np.asarray(colours[0, 0]), 1.0, atol=1e-6)
+
+
+def test_dynamic_gaussians_read_the_views_at_the_views_times():
+  """With the input times, each dynamic Gaussian's colour is read in view v at its centre decoded
+  at view v's time; static Gaussians are read where they are."""
+  config = model.preset(
+    "tiny",
+    image_size=(32, 32),
+    num_gs_tokens=8,
+    num_dynamic_gs_tokens=4,
+    time_embedding=True,
+    gs_token_std=1.0,
+    dec_patch_size=2,
+    clip_head_readout_std=0.3,
+    gaussian_colours="inputs",
+  )
+  params = model.init_params(jax.random.key(1), config)
+  # the target-time embedding starts at zero (official): give it a value, so time moves them
+  embed = params["patch_time_embed_tgt"]["proj"]
+  embed["kernel"] = jax.random.normal(jax.random.key(2), embed["kernel"].shape)
+  views = _plane_views(size=(32, 32))
+  c2w = invert_rigid(views.world_to_camera)
+  times = jnp.array([[0.0, 1.0]])
+  encoded = model.encode_views(params, views.images, c2w, views.intrinsics, config, times=times)
+  flat = model.decode(params, encoded, config, times=jnp.array([0.5]))  # [1, N, 14]
+  first = config.num_static_gaussians
+  at = [model.decode(params, encoded, config, times=times[:, v]) for v in range(2)]
+  per_view = jnp.stack([f[:, first:, :3] for f in at], axis=1)  # [1, V, Nd, 3]
+  moving, moving_seen = input_colours(per_view, views)
+  still, still_seen = input_colours(flat[:, :first, :3], views)
+  assert bool(jnp.any(moving_seen)) and bool(jnp.any(still_seen))
+  rgb = np.asarray(flat[..., 11:14])
+  np.testing.assert_allclose(rgb[:, first:][moving_seen], np.asarray(moving)[moving_seen], atol=1e-5)
+  np.testing.assert_allclose(rgb[:, :first][still_seen], np.asarray(still)[still_seen], atol=1e-5)
+  # the trajectories move, so reading every view at the target-time centres would differ
+  assert float(jnp.abs(at[0][:, first:, :3] - at[1][:, first:, :3]).max()) > 1e-4

@@ -230,7 +230,7 @@ def encode_views(
     rgb = jnp.asarray(images, jnp.float32)
     if jnp.result_type(images) == jnp.uint8:
       rgb = rgb / 255.0
-    encoded = encoded.replace(views=InputViews(rgb, invert_rigid(c2w), intrinsics))
+    encoded = encoded.replace(views=InputViews(rgb, invert_rigid(c2w), intrinsics, times))
   return encoded
 
 

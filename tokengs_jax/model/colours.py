@@ -8,6 +8,13 @@ step and the colour is a function of the mean: where the views disagree (wrong d
 averages two different colours, and the photometric loss moves the mean to where they agree, a
 multi-view-stereo signal the head's colours never give. Gaussians no input view sees keep the
 head's colour.
+
+Dynamic Gaussians move, and each input view was taken at its own time: a Gaussian decoded at the
+target time would read, in a view taken earlier, whatever was at its present place then (the
+background, where the object has moved on). With the input views' times, the model decodes the
+dynamic Gaussians again at each view's time and reads view v where the Gaussian was at t_v
+(`with_input_colours(dynamic_means=...)`), so one that follows an object finds it in every view,
+and the colour's agreement across views supervises the trajectory.
 """
 
 from __future__ import annotations
@@ -30,11 +37,13 @@ class InputViews:
     images: [B, V, H, W, 3] RGB in [0, 1].
     world_to_camera: [B, V, 4, 4] (OpenCV).
     intrinsics: [B, V, 4] fx, fy, cx, cy in pixels.
+    times: [B, V] normalised times the views were taken at (dynamic models), else None.
   """
 
   images: jax.Array
   world_to_camera: jax.Array
   intrinsics: jax.Array
+  times: jax.Array | None = None
 
 
 def bilinear_sample(images: jax.Array, uv: jax.Array) -> jax.Array:
@@ -69,7 +78,8 @@ def input_colours(means: jax.Array, views: InputViews) -> tuple[jax.Array, jax.A
   """Mean colour of the input pixels each Gaussian centre projects to.
 
   Args:
-    means: [B, N, 3] world positions.
+    means: [B, N, 3] world positions, or [B, V, N, 3]: each view's own positions of the N
+      Gaussians (where they were when that view was taken).
     views: the input views.
 
   Returns:
@@ -78,11 +88,16 @@ def input_colours(means: jax.Array, views: InputViews) -> tuple[jax.Array, jax.A
     a zero gradient here, as the renderer culls it (design.md §8), instead of a NaN one.
   """
   h, w = views.images.shape[-3:-1]
-  finite = jnp.all(jnp.isfinite(means), axis=-1)  # [B, N]
+  finite = jnp.all(jnp.isfinite(means), axis=-1)  # [B, N] or [B, V, N]
   means = jnp.where(finite[..., None], means, 0.0)
-  uv, depth = project_points(means, views.world_to_camera, views.intrinsics)  # [B,V,N,2], [B,V,N]
+  if means.ndim == 3:
+    uv, depth = project_points(means, views.world_to_camera, views.intrinsics)  # [B,V,N,(2)]
+    finite = finite[:, None]
+  else:  # one camera per set of positions: a view axis of 1 inside project_points
+    uv, depth = project_points(means, views.world_to_camera[:, :, None], views.intrinsics[:, :, None])
+    uv, depth = uv[:, :, 0], depth[:, :, 0]
   inside = (
-    finite[:, None]
+    finite
     & (depth > NEAR)
     & (uv[..., 0] >= 0.0)
     & (uv[..., 0] <= w)
@@ -96,8 +111,21 @@ def input_colours(means: jax.Array, views: InputViews) -> tuple[jax.Array, jax.A
   return colours, count[..., 0] > 0
 
 
-def with_input_colours(flat: jax.Array, views: InputViews) -> jax.Array:
-  """flat Gaussians [B, N, 14] -> the same with RGB read from the views where any sees them."""
-  colours, seen = input_colours(flat[..., :3], views)
+def with_input_colours(
+  flat: jax.Array, views: InputViews, dynamic_means: jax.Array | None = None
+) -> jax.Array:
+  """flat Gaussians [B, N, 14] -> the same with RGB read from the views where any sees them.
+
+  dynamic_means: [B, V, Nd, 3], the last Nd Gaussians' centres at each view's time (module
+  docstring): each view is read where they were when it was taken. None: where they are now.
+  """
+  if dynamic_means is None:
+    colours, seen = input_colours(flat[..., :3], views)
+  else:
+    first = flat.shape[1] - dynamic_means.shape[2]
+    still, still_seen = input_colours(flat[:, :first, :3], views)
+    moving, moving_seen = input_colours(dynamic_means, views)
+    colours = jnp.concatenate([still, moving], axis=1)
+    seen = jnp.concatenate([still_seen, moving_seen], axis=1)
   rgb = jnp.where(seen[..., None], colours, flat[..., 11:14])
   return jnp.concatenate([flat[..., :11], rgb], axis=-1)

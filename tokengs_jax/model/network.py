@@ -293,8 +293,25 @@ class TokenGS(nn.Module):
           'gaussian_colours="inputs" reads colours from the input views: encode with '
           "`encode_views` / `reconstruct` (they carry the views), not `encode`"
         )
-      flat = with_input_colours(flat, encoded.views)
+      flat = with_input_colours(
+        flat, encoded.views, self._dynamic_means_at_input_times(encoded, tokens, target_times)
+      )
     return flat
+
+  def _dynamic_means_at_input_times(
+    self, encoded: EncoderOutput, tokens: jax.Array | None, target_times: jax.Array | None
+  ) -> jax.Array | None:
+    """[B, V, Nd, 3]: the dynamic Gaussians' centres decoded at each input view's time, where
+    their colours are read (`colours` module docstring); None without dynamic tokens, a target
+    time or the views' times."""
+    cfg, times = self.config, encoded.views.times
+    if not cfg.num_dynamic_gs_tokens or target_times is None or times is None:
+      return None
+    means = [
+      activate(self.activation_head(self.decode_tokens(encoded, tokens, times[:, v])), cfg)
+      for v in range(times.shape[1])
+    ]
+    return jnp.stack([m[:, cfg.num_static_gaussians :, :3] for m in means], axis=1)
 
   def __call__(
     self,
