@@ -14,8 +14,8 @@ and input cameras, so no target is an input view. Scores: PSNR / SSIM / LPIPS, a
 over the pixels where the scene moved since the nearest input time (`motion_mask`: from the
 generator's segmentations and object poses where the data has them, else an image rule).
 Baselines: mean colour, input average, nearest view (camera centre), same camera, nearest time,
-and (`--eval.static-baseline`, on in `synthetic-tiny`) `static_only`: the same model with its
-dynamic tokens made static (same Gaussian budget), trained the same way.
+and (`--eval.static-baseline`, on in `synthetic-tiny` and `pretrain`) `static_only`: the same
+model with its dynamic tokens made static (same Gaussian budget), trained the same way.
 Synthetic runs score a second test set, `ood_kubric`: `synthetic.num_ood` scenes (default 8; 0:
 none) of a frozen dynamic family unlike the training scenes and never trained on (composite
 objects tumbling along curved paths, held-out photographs, a low tinted sun, another camera rig;
@@ -35,17 +35,19 @@ token tuning, grids, PLY, MP4), the evaluation writes `dynamic/`:
 Presets:
 - `synthetic-tiny` (default): writes Kubric-4D-layout tars of synthetic dynamic scenes to
   `outputs/synthetic_kubric` when missing (96 scenes in the train subset `v0`, held-out subset
-  `test` drawn with another seed, 8 scenes of the held-out family in `ood_kubric`). The paper's
-  recipe at small scale: the static base is the RE10K default's shipped weights
-  (`experiments/pretrained/re10k_synthetic`, its model: 128 static tokens, colours read from the
-  input views), 32 dynamic tokens copied from its static ones plus noise and a fresh time
-  embedding, finetuned for 600 steps at lr 3e-4 on 4 input views (as the paper) + 2 targets at
-  one time, 32x32. Two deviations, both measured (docs/experiments.md, "Kubric default"):
-  cameras normalised to the first input camera (`normalization="first_cam"`, the frame the
-  static base was trained in; the official Kubric preset centres on the mean camera, in which
-  this small model renders blobs), and the input views' mean colour behind the Gaussians
-  (`background="input_mean"`). Trains the static-only model of the same budget beside it.
-  Token tuning at lr 1e-4 (the paper's).
+  `test` drawn with another seed, 8 scenes of the held-out family in `ood_kubric`) and evaluates
+  the shipped weights of `pretrain` (`experiments/pretrained/kubric_synthetic`: the dynamic model
+  and the static-only model), 0 training steps; `--train.steps N` trains on from them.
+- `pretrain`: what trained them, the paper's recipe at small scale. The static base is the RE10K
+  default's shipped weights (`experiments/pretrained/re10k_synthetic`, its model: 128 static
+  tokens, colours read from the input views); 32 dynamic tokens are copied from its static ones
+  plus noise, with a fresh time embedding; 1200 steps at lr 3e-4 on 4 input views (as the
+  paper) + 2 targets at one time, 32x32, and the static-only model of the same budget the same
+  way. Two deviations, both measured (docs/experiments.md, "Kubric default"): cameras in the
+  first input camera's frame (`normalization="first_cam"`, the frame the static base was
+  trained in; in the official mean-camera frame this small model renders blobs), and the input
+  views' mean colour behind the Gaussians (`background="input_mean"`). Token tuning at lr 1e-4
+  (the paper's).
 - `paper`: the official `kubric_dyn` architecture (latent bottleneck, 1024 static + 256 dynamic
   tokens, 4 input views, 256x256), 50k finetuning steps; the last `eval.num_scenes` (16, as the
   paper) scenes of the listing are held out.

@@ -421,7 +421,7 @@ def test_kubric_loss_is_the_official_release_scaled_to_the_run():
     config.dyn_aux_decay_steps,
     config.dyn_aux_min,
   ) == (0.3, 5_000, 10_000, 0.0)
-  tiny = kubric.PRESETS["synthetic-tiny"]
+  tiny = kubric.PRESETS["pretrain"]  # what trained the default's shipped weights
   config = kubric.KubricTask().loss_config(tiny)
   assert config.dyn_aux_hold_steps == round(0.1 * tiny.train.steps)
   assert config.dyn_aux_decay_steps == round(0.2 * tiny.train.steps)

@@ -31,7 +31,8 @@ CAMERAS, FRAMES = 3, 6
 
 
 def _experiment(root, **changes) -> kubric_experiment.KubricExperiment:
-  """The tiny preset on 2 generated held-out scenes of 3 cameras x 6 frames at 16x16."""
+  """The tiny preset with 2 input views on 2 generated held-out scenes of 3 cameras x 6 frames at
+  16x16."""
   tiny = kubric_experiment.PRESETS["synthetic-tiny"]
   return dataclasses.replace(
     tiny,
@@ -40,7 +41,7 @@ def _experiment(root, **changes) -> kubric_experiment.KubricExperiment:
     num_cameras=CAMERAS,
     max_gap=4,
     synthetic=SyntheticSettings(num_train=1, num_test=2, frames=FRAMES, num_ood=0, workers=1),
-    model=tiny.model.replace(image_size=(H, W)),
+    model=tiny.model.replace(image_size=(H, W), num_input_views=2),  # the protocol at 2 views
     **changes,
   )
 

@@ -167,7 +167,7 @@ def _tiny_experiment(tmp_path, **changes):
     preset,
     synthetic_dir=str(tmp_path / "data"),
     output_dir=str(tmp_path / "out"),
-    model=preset.model.replace(image_size=(H, W)),
+    model=preset.model.replace(image_size=(H, W), num_input_views=2),
     num_cameras=CAMERAS,
     min_gap=1,
     max_gap=2,

@@ -247,7 +247,9 @@ def test_dynamic_gaussians_read_the_views_at_the_views_times():
   still, still_seen = input_colours(flat[:, :first, :3], views)
   assert bool(jnp.any(moving_seen)) and bool(jnp.any(still_seen))
   rgb = np.asarray(flat[..., 11:14])
-  np.testing.assert_allclose(rgb[:, first:][moving_seen], np.asarray(moving)[moving_seen], atol=1e-5)
+  np.testing.assert_allclose(
+    rgb[:, first:][moving_seen], np.asarray(moving)[moving_seen], atol=1e-5
+  )
   np.testing.assert_allclose(rgb[:, :first][still_seen], np.asarray(still)[still_seen], atol=1e-5)
   # the trajectories move, so reading every view at the target-time centres would differ
   assert float(jnp.abs(at[0][:, first:, :3] - at[1][:, first:, :3]).max()) > 1e-4

@@ -94,7 +94,9 @@ def input_colours(means: jax.Array, views: InputViews) -> tuple[jax.Array, jax.A
     uv, depth = project_points(means, views.world_to_camera, views.intrinsics)  # [B,V,N,(2)]
     finite = finite[:, None]
   else:  # one camera per set of positions: a view axis of 1 inside project_points
-    uv, depth = project_points(means, views.world_to_camera[:, :, None], views.intrinsics[:, :, None])
+    uv, depth = project_points(
+      means, views.world_to_camera[:, :, None], views.intrinsics[:, :, None]
+    )
     uv, depth = uv[:, :, 0], depth[:, :, 0]
   inside = (
     finite
