@@ -559,14 +559,22 @@ def test_generated_sets_are_published_whole_and_the_first_copy_kept(tmp_path):
   assert sorted(p.name for p in tmp_path.iterdir()) == ["set"]  # no staging folder left
 
 
-def test_training_batches_carry_true_depths_for_the_depth_loss(tmp_path):
+def _small_smoke(tmp_path, eval_changes=None, **train_changes):
+  """The smoke preset on 2 training scenes and 1 test scene under `tmp_path`, with these
+  training (and evaluation) settings changed."""
   smoke = re10k.PRESETS["smoke"]
-  experiment = dataclasses.replace(
+  return dataclasses.replace(
     smoke,
     synthetic_dir=str(tmp_path / "data"),
     synthetic=dataclasses.replace(smoke.synthetic, num_train=2, num_test=1, workers=1),
-    train=dataclasses.replace(smoke.train, lambda_depth=0.1),
+    train=dataclasses.replace(smoke.train, **train_changes),
+    eval=dataclasses.replace(smoke.eval, **(eval_changes or {})),
   )
+
+
+def test_training_batches_carry_true_depths_for_the_depth_loss(tmp_path):
+  smoke = re10k.PRESETS["smoke"]
+  experiment = _small_smoke(tmp_path, lambda_depth=0.1)
   batch = next(iter(data.training_batches(experiment)))
   depths = batch["target_depths"]
   assert depths.shape == batch["target_images"].shape[:-1]
@@ -579,13 +587,7 @@ def test_training_batches_carry_true_depths_for_the_depth_loss(tmp_path):
 
 def test_lpips_term_reaches_both_trained_models_but_not_token_tuning(tmp_path):
   smoke = re10k.PRESETS["smoke"]
-  experiment = dataclasses.replace(
-    smoke,
-    synthetic_dir=str(tmp_path / "data"),
-    synthetic=dataclasses.replace(smoke.synthetic, num_train=2, num_test=1, workers=1),
-    train=dataclasses.replace(smoke.train, lambda_lpips=0.5),
-    eval=dataclasses.replace(smoke.eval, pixel_baseline=True),
-  )
+  experiment = _small_smoke(tmp_path, {"pixel_baseline": True}, lambda_lpips=0.5)
   task = tasks.Task()
   assert task.loss_config(experiment).lambda_lpips == 0.5
   assert task.tuning_loss_config(experiment).lambda_lpips == 0.0
