@@ -32,9 +32,7 @@ def write_pictures(
   height, width = batch["target_images"].shape[-3:-1]
   camera = (batch["target_c2w"][:, :1], batch["target_intrinsics"][:, :1])
   times = np.linspace(0.0, 1.0, flow_times, dtype=np.float32)
-  per_time = [
-    jax.device_get(evaluation.reconstruct(params, batch, config, jnp.asarray([t]))) for t in times
-  ]
+  per_time = [_seen_from(params, batch, config, jnp.asarray([t]), camera[0]) for t in times]
   renders = [
     evaluation.render_targets(g, *camera, height=height, width=width).rgb[0, 0] for g in per_time
   ]
@@ -44,9 +42,7 @@ def write_pictures(
     writer.add_image("dynamic/in_between_times", grid, step, dataformats="HWC")
 
   split = config.num_static_gaussians
-  at_target = jax.device_get(
-    evaluation.reconstruct(params, batch, config, batch["target_times"][:, 0])
-  )
+  at_target = _seen_from(params, batch, config, batch["target_times"][:, 0], camera[0])
   parts = [
     at_target,
     subset_of(at_target, slice(0, split)),
@@ -84,6 +80,15 @@ def write_pictures(
     "median_tracked_displacement_t0_t1": float(np.median(motion[chosen])),
     "mean_static_displacement_t0_t1": float(static_motion.mean()),
   }
+
+
+def _seen_from(params, batch, config, time, c2w) -> Gaussians:
+  """Host Gaussians [1] of `batch` at `time` [1], coloured for the camera `c2w` [1, 1, 4, 4]
+  where the model's colours depend on the viewer."""
+  gaussians = jax.device_get(evaluation.reconstruct(params, batch, config, time, c2w))
+  if len(gaussians.batch_shape) == 2:
+    gaussians = jax.tree.map(lambda x: x[:, 0], gaussians)
+  return gaussians
 
 
 def _target_alphas(params, config, scene: dict) -> tuple[np.ndarray, np.ndarray]:

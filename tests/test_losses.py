@@ -1,5 +1,7 @@
 """Training losses: hand-computed values, the visibility deviation, schedules, finite gradients."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -308,7 +310,7 @@ def test_objectives_with_input_mean_use_each_examples_own_input_colour():
     return supervision_loss(g, *views, loss_config, render, objective, context_images=ctx)[0]
 
   def timed(g, views, t, objective, ctx=None):
-    def at(t):  # the same Gaussians at every time: [B, T]
+    def at(t, _world_to_camera):  # the same Gaussians at every time and camera: [B, T]
       return jax.tree.map(lambda x: jnp.repeat(x[:, None], t.shape[1], axis=1), g)
 
     return time_conditioned_loss(
@@ -330,3 +332,53 @@ def test_objectives_with_input_mean_use_each_examples_own_input_colour():
     [timed(one(gaussians, b), one(views, b), times[b : b + 1], alone[b]) for b in range(2)]
   )
   np.testing.assert_allclose(timed(gaussians, views, times, together, context), each, rtol=1e-5)
+
+
+def test_objectives_render_one_set_per_view_as_each_view_alone():
+  """Gaussians [B, V] (colours for each camera, `model.decode(viewer_c2w=)`): the static and
+  the time-conditioned objectives (one decode for every view) score view v with set v alone,
+  in view chunks or not; the same set repeated scores as the shared set."""
+  from tokengs_jax import splatting
+  from tokengs_jax.train.objective import time_conditioned_loss
+  from tokengs_jax.train.supervision import ObjectiveConfig, supervision_loss
+
+  gaussians, _ = _scene_of_two_examples()
+  images = jax.random.uniform(jax.random.key(2), (2, 2, 16, 16, 3))
+  w2c = jnp.tile(jnp.eye(4), (2, 2, 1, 1)).at[:, 1, 0, 3].set(0.3)
+  intrinsics = jnp.tile(jnp.array([16.0, 16.0, 8.0, 8.0]), (2, 2, 1))
+  render = splatting.RenderConfig()
+  recoloured = dataclasses.replace(gaussians, colors=1.0 - gaussians.colors)
+  per_view = jax.tree.map(lambda a, b: jnp.stack([a, b], axis=1), gaussians, recoloured)
+  repeated = jax.tree.map(lambda a: jnp.stack([a, a], axis=1), gaussians)
+
+  def static(g, objective, loss_config, view=slice(None)):
+    views = (images[:, view], w2c[:, view], intrinsics[:, view])
+    return float(supervision_loss(g, *views, loss_config, render, objective)[0])
+
+  def timed(g, objective, loss_config):
+    first = ObjectiveConfig(view_chunk_size=objective.view_chunk_size, decode_times="first")
+    at = lambda times, world_to_camera: g  # one decode: a set per view's camera, or [B, 1]
+    times = jnp.zeros((2, 2))
+    return float(
+      time_conditioned_loss(at, times, images, w2c, intrinsics, loss_config, render, first)[0]
+    )
+
+  with_vis, without = losses.LossConfig(), losses.LossConfig(lambda_vis=0.0)
+  one = jax.tree.map(lambda a: a[:, None], gaussians)
+  objective = ObjectiveConfig(view_chunk_size=1)  # the chunked path: it slices the sets
+  shared = static(gaussians, objective, with_vis)
+  np.testing.assert_allclose(static(repeated, objective, with_vis), shared, rtol=1e-6)
+  alone = [static(g, objective, without, slice(v, v + 1)) for v, g in enumerate(_sets_of(per_view))]
+  np.testing.assert_allclose(static(per_view, objective, without), np.mean(alone), rtol=1e-5)
+  assert abs(static(per_view, objective, without) - static(gaussians, objective, without)) > 1e-4
+  np.testing.assert_allclose(
+    timed(repeated, objective, with_vis), timed(one, objective, with_vis), rtol=1e-5
+  )
+  np.testing.assert_allclose(
+    timed(per_view, objective, without), static(per_view, objective, without), rtol=1e-5
+  )
+
+
+def _sets_of(gaussians):
+  """Gaussians [B, V] -> the V sets [B]."""
+  return [jax.tree.map(lambda a: a[:, v], gaussians) for v in range(gaussians.batch_shape[1])]

@@ -7,7 +7,7 @@ import pytest
 
 from tokengs_jax import model
 from tokengs_jax.camera import invert_rigid, project_points
-from tokengs_jax.model.colours import InputViews, bilinear_sample, input_colours
+from tokengs_jax.model.colours import InputViews, bilinear_sample, input_colours, viewer_colours
 
 H, W = 6, 8
 
@@ -74,6 +74,56 @@ def test_a_non_finite_centre_is_unseen_with_a_zero_gradient():
   assert bool(jnp.all(jnp.isfinite(colours)))
   grad = jax.grad(lambda m: jnp.sum(input_colours(m, views)[0]))(means)
   np.testing.assert_array_equal(np.asarray(grad[0, 1:]), 0.0)
+
+
+def test_viewer_colours_follow_the_view_whose_ray_is_nearest():
+  """Views 0.2 / 0.8 at x = 0 / 0.2: a point both see takes the colour of the view at the viewer,
+  the mean from halfway (equal rays) or at sharpness 0, and a view that does not see a point
+  never counts."""
+  views = _two_views()
+  means = jnp.array([[[0.1, 0.0, 2.0], [1.1, 0.0, 2.0], [0.0, 0.0, -1.0]]])  # both, view 1, none
+  viewers = jnp.array([[[0.0, 0.0, 0.0], [0.2, 0.0, 0.0], [0.1, 0.0, 0.0]]])
+  colours, seen = viewer_colours(means, views, means, viewers, sharpness=1e4)
+  np.testing.assert_array_equal(np.asarray(seen), [[True, True, False]])
+  np.testing.assert_allclose(np.asarray(colours[0, :, 0, 0]), [0.2, 0.8, 0.5], atol=1e-5)
+  np.testing.assert_allclose(np.asarray(colours[0, :, 1, 0]), 0.8, atol=1e-6)
+  mean, _ = input_colours(means, views)
+  flat, _ = viewer_colours(means, views, means, viewers, sharpness=0.0)
+  np.testing.assert_allclose(np.asarray(flat[0, :, :2]), np.asarray(mean[0, None, :2]).repeat(3, 0))
+  # softer: the nearer view dominates without taking all the weight
+  soft, _ = viewer_colours(means, views, means, viewers[:, :1], sharpness=100.0)
+  assert 0.2 < float(soft[0, 0, 0, 0]) < 0.5
+  grad = jax.grad(lambda m: jnp.sum(viewer_colours(m, views, m, viewers, 100.0)[0]))(means)
+  assert bool(jnp.all(jnp.isfinite(grad)))
+
+
+def test_decoded_for_cameras_one_set_each_same_geometry(tiny_inputs_model):
+  """`reconstruct(viewer_c2w=)`: one set per camera whose geometry is the camera-free decode's;
+  viewer weights colour set v from view v (the input cameras themselves, sharp weights), mean
+  weights repeat the one set."""
+  config, params = tiny_inputs_model
+  views = _plane_views(size=(32, 32))
+  c2w = invert_rigid(views.world_to_camera)
+  args = (params, views.images, c2w, views.intrinsics)
+  one = model.reconstruct(*args, config=config)
+  repeated = model.reconstruct(*args, config=config, viewer_c2w=c2w)
+  assert repeated.batch_shape == (1, 2)
+  np.testing.assert_array_equal(np.asarray(repeated.to_flat()[:, 1]), np.asarray(one.to_flat()))
+  sharp = config.replace(input_colour_weights="viewer", viewer_colour_sharpness=1e4)
+  assert sharp.viewer_dependent and not config.viewer_dependent
+  each = model.reconstruct(*args, config=sharp, viewer_c2w=c2w)
+  np.testing.assert_allclose(
+    np.asarray(each.to_flat()[..., :11]), np.asarray(repeated.to_flat()[..., :11])
+  )
+  uv, depth = project_points(one.means, views.world_to_camera, views.intrinsics)
+  inside = np.asarray((depth > 0.025) & jnp.all((uv >= 0) & (uv <= 32), axis=-1))[0]  # [V, N]
+  samples = np.asarray(bilinear_sample(views.images, uv))[0]
+  for v in range(2):
+    only_v = inside[v] & ~inside[1 - v]  # seen by view v alone: its sample whatever the weight
+    both = inside[v] & inside[1 - v]
+    assert both.any()
+    colours = np.asarray(each.colors[0, v])
+    np.testing.assert_allclose(colours[both | only_v], samples[v][both | only_v], atol=1e-4)
 
 
 def _plane_views(depth=2.0, size=(24, 32)):

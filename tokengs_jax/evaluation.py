@@ -101,25 +101,37 @@ class Method:
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
-def _reconstruct(params, images, c2w, intrinsics, times, target_times, *, config):
+def _reconstruct(params, images, c2w, intrinsics, times, target_times, viewer_c2w, *, config):
   if times is None:
-    return model.reconstruct(params, images, c2w, intrinsics, config=config)
+    return model.reconstruct(params, images, c2w, intrinsics, config=config, viewer_c2w=viewer_c2w)
   encoded = model.encode_views(params, images, c2w, intrinsics, config, times)
   if target_times.ndim == 1:
-    return Gaussians.from_flat(model.decode(params, encoded, config, times=target_times))
-  return decode_at_times(params, encoded, config, target_times)
+    return Gaussians.from_flat(
+      model.decode(params, encoded, config, times=target_times, viewer_c2w=viewer_c2w)
+    )
+  return decode_at_times(params, encoded, config, target_times, viewer_c2w=viewer_c2w)
 
 
-def reconstruct(params, batch: dict, config: model.ModelConfig, target_times=None) -> Gaussians:
+def reconstruct(
+  params, batch: dict, config: model.ModelConfig, target_times=None, viewer_c2w=None
+) -> Gaussians:
   """The network's Gaussians for a batch's context views.
 
   Time-conditioned models decode at `target_times`: [B] (one set, batch shape [B]) or [B, T]
   (batch shape [B, T]); default `batch["target_times"]`, one set per target view.
+  Models whose colours depend on the viewer (`config.viewer_dependent`) are decoded for the
+  cameras `viewer_c2w` [B, T, 4, 4] (default: `batch["target_c2w"]` when `target_times` is
+  not given), one set per camera, batch shape [B, T]; without cameras their colours are the
+  views' mean.
   """
   times = None
   if config.time_embedding:
     times = batch["context_times"]
-    target_times = batch["target_times"] if target_times is None else target_times
+    if target_times is None:
+      target_times = batch["target_times"]
+      viewer_c2w = batch["target_c2w"] if viewer_c2w is None else viewer_c2w
+  elif viewer_c2w is None:
+    viewer_c2w = batch["target_c2w"]
   return _reconstruct(
     params,
     batch["context_images"],
@@ -127,6 +139,7 @@ def reconstruct(params, batch: dict, config: model.ModelConfig, target_times=Non
     batch["context_intrinsics"],
     times,
     target_times,
+    viewer_c2w if config.viewer_dependent else None,
     config=config,
   )
 
@@ -154,9 +167,11 @@ def tuned(
   """
 
   def predict(batch):
-    timed = {}
+    keywords = {}
     if config.time_embedding:
-      timed = {"times": batch["context_times"], "output_times": batch["target_times"]}
+      keywords = {"times": batch["context_times"], "output_times": batch["target_times"]}
+    if config.viewer_dependent:
+      keywords["output_c2w"] = batch["target_c2w"]
     return tuning.tune(
       params,
       batch["context_images"],
@@ -166,7 +181,7 @@ def tuned(
       tuning=settings,
       loss_config=loss_config,
       objective=objective,
-      **timed,
+      **keywords,
     ).gaussians
 
   return Method(reconstruct=predict, objective=objective)

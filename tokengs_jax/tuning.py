@@ -126,6 +126,7 @@ def tune(
   objective: ObjectiveConfig | None = None,
   times: jax.Array | None = None,
   output_times: jax.Array | None = None,
+  output_c2w: jax.Array | None = None,
 ) -> TuningResult:
   """Reconstructs a scene from its input views and tunes it on them.
 
@@ -155,10 +156,13 @@ def tune(
       an "input_mean" background is the mean colour of `images`).
     times: [B, V] normalised input-view times (time-conditioned models).
     output_times: [B, T] times at which to return the tuned Gaussians (default `times`).
+    output_c2w: [B, T, 4, 4] the cameras the tuned Gaussians will be rendered from, one per
+      output time (models whose colours depend on the viewer, `model_config.viewer_dependent`:
+      one set per camera; the input views are then tuned each with its own colours too).
 
   Returns:
     `TuningResult` (with `tuning.steps == 0`: the feed-forward Gaussians and their loss); its
-    Gaussians have batch shape [B], or [B, T] (one set per output time) with `times`.
+    Gaussians have batch shape [B], or [B, T] (one set per output time, or per output camera).
   """
   render_config = splatting.RenderConfig() if render_config is None else render_config
   while True:
@@ -174,6 +178,7 @@ def tune(
       objective=objective,
       times=times,
       output_times=output_times,
+      output_c2w=output_c2w,
     )
     if isinstance(overflowed, jax.core.Tracer):
       raise TypeError(
@@ -210,6 +215,7 @@ def _tune_once(
   objective: ObjectiveConfig | None = None,
   times: jax.Array | None = None,
   output_times: jax.Array | None = None,
+  output_c2w: jax.Array | None = None,
 ) -> tuple[TuningResult, jax.Array, jax.Array]:
   """`tune` at one render budget; also returns whether any of its renders overflowed ([] bool)
   and the most (Gaussian, tile) pairs one of their views needed ([] float32)."""
@@ -237,7 +243,7 @@ def _tune_once(
     views needed)."""
     if timed:
       loss, terms = time_conditioned_loss(
-        lambda t: gaussians_of(v, t),
+        lambda t, w2c: gaussians_of(v, t, invert_rigid(w2c)),
         times,
         images,
         world_to_camera,
@@ -250,7 +256,7 @@ def _tune_once(
       )
     else:
       loss, terms = supervision_loss(
-        gaussians_of(v),
+        gaussians_of(v, viewer_c2w=c2w),
         images,
         world_to_camera,
         intrinsics,
@@ -266,9 +272,10 @@ def _tune_once(
   )
   final_loss, (final_overflow, final_need) = loss_and_budget(variables)
   if timed:
-    gaussians = gaussians_of(variables, times if output_times is None else output_times)
+    at_times = times if output_times is None else output_times
+    gaussians = gaussians_of(variables, at_times, output_c2w)
   else:
-    gaussians = gaussians_of(variables)
+    gaussians = gaussians_of(variables, viewer_c2w=output_c2w)
   return (
     TuningResult(gaussians=gaussians, losses=jnp.append(step_losses, final_loss)),
     jnp.any(step_overflows) | final_overflow,
@@ -286,8 +293,11 @@ def _check_times(model_config, batch: int, times, output_times) -> None:
     check_times("output_times", output_times, (batch, None), "[B, T]")
 
 
-def _decode(params, encoded, model_config, tokens=None, latents=None, at_times=None) -> Gaussians:
-  """Gaussians [B] (time-free), or [B, T] at `at_times` [B, T], of the fixed encoding.
+def _decode(
+  params, encoded, model_config, tokens=None, latents=None, at_times=None, viewer_c2w=None
+) -> Gaussians:
+  """Gaussians [B] (time-free), or [B, T] at `at_times` [B, T], of the fixed encoding; with
+  `viewer_c2w` [B, T, 4, 4] and colours that depend on the viewer, one set per camera [B, T].
 
   tokens: [B, T_tok, C] replacing the learnt Gaussian tokens; latents: [B, L, C] scene latents
   replacing the encoded ones (their keys/values are recomputed).
@@ -296,9 +306,11 @@ def _decode(params, encoded, model_config, tokens=None, latents=None, at_times=N
     source = encoded
   else:
     source = model.kv_from_latents(params, latents, model_config).replace(views=encoded.views)
-  if at_times is None:
-    return Gaussians.from_flat(model.decode(params, source, model_config, tokens=tokens))
-  return decode_at_times(params, source, model_config, at_times, tokens=tokens)
+  if at_times is not None:
+    return decode_at_times(params, source, model_config, at_times, tokens, viewer_c2w)
+  if not model_config.viewer_dependent:
+    viewer_c2w = None
+  return Gaussians.from_flat(model.decode(params, source, model_config, tokens, None, viewer_c2w))
 
 
 def _initial_variables(params, encoded, decode, model_config, tuning: TuningConfig, batch: int):
@@ -329,17 +341,22 @@ def _initial_variables(params, encoded, decode, model_config, tuning: TuningConf
   return variables, learning_rates, feed_forward
 
 
-def _gaussians_of(decode, feed_forward, v: dict, at_times=None) -> Gaussians:
-  """The Gaussians of the tuned variables `v`: [B], or [B, T] at `at_times` [B, T]."""
+def _gaussians_of(decode, feed_forward, v: dict, at_times=None, viewer_c2w=None) -> Gaussians:
+  """The Gaussians of the tuned variables `v`: [B], or [B, T] at `at_times` [B, T] or seen from
+  `viewer_c2w` [B, T, 4, 4] (`_decode`)."""
   if "offsets" not in v:
-    return decode(tokens=v.get("tokens"), latents=v.get("latents"), at_times=at_times)
+    return decode(
+      tokens=v.get("tokens"), latents=v.get("latents"), at_times=at_times, viewer_c2w=viewer_c2w
+    )
   if "tokens" in v:
-    base = decode(tokens=v["tokens"], at_times=at_times)
-  elif at_times is None:
+    base = decode(tokens=v["tokens"], at_times=at_times, viewer_c2w=viewer_c2w)
+  elif at_times is None and viewer_c2w is None:
     base = feed_forward
-  else:  # the feed-forward Gaussians at these times (forward only)
-    base = jax.lax.stop_gradient(decode(at_times=at_times))
-  offsets = v["offsets"] if at_times is None else jax.tree.map(lambda x: x[:, None], v["offsets"])
+  else:  # the feed-forward Gaussians at these times / for these cameras (forward only)
+    base = jax.lax.stop_gradient(decode(at_times=at_times, viewer_c2w=viewer_c2w))
+  offsets = v["offsets"]
+  if len(base.batch_shape) == 2:  # one offset per Gaussian, shared by every time and camera
+    offsets = jax.tree.map(lambda x: x[:, None], offsets)
   return _offset(base, offsets)
 
 

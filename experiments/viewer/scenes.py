@@ -240,8 +240,14 @@ class ResultsSource:
     if self.time_conditioned and time is None:
       time = self.default_time(index)
     target_times = jnp.asarray([time], jnp.float32) if self.time_conditioned else None
-    gaussians = evaluation.reconstruct(self.params, batch, self.config, target_times)
-    gaussians = jax.tree.map(lambda x: np.asarray(x[0], np.float32), jax.device_get(gaussians))
+    # the browser draws one colour per Gaussian: colours that depend on the viewer are those
+    # seen from the first input camera
+    first_camera = batch["context_c2w"][:, :1]
+    gaussians = evaluation.reconstruct(self.params, batch, self.config, target_times, first_camera)
+    leading = gaussians.means.ndim - 2  # [1] or [1, 1]
+    gaussians = jax.tree.map(
+      lambda x: np.asarray(x[(0,) * leading], np.float32), jax.device_get(gaussians)
+    )
     views = lambda prefix: Cameras(
       np.asarray(batch[f"{prefix}_images"][0], np.float32),
       np.asarray(batch[f"{prefix}_c2w"][0], np.float32),

@@ -161,6 +161,7 @@ def decode(
   config: ModelConfig,
   tokens: jax.Array | None = None,
   times: jax.Array | None = None,
+  viewer_c2w: jax.Array | None = None,
 ) -> jax.Array:
   """Decoder + head: cached encoder output -> flat Gaussians.
 
@@ -171,13 +172,19 @@ def decode(
     tokens: [B, T, C] Gaussian tokens replacing the learnt ones (token tuning); None uses
       `params["gs_tokens"]` (+ dynamic tokens).
     times: [B] normalised target time (time-embedding models; None = unconditioned).
+    viewer_c2w: [B, Vr, 4, 4] camera-to-world of the cameras the Gaussians will be rendered
+      from: one set per camera, coloured for it where `config.viewer_dependent` (else the same
+      set repeated). None: one set, colours from the views' mean.
 
   Returns:
     [B, T * dec_patch_size², 14] float32 in the official flat layout
     [xyz 3, opacity 1, scale 3, quat 4, rgb 3]; static Gaussians first, then dynamic ones
-    (`config.num_static_gaussians` splits them).
+    (`config.num_static_gaussians` splits them). [B, Vr, ...] with `viewer_c2w`.
   """
-  return TokenGS(config).apply({"params": params}, encoded, tokens, times, method=TokenGS.decode)
+  viewers = None if viewer_c2w is None else jnp.asarray(viewer_c2w, jnp.float32)[..., :3, 3]
+  return TokenGS(config).apply(
+    {"params": params}, encoded, tokens, times, viewers, method=TokenGS.decode
+  )
 
 
 def predict_gaussians(
@@ -243,6 +250,7 @@ def reconstruct(
   config: ModelConfig,
   times: jax.Array | None = None,
   target_times: jax.Array | None = None,
+  viewer_c2w: jax.Array | None = None,
 ) -> Gaussians:
   """Images in [0, 1] and cameras -> Gaussians (`encode_views` + `decode`).
 
@@ -254,6 +262,8 @@ def reconstruct(
     config: the architecture (static).
     times: [B, V] normalised context times (dynamic models).
     target_times: [B] normalised time at which to decode the dynamic Gaussians.
+    viewer_c2w: [B, Vr, 4, 4] the cameras they will be rendered from (`decode`): batch shape
+      [B, Vr], one set per camera, each coloured for its camera where `config.viewer_dependent`.
 
   Returns:
     `tokengs_jax.gaussians.Gaussians` with N = config.num_gaussians Gaussians per scene.
@@ -264,4 +274,6 @@ def reconstruct(
   encoded = encode_views(params, images, c2w, intrinsics, config, times)
   if target_times is not None:
     check_times("target_times", target_times, images.shape[:1], "[B]")
-  return Gaussians.from_flat(decode(params, encoded, config, times=target_times))
+  return Gaussians.from_flat(
+    decode(params, encoded, config, times=target_times, viewer_c2w=viewer_c2w)
+  )

@@ -70,6 +70,13 @@ class ModelConfig:
       input views at each Gaussian's projection (`model.colours`; not in the paper), the head's
       RGB kept only where no view sees the Gaussian. Needs the views: `encode_views` /
       `reconstruct` carry them, `predict_gaussians` cannot.
+    input_colour_weights: with colours read from the inputs, how the views are combined: "mean"
+      (every view that sees the Gaussian alike) or "viewer" (weighted toward the view whose ray
+      is nearest the rendering camera's, `model.colours.viewer_colours`): the Gaussians are then
+      decoded for given cameras, one set per camera (`decode(..., viewers=)`); decoded without
+      cameras (export, `predict_gaussians`) they take the mean.
+    viewer_colour_sharpness: the "viewer" weights' softmax inverse temperature on the rays'
+      cosine (100: a view whose ray is 8 degrees further off gets 1/e the weight).
   """
 
   patch_size: int = 8
@@ -101,6 +108,8 @@ class ModelConfig:
   matmul_dtype: str | None = None
   remat: bool = False
   gaussian_colours: str = "head"
+  input_colour_weights: str = "mean"
+  viewer_colour_sharpness: float = 100.0
 
   def __post_init__(self):
     if self.enc_embed_dim % self.enc_num_heads:
@@ -124,6 +133,10 @@ class ModelConfig:
     if self.gaussian_colours not in ("head", "inputs"):
       raise ValueError(
         f"gaussian_colours must be 'head' or 'inputs', got {self.gaussian_colours!r}"
+      )
+    if self.input_colour_weights not in ("mean", "viewer"):
+      raise ValueError(
+        f"input_colour_weights must be 'mean' or 'viewer', got {self.input_colour_weights!r}"
       )
     if self.matmul_dtype not in (None, "float32", "bfloat16"):
       raise ValueError(
@@ -157,6 +170,11 @@ class ModelConfig:
   def num_gaussians(self) -> int:
     """Gaussians per scene: depends on tokens and decoder patch only, never on the views."""
     return self.num_tokens * self.gaussians_per_token
+
+  @property
+  def viewer_dependent(self) -> bool:
+    """Colours depend on the rendering camera: decode for the cameras (`decode(viewers=)`)."""
+    return self.gaussian_colours == "inputs" and self.input_colour_weights == "viewer"
 
   @property
   def num_static_gaussians(self) -> int:

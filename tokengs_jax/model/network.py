@@ -283,8 +283,12 @@ class TokenGS(nn.Module):
     encoded: EncoderOutput,
     tokens: jax.Array | None = None,
     target_times: jax.Array | None = None,
+    viewers: jax.Array | None = None,
   ) -> jax.Array:
-    """Flat Gaussians [B, T * p², 14] (see `decode_tokens` for the arguments)."""
+    """Flat Gaussians [B, T * p², 14] (see `decode_tokens` for the arguments), or with `viewers`
+    [B, Vr, 3] (centres of the cameras they will be rendered from) one set per camera,
+    [B, Vr, T * p², 14]: coloured for that camera under `input_colour_weights="viewer"`, else
+    the same set repeated."""
     raw = self.activation_head(self.decode_tokens(encoded, tokens, target_times))
     flat = activate(raw, self.config)
     if self.config.gaussian_colours == "inputs":
@@ -294,8 +298,14 @@ class TokenGS(nn.Module):
           "`encode_views` / `reconstruct` (they carry the views), not `encode`"
         )
       flat = with_input_colours(
-        flat, encoded.views, self._dynamic_means_at_input_times(encoded, tokens, target_times)
+        flat,
+        encoded.views,
+        self._dynamic_means_at_input_times(encoded, tokens, target_times),
+        viewers if self.config.viewer_dependent else None,
+        self.config.viewer_colour_sharpness,
       )
+    if viewers is not None and flat.ndim == 3:  # the same set for every camera
+      flat = jnp.broadcast_to(flat[:, None], (flat.shape[0], viewers.shape[1]) + flat.shape[1:])
     return flat
 
   def _dynamic_means_at_input_times(

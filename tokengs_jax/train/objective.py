@@ -36,7 +36,12 @@ from tokengs_jax.train.supervision import (
 
 
 def decode_at_times(
-  params, encoded, model_config, times: jax.Array, tokens: jax.Array | None = None
+  params,
+  encoded,
+  model_config,
+  times: jax.Array,
+  tokens: jax.Array | None = None,
+  viewer_c2w: jax.Array | None = None,
 ) -> Gaussians:
   """Gaussians of a time-conditioned model at several times, from one encoding.
 
@@ -50,16 +55,30 @@ def decode_at_times(
     times: [B, T] normalised times to decode at.
     tokens: [B, num_tokens, C] Gaussian tokens replacing the learnt ones (token tuning); None
       uses the learnt tokens.
+    viewer_c2w: [B, T, 4, 4] the camera each time's set is rendered from, or with T = 1
+      [B, Vr, 4, 4]: one decode seen from Vr cameras; used where the colours depend on the
+      camera (`model_config.viewer_dependent`), ignored otherwise.
 
   Returns:
-    `Gaussians` with batch shape [B, T] (static Gaussians first, identical at every time).
+    `Gaussians` with batch shape [B, T] (static Gaussians first, identical at every time); [B, Vr]
+    for one time seen from Vr cameras with viewer-dependent colours.
   """
   from tokengs_jax import model
 
-  def decode_one(time):  # time: [B]
-    return model.decode(params, encoded, model_config, tokens=tokens, times=time)
+  if not model_config.viewer_dependent:
+    viewer_c2w = None
+  elif times.shape[1] == 1:
+    return Gaussians.from_flat(
+      model.decode(params, encoded, model_config, tokens, times[:, 0], viewer_c2w)
+    )
 
-  return Gaussians.from_flat(jax.vmap(decode_one, in_axes=1, out_axes=1)(times))
+  def decode_one(time, c2w):  # time: [B]; c2w: [B, 4, 4] or None
+    if c2w is None:
+      return model.decode(params, encoded, model_config, tokens=tokens, times=time)
+    return model.decode(params, encoded, model_config, tokens, time, c2w[:, None])[:, 0]
+
+  in_axes = (1, None if viewer_c2w is None else 1)
+  return Gaussians.from_flat(jax.vmap(decode_one, in_axes, out_axes=1)(times, viewer_c2w))
 
 
 def _slice_gaussians(gaussians: Gaussians, start: int) -> Gaussians:
@@ -98,7 +117,10 @@ def time_conditioned_loss(
   `losses.dynamic_aux_weight(step)`; it is not evaluated while that weight is 0.
 
   Args:
-    gaussians_at: `times [B, T] -> Gaussians [B, T]` (e.g. `decode_at_times` closed over params).
+    gaussians_at: `(times [B, T], world_to_camera [B, T, 4, 4]) -> Gaussians [B, T]`, the sets
+      to render at those times from those cameras (e.g. `decode_at_times` closed over params);
+      with `decode_times == "first"` it is called once with times [B, 1] and every view's
+      camera, and may return one set [B, 1] or one per view [B, V].
     times: [B, V] normalised time of each supervision view.
     images: [B, V, H, W, 3] supervision images in [0, 1].
     world_to_camera: [B, V, 4, 4].
@@ -122,7 +144,17 @@ def time_conditioned_loss(
   world_to_camera, intrinsics = world_to_camera.astype(jnp.float32), intrinsics.astype(jnp.float32)
   aux_weight = losses.dynamic_aux_weight(step, loss_config)
 
-  shared = _float32(gaussians_at(times[:, :1])) if objective.decode_times == "first" else None
+  views = {
+    "world_to_camera": world_to_camera,
+    "intrinsics": intrinsics,
+    "images": images.astype(jnp.float32),
+    "times": jnp.asarray(times, jnp.float32),
+  }
+  shared = None
+  if objective.decode_times == "first":
+    shared = _float32(gaussians_at(times[:, :1], world_to_camera))
+    if shared.batch_shape[1] > 1:  # one set per view (viewer-dependent colours): chunk them too
+      views["gaussians"], shared = shared, None
   scored = functools.partial(
     _score_at_times,
     world_to_camera=world_to_camera,
@@ -135,17 +167,13 @@ def time_conditioned_loss(
   )
 
   def chunk_loss(views):
-    gaussians = _float32(gaussians_at(views["times"])) if shared is None else shared
+    gaussians = shared if shared is not None else views.get("gaussians")
+    if gaussians is None:
+      gaussians = _float32(gaussians_at(views["times"], views["world_to_camera"]))
     return _scored_with_dynamic_aux(
       scored, gaussians, views, num_static_gaussians, aux_weight, step, loss_config
     )
 
-  views = {
-    "world_to_camera": world_to_camera,
-    "intrinsics": intrinsics,
-    "images": images.astype(jnp.float32),
-    "times": jnp.asarray(times, jnp.float32),
-  }
   return mean_over_view_chunks(chunk_loss, views, objective.view_chunk_size)
 
 
@@ -250,6 +278,7 @@ def static_model_loss(
     batch["context_c2w"],
     batch["context_intrinsics"],
     config=model_config,
+    viewer_c2w=batch["target_c2w"] if model_config.viewer_dependent else None,
   )
   return supervision_loss(
     gaussians,
@@ -297,7 +326,9 @@ def dynamic_model_loss(
     times=batch["context_times"],
   )
   return time_conditioned_loss(
-    lambda times: decode_at_times(params, encoded, model_config, times),
+    lambda times, world_to_camera: decode_at_times(
+      params, encoded, model_config, times, viewer_c2w=invert_rigid(world_to_camera)
+    ),
     batch["target_times"],
     batch["target_images"],
     invert_rigid(batch["target_c2w"]),

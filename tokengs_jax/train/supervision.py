@@ -210,7 +210,8 @@ def supervision_loss(
   `losses.render_loss` on the one-shot render.
 
   Args:
-    gaussians: `Gaussians` with batch shape [B] (rendered in float32).
+    gaussians: `Gaussians` with batch shape [B] (rendered in float32), or [B, V]: set v seen by
+      view v only (colours that depend on the viewer, `model.decode(viewer_c2w=)`).
     images: [B, V, H, W, 3] supervision images in [0, 1].
     world_to_camera: [B, V, 4, 4].
     intrinsics: [B, V, 4] in pixels.
@@ -234,17 +235,32 @@ def supervision_loss(
   world_to_camera = world_to_camera.astype(jnp.float32)
   intrinsics = intrinsics.astype(jnp.float32)
 
+  per_view = len(gaussians.batch_shape) == 2
+
   def chunk_loss(views):
-    rendered = render_views(
-      gaussians,
-      views["world_to_camera"],
-      views["intrinsics"],
-      height,
-      width,
-      render_config,
-      objective,
-      context_images,
-    )
+    if per_view:  # each view's own set: a batch [B, Vc] of single-camera renders
+      rendered = render_views(
+        views["gaussians"],
+        views["world_to_camera"][:, :, None],
+        views["intrinsics"][:, :, None],
+        height,
+        width,
+        render_config,
+        objective,
+        context_images,
+      )
+      rendered = jax.tree.map(lambda x: x[:, :, 0], rendered)
+    else:
+      rendered = render_views(
+        gaussians,
+        views["world_to_camera"],
+        views["intrinsics"],
+        height,
+        width,
+        render_config,
+        objective,
+        context_images,
+      )
     loss, terms = photometric_loss(rendered.rgb, views["images"], loss_config, lpips_params)
     if with_depth:
       terms["depth"] = losses.depth_loss(rendered.depth, rendered.alpha, views["depths"])
@@ -259,7 +275,9 @@ def supervision_loss(
   }
   if with_depth:
     views["depths"] = depths.astype(jnp.float32)
+  if per_view:
+    views["gaussians"] = gaussians
   loss, terms = mean_over_view_chunks(chunk_loss, views, objective.view_chunk_size)
-  return add_visibility(
-    loss, terms, gaussians.means, world_to_camera, intrinsics, height, width, loss_config
-  )
+  # the sets of one scene differ in colour only: their centres are the first set's
+  means = gaussians.means[:, 0] if per_view else gaussians.means
+  return add_visibility(loss, terms, means, world_to_camera, intrinsics, height, width, loss_config)
