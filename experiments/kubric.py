@@ -43,10 +43,12 @@ Presets:
   tokens, colours read from the input views); 32 dynamic tokens are copied from its static ones
   plus noise, with a fresh time embedding; 1200 steps at lr 3e-4 on 4 input views (as the
   paper) + 2 targets at one time, 32x32, and the static-only model of the same budget the same
-  way. Two deviations, both measured (docs/experiments.md, "Kubric default"): cameras in the
+  way. Three deviations, each measured (docs/experiments.md, "Kubric default"): cameras in the
   first input camera's frame (`normalization="first_cam"`, the frame the static base was
-  trained in; in the official mean-camera frame this small model renders blobs), and the input
-  views' mean colour behind the Gaussians (`background="input_mean"`). Token tuning at lr 1e-4
+  trained in; in the official mean-camera frame this small model renders blobs), the input
+  views' mean colour behind the Gaussians (`background="input_mean"`), and colours read from
+  the input views weighted toward the view whose ray is nearest the rendering camera's
+  (`input_colour_weights="viewer"`, `tokengs_jax.model.colours`). Token tuning at lr 1e-4
   (the paper's).
 - `paper`: the official `kubric_dyn` architecture (latent bottleneck, 1024 static + 256 dynamic
   tokens, 4 input views, 256x256), 50k finetuning steps; the last `eval.num_scenes` (16, as the
@@ -435,7 +437,9 @@ _PRETRAIN = KubricExperiment(
   output_dir="outputs/kubric/pretrain",
   synthetic_dir="outputs/synthetic_kubric",
   checkpoint=str(PRETRAINED_SYNTHETIC / "params.msgpack"),
-  model=SYNTHETIC_MODEL.replace(num_input_views=4, num_dynamic_gs_tokens=32, time_embedding=True),
+  model=SYNTHETIC_MODEL.replace(
+    num_input_views=4, num_dynamic_gs_tokens=32, time_embedding=True, input_colour_weights="viewer"
+  ),
   synthetic=SyntheticSettings(num_train=96, num_test=4, frames=12, num_ood=8, workers=2),
   background="input_mean",
   normalization="first_cam",

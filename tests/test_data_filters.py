@@ -107,8 +107,15 @@ def test_nearly_coincident_context_cameras_are_rejected_only_below_epsilon():
 
 
 def test_baseline_is_not_checked_without_exactly_two_context_views():
-  three = (np.array([0, 4, 6]), np.array([1, 2, 3]))
-  _build(_coincident(0.0), _on(min_context_baseline=1e-3), views=three)
+  config = _on(min_context_baseline=1e-3)
+  with pytest.raises(BadExampleError, match="context baseline"):  # two coincident views: out
+    _build(_coincident(0.0), config)
+  three = (np.array([0, 4, 6]), np.array([1, 2, 3]))  # the same pair plus a third: kept as is
+  example = _build(_coincident(0.0), config, views=three)
+  assert example["context_images"].shape[0] == 3
+  np.testing.assert_array_equal(
+    example["context_c2w"], _build(_coincident(0.0), OFF, views=three)["context_c2w"]
+  )
 
 
 def test_filters_leave_a_normal_example_bit_identical():

@@ -35,8 +35,34 @@ def test_no_function_is_over_the_line_limit():
   assert not long, f"functions over {MAX_FUNCTION_LINES} lines: {long}"
 
 
+def _free_functions_and_classes(tree: ast.AST):
+  """Every function that is not a method (at any depth) and every class of a module."""
+  methods = {
+    id(child)
+    for node in ast.walk(tree)
+    if isinstance(node, ast.ClassDef)
+    for child in node.body
+    if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef))
+  }
+  for node in ast.walk(tree):
+    if isinstance(node, ast.ClassDef) or (
+      isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and id(node) not in methods
+    ):
+      yield node
+
+
 def test_one_evaluation_code_path():
-  """Only `tokengs_jax/evaluation.py` defines an evaluator or a scorer (module level)."""
-  pattern = re.compile(r"^(def evaluate\w*|class Scorer)\b", re.MULTILINE)
-  defining = {str(p.relative_to(REPO)) for p in _sources() if pattern.search(p.read_text())}
+  """Only `tokengs_jax/evaluation.py` defines an evaluator or a scorer (at any depth: a nested
+  `def evaluate` or a `class MyScorer` counts), and only `tokengs_jax/metrics.py` writes the PSNR
+  formula (10 log10 of an error), so no second harness can score on its own terms."""
+  evaluator = re.compile(r"^(evaluate\w*|\w*Scorer\w*)$")
+  defining = {
+    str(path.relative_to(REPO))
+    for path in _sources()
+    for node in _free_functions_and_classes(ast.parse(path.read_text()))
+    if evaluator.match(node.name)
+  }
   assert defining == {"tokengs_jax/evaluation.py"}, defining
+  formula = re.compile(r"10(\.0*)?\s*\*\s*[\w.]*log10\(")
+  writing = {str(p.relative_to(REPO)) for p in _sources() if formula.search(p.read_text())}
+  assert writing == {"tokengs_jax/metrics.py"}, writing

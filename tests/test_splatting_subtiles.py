@@ -67,26 +67,35 @@ def test_split_lists_are_each_tile_list_filtered_in_order(subtile_size):
     np.asarray, (split.gaussian_ids, split.tile_starts, split.tile_ends)
   )
   assert sub_starts.shape == (-(-HEIGHT // subtile_size) * sub_x,)
-  kept = 0
+  # every (sub-tile, Gaussian of its parent tile's list) pair, tested in one call
+  listed, grid_x, grid_y, owner = [], [], [], []
   for index in range(sub_starts.shape[0]):
-    grid_y, grid_x = divmod(index, sub_x)
-    parent = (grid_y // f) * tiling["tiles_x"] + grid_x // f
-    listed = ids[starts[parent] : ends[parent]]
-    reaches = binning.reaches_tile(
+    y, x = divmod(index, sub_x)
+    parent = (y // f) * tiling["tiles_x"] + x // f
+    pairs = ids[starts[parent] : ends[parent]]
+    listed.append(pairs)
+    grid_x += [x] * pairs.size
+    grid_y += [y] * pairs.size
+    owner += [index] * pairs.size
+    assert bool(split.tile_truncated[index]) == bool(bins.tile_truncated[parent])
+  listed, owner = np.concatenate(listed), np.asarray(owner)
+  reaches = np.asarray(
+    binning.reaches_tile(
       proj.means2d[listed],
       proj.conics[listed],
       g.opacities[listed],
-      jnp.full(listed.shape, grid_x),
-      jnp.full(listed.shape, grid_y),
+      jnp.asarray(grid_x),
+      jnp.asarray(grid_y),
       tile_size=subtile_size,
       height=HEIGHT,
       width=WIDTH,
       alpha_threshold=tiling["alpha_threshold"],
     )
-    expected = listed[np.asarray(reaches)]
+  )
+  for index in range(sub_starts.shape[0]):
+    expected = listed[(owner == index) & reaches]  # the parent's list order, filtered
     np.testing.assert_array_equal(sub_ids[sub_starts[index] : sub_ends[index]], expected)
-    kept += expected.size
-    assert bool(split.tile_truncated[index]) == bool(bins.tile_truncated[parent])
+  kept = int(reaches.sum())
   # the scene is small enough that some pairs do not reach a sub-tile: the split does cut work
   assert 0 < kept < f * f * (ends[-1] - starts[0])
   assert int(split.num_intersections) == int(bins.num_intersections)

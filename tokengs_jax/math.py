@@ -33,12 +33,17 @@ def safe_normalize(x: jax.Array, axis: int = -1, eps: float = TINY) -> jax.Array
 
 
 def safe_exp(x: jax.Array, limit: float = 80.0) -> jax.Array:
-  """exp clipped so that neither the value nor the gradient overflows float32."""
+  """exp clipped so that neither the value nor the gradient overflows float32.
+
+  Above `limit` the value is exp(limit) and the gradient is 0 (the clamp's): an argument that
+  large is already a bug upstream, and a zero gradient keeps it from spreading.
+  """
   return jnp.exp(jnp.minimum(x, limit))
 
 
 def safe_div(num: jax.Array, den: jax.Array, eps: float = TINY) -> jax.Array:
-  """num / den with |den| floored at eps (sign kept); gradients stay finite."""
+  """num / den with |den| floored at eps (sign kept; den = 0 counts as positive); gradients stay
+  finite: d/dnum = 1 / den', and d/dden is 0 where the floor holds (|den| < eps)."""
   den = jnp.where(jnp.abs(den) < eps, jnp.where(den < 0, -eps, eps), den)
   return num / den
 

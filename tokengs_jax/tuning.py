@@ -137,10 +137,9 @@ def tune(
   offsets are time-independent (added to the Gaussians of every time). Without `times` a
   time-conditioned model decodes time-free (no target-time embedding).
 
-  Never computed from a truncated render: if any render inside the tuning loop overflowed its
-  tile budget (`stats.overflow`), the whole run is repeated with a budget that holds the most pairs
-  any of its renders needed (`splatting.larger_budget(..., needed=)`; the retried trajectory can
-  need more, so this repeats until no render overflowed). Call it outside jit.
+  Never computed from a truncated render: while any render of the run overflowed its tile
+  budget (`stats.overflow`), the run is repeated with a budget that holds the most pairs one
+  needed (`splatting.larger_budget(..., needed=)`). Call it outside jit.
 
   Args:
     params: network parameters (read only).
@@ -151,18 +150,15 @@ def tune(
     tuning: what to tune, steps, learning rates.
     loss_config: `losses.LossConfig` (default: the training loss).
     render_config: `splatting.RenderConfig`.
-    objective: view chunking, background, near/far of the input-view renders (default
-      `ObjectiveConfig()`; its `decode_times` is ignored: input views have their own times;
-      an "input_mean" background is the mean colour of `images`).
+    objective: the input-view renders' chunking, background ("input_mean": of `images`),
+      near/far (default `ObjectiveConfig()`; `decode_times` ignored: views have their times).
     times: [B, V] normalised input-view times (time-conditioned models).
-    output_times: [B, T] times at which to return the tuned Gaussians (default `times`).
-    output_c2w: [B, T, 4, 4] the cameras the tuned Gaussians will be rendered from, one per
-      output time (models whose colours depend on the viewer, `model_config.viewer_dependent`:
-      one set per camera; the input views are then tuned each with its own colours too).
+    output_times: [B, T] times of the returned Gaussians (default `times`).
+    output_c2w: [B, T, 4, 4] the cameras the result is rendered from: a set per camera where
+      colours depend on the viewer (each input view then tunes with its own colours).
 
   Returns:
-    `TuningResult` (with `tuning.steps == 0`: the feed-forward Gaussians and their loss); its
-    Gaussians have batch shape [B], or [B, T] (one set per output time, or per output camera).
+    `TuningResult` (0 steps: the feed-forward one); Gaussians [B] or [B, T] (per time / camera).
   """
   render_config = splatting.RenderConfig() if render_config is None else render_config
   while True:

@@ -33,6 +33,7 @@ import jax
 import jax.numpy as jnp
 
 from tokengs_jax.camera import invert_rigid, project_points
+from tokengs_jax.math import safe_normalize
 
 # Camera-z below which a view does not see a Gaussian (the renderer's near plane).
 NEAR = 0.025
@@ -160,19 +161,13 @@ def viewer_colours(
   """
   samples, inside, positions = _sampled(means, views)
   centres = invert_rigid(views.world_to_camera)[..., :3, 3]  # [B, V, 3]
-  from_views = _unit(positions - centres[:, :, None])  # [B, V, N, 3]
-  from_viewers = _unit(present[:, None] - viewers[:, :, None])  # [B, T, N, 3]
+  from_views = safe_normalize(positions - centres[:, :, None])  # [B, V, N, 3]
+  from_viewers = safe_normalize(present[:, None] - viewers[:, :, None])  # [B, T, N, 3]
   cosines = jnp.einsum("bvnk,btnk->btvn", from_views, from_viewers)
   # views that do not contain the projection get no weight (uniform where none does: unseen)
   weights = jax.nn.softmax(jnp.where(inside[:, None], sharpness * cosines, -1e9), axis=2)
   colours = jnp.einsum("btvn,bvnc->btnc", weights, samples)
   return colours, jnp.any(inside, axis=1)
-
-
-def _unit(x: jax.Array) -> jax.Array:
-  """x / |x| along the last axis; 0 (zero gradient) where x is 0."""
-  norm = jnp.sqrt(jnp.maximum(jnp.sum(x * x, axis=-1, keepdims=True), 1e-20))
-  return x / norm
 
 
 def with_input_colours(

@@ -87,7 +87,7 @@ def _slice_gaussians(gaussians: Gaussians, start: int) -> Gaussians:
 
 
 def time_conditioned_loss(
-  gaussians_at: Callable[[jax.Array], Gaussians],
+  gaussians_at: Callable[[jax.Array, jax.Array], Gaussians],
   times: jax.Array,
   images: jax.Array,
   world_to_camera: jax.Array,
@@ -103,13 +103,11 @@ def time_conditioned_loss(
 ):
   """Loss of time-conditioned Gaussians against views taken at different times.
 
-  Each view is rendered from `gaussians_at` its own time (or, with `objective.decode_times ==
-  "first"`, every view from the Gaussians at the first view's time) and scored with
-  `losses.render_loss`. The views are processed in rematerialised chunks of
-  `objective.view_chunk_size`, and `gaussians_at` runs inside each chunk, so peak memory holds one
-  chunk's decodes and renders. Visibility: the Gaussians of each view's time are projected into
-  all views (min over views as the official loss, whose single target time this generalises),
-  averaged over the views' times.
+  Each view is rendered from `gaussians_at` its own time (`objective.decode_times == "first"`:
+  every view from one decode at the first view's time) and scored with `losses.render_loss`, in
+  rematerialised chunks of `objective.view_chunk_size` views; `gaussians_at` runs inside each
+  chunk, so peak memory holds one chunk's decodes and renders. Visibility: the Gaussians of each
+  view's time projected into all views (min over views, as official), averaged over the times.
 
   With `num_static_gaussians` set and `loss_config.lambda_dyn_aux > 0`, adds the official dynamic
   auxiliary loss: the same loss (photometric + visibility) of a render of the Gaussians
@@ -117,10 +115,9 @@ def time_conditioned_loss(
   `losses.dynamic_aux_weight(step)`; it is not evaluated while that weight is 0.
 
   Args:
-    gaussians_at: `(times [B, T], world_to_camera [B, T, 4, 4]) -> Gaussians [B, T]`, the sets
-      to render at those times from those cameras (e.g. `decode_at_times` closed over params);
-      with `decode_times == "first"` it is called once with times [B, 1] and every view's
-      camera, and may return one set [B, 1] or one per view [B, V].
+    gaussians_at: `(times [B, T], world_to_camera [B, T, 4, 4]) -> Gaussians [B, T]` to render
+      at those times from those cameras (e.g. `decode_at_times`); under "first" called once with
+      times [B, 1] and every view's camera: one set [B, 1] or one per view [B, V].
     times: [B, V] normalised time of each supervision view.
     images: [B, V, H, W, 3] supervision images in [0, 1].
     world_to_camera: [B, V, 4, 4].
@@ -129,11 +126,9 @@ def time_conditioned_loss(
     render_config: `splatting.RenderConfig`.
     objective: view chunking, background, near/far, decode_times.
     lpips_params: VGG weights when `loss_config.lambda_lpips > 0`.
-    num_static_gaussians: where the dynamic Gaussians start (`ModelConfig.num_static_gaussians`);
-      None: no auxiliary loss.
+    num_static_gaussians: where the dynamic Gaussians start (None: no auxiliary loss).
     step: [] int, the training step the auxiliary weight's schedule reads.
-    context_images: [B, Vi, H, W, 3] input views: their mean colour is every render's background
-      (the auxiliary one's too) under `objective.background == "input_mean"`.
+    context_images: [B, Vi, H, W, 3] the input views (every "input_mean" background's colour).
 
   Returns:
     `(loss, terms)`: as `supervision_loss`, plus "dyn_aux" (the auxiliary loss, 0 while its
@@ -142,15 +137,11 @@ def time_conditioned_loss(
   from tokengs_jax import losses
 
   world_to_camera, intrinsics = world_to_camera.astype(jnp.float32), intrinsics.astype(jnp.float32)
+  times = jnp.asarray(times, jnp.float32)
   aux_weight = losses.dynamic_aux_weight(step, loss_config)
 
-  views = {
-    "world_to_camera": world_to_camera,
-    "intrinsics": intrinsics,
-    "images": images.astype(jnp.float32),
-    "times": jnp.asarray(times, jnp.float32),
-  }
-  shared = None
+  views = {"world_to_camera": world_to_camera, "intrinsics": intrinsics, "times": times}
+  views["images"], shared = images.astype(jnp.float32), None
   if objective.decode_times == "first":
     shared = _float32(gaussians_at(times[:, :1], world_to_camera))
     if shared.batch_shape[1] > 1:  # one set per view (viewer-dependent colours): chunk them too

@@ -205,9 +205,8 @@ def supervision_loss(
 ):
   """Loss of Gaussians against supervision views (training targets, or the inputs when tuning).
 
-  The views are rendered in chunks of `objective.view_chunk_size` under remat and scored with
-  `photometric_loss` averaged over chunks, then `add_visibility` over all views. Equals
-  `losses.render_loss` on the one-shot render.
+  Views rendered in remat chunks of `objective.view_chunk_size`, `photometric_loss` averaged
+  over chunks, then `add_visibility` over all views (= `losses.render_loss` of one render).
 
   Args:
     gaussians: `Gaussians` with batch shape [B] (rendered in float32), or [B, V]: set v seen by
@@ -221,8 +220,7 @@ def supervision_loss(
     lpips_params: VGG weights when `loss_config.lambda_lpips > 0`.
     depths: [B, V, H, W] true depth of the views (0: unknown), or None; with
       `loss_config.lambda_depth > 0` it adds `lambda_depth * losses.depth_loss` (term "depth").
-    context_images: [B, Vi, H, W, 3] the examples' input views, whose mean colour is the
-      background under `objective.background == "input_mean"` (unused otherwise).
+    context_images: [B, Vi, H, W, 3] the input views (the "input_mean" background's colour).
 
   Returns:
     `(loss, terms)`: the loss terms, "psnr", and `render_diagnostics`.
@@ -238,29 +236,21 @@ def supervision_loss(
   per_view = len(gaussians.batch_shape) == 2
 
   def chunk_loss(views):
+    w2c, intrinsics = views["world_to_camera"], views["intrinsics"]
     if per_view:  # each view's own set: a batch [B, Vc] of single-camera renders
-      rendered = render_views(
-        views["gaussians"],
-        views["world_to_camera"][:, :, None],
-        views["intrinsics"][:, :, None],
-        height,
-        width,
-        render_config,
-        objective,
-        context_images,
-      )
+      w2c, intrinsics = w2c[:, :, None], intrinsics[:, :, None]
+    rendered = render_views(
+      views["gaussians"] if per_view else gaussians,
+      w2c,
+      intrinsics,
+      height,
+      width,
+      render_config,
+      objective,
+      context_images,
+    )
+    if per_view:
       rendered = jax.tree.map(lambda x: x[:, :, 0], rendered)
-    else:
-      rendered = render_views(
-        gaussians,
-        views["world_to_camera"],
-        views["intrinsics"],
-        height,
-        width,
-        render_config,
-        objective,
-        context_images,
-      )
     loss, terms = photometric_loss(rendered.rgb, views["images"], loss_config, lpips_params)
     if with_depth:
       terms["depth"] = losses.depth_loss(rendered.depth, rendered.alpha, views["depths"])
