@@ -165,8 +165,7 @@ def write_scene_exports(
     return []
   out_dir = pathlib.Path(out_dir)
   gaussians = entry[method]["gaussians"]
-  leading = gaussians.means.ndim - 2  # [1] or [1, Vt]: the first set
-  one = jax.tree.map(lambda x: np.asarray(x)[(0,) * leading], gaussians)
+  one = jax.tree.map(np.asarray, gaussians.first_set())  # [1] or [1, Vt]: the first set
   written = [
     export.write_ply(
       out_dir / "gaussians.ply", one.means, one.opacities, one.scales, one.quats, one.colors

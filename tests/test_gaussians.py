@@ -52,3 +52,12 @@ def test_validate_returns_the_batch_shape_and_names_a_bad_field():
     fields = {**vars(g), field: value}
     with pytest.raises(ValueError, match=match):
       Gaussians(**fields).validate()
+
+
+def test_first_set_takes_index_zero_of_every_batch_axis():
+  flat = jnp.arange(2 * 3 * 5 * 14, dtype=jnp.float32).reshape(2, 3, 5, 14)
+  first = Gaussians.from_flat(flat).first_set()
+  assert first.batch_shape == ()
+  np.testing.assert_array_equal(first.to_flat(), flat[0, 0])
+  single = Gaussians.from_flat(flat[0])
+  np.testing.assert_array_equal(single.first_set().to_flat(), flat[0, 0])

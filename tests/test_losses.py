@@ -290,6 +290,14 @@ def test_input_mean_background_is_composited_behind_the_render():
     ObjectiveConfig(background="grey")
 
 
+def _two_supervision_views():
+  """(images [2, 2, 16, 16, 3], world_to_camera, intrinsics): two examples, two views 0.3 apart."""
+  images = jax.random.uniform(jax.random.key(2), (2, 2, 16, 16, 3))
+  w2c = jnp.tile(jnp.eye(4), (2, 2, 1, 1)).at[:, 1, 0, 3].set(0.3)
+  intrinsics = jnp.tile(jnp.array([16.0, 16.0, 8.0, 8.0]), (2, 2, 1))
+  return images, w2c, intrinsics
+
+
 def test_objectives_with_input_mean_use_each_examples_own_input_colour():
   """Two examples with different inputs, scored together (in view chunks), lose exactly what
   each loses alone over the fixed RGB of its own inputs' mean colour: static and time-conditioned
@@ -299,9 +307,7 @@ def test_objectives_with_input_mean_use_each_examples_own_input_colour():
   from tokengs_jax.train.supervision import ObjectiveConfig, supervision_loss
 
   gaussians, context = _scene_of_two_examples()
-  images = jax.random.uniform(jax.random.key(2), (2, 2, 16, 16, 3))
-  w2c = jnp.tile(jnp.eye(4), (2, 2, 1, 1)).at[:, 1, 0, 3].set(0.3)
-  intrinsics = jnp.tile(jnp.array([16.0, 16.0, 8.0, 8.0]), (2, 2, 1))
+  images, w2c, intrinsics = _two_supervision_views()
   times = jnp.array([[0.2, 0.7], [0.4, 0.9]])
   loss_config = losses.LossConfig(lambda_dyn_aux=0.3)
   render = splatting.RenderConfig()
@@ -343,9 +349,7 @@ def test_objectives_render_one_set_per_view_as_each_view_alone():
   from tokengs_jax.train.supervision import ObjectiveConfig, supervision_loss
 
   gaussians, _ = _scene_of_two_examples()
-  images = jax.random.uniform(jax.random.key(2), (2, 2, 16, 16, 3))
-  w2c = jnp.tile(jnp.eye(4), (2, 2, 1, 1)).at[:, 1, 0, 3].set(0.3)
-  intrinsics = jnp.tile(jnp.array([16.0, 16.0, 8.0, 8.0]), (2, 2, 1))
+  images, w2c, intrinsics = _two_supervision_views()
   render = splatting.RenderConfig()
   recoloured = dataclasses.replace(gaussians, colors=1.0 - gaussians.colors)
   per_view = jax.tree.map(lambda a, b: jnp.stack([a, b], axis=1), gaussians, recoloured)

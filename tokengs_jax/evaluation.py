@@ -124,14 +124,12 @@ def reconstruct(
   not given), one set per camera, batch shape [B, T]; without cameras their colours are the
   views' mean.
   """
+  if target_times is None and viewer_c2w is None:
+    viewer_c2w = batch["target_c2w"]
   times = None
   if config.time_embedding:
     times = batch["context_times"]
-    if target_times is None:
-      target_times = batch["target_times"]
-      viewer_c2w = batch["target_c2w"] if viewer_c2w is None else viewer_c2w
-  elif viewer_c2w is None:
-    viewer_c2w = batch["target_c2w"]
+    target_times = batch["target_times"] if target_times is None else target_times
   return _reconstruct(
     params,
     batch["context_images"],

@@ -83,3 +83,8 @@ class Gaussians:
   @property
   def batch_shape(self) -> tuple[int, ...]:
     return self.means.shape[:-2]
+
+  def first_set(self) -> "Gaussians":
+    """The set at index 0 of every batch axis (e.g. [1] or [1, T] -> fields [N, ...])."""
+    index = (0,) * len(self.batch_shape)
+    return jax.tree.map(lambda x: x[index], self)

@@ -244,9 +244,8 @@ class ResultsSource:
     # seen from the first input camera
     first_camera = batch["context_c2w"][:, :1]
     gaussians = evaluation.reconstruct(self.params, batch, self.config, target_times, first_camera)
-    leading = gaussians.means.ndim - 2  # [1] or [1, 1]
     gaussians = jax.tree.map(
-      lambda x: np.asarray(x[(0,) * leading], np.float32), jax.device_get(gaussians)
+      lambda x: np.asarray(x, np.float32), jax.device_get(gaussians.first_set())
     )
     views = lambda prefix: Cameras(
       np.asarray(batch[f"{prefix}_images"][0], np.float32),

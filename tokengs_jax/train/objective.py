@@ -137,15 +137,11 @@ def time_conditioned_loss(
   from tokengs_jax import losses
 
   world_to_camera, intrinsics = world_to_camera.astype(jnp.float32), intrinsics.astype(jnp.float32)
-  times = jnp.asarray(times, jnp.float32)
   aux_weight = losses.dynamic_aux_weight(step, loss_config)
 
-  views = {"world_to_camera": world_to_camera, "intrinsics": intrinsics, "times": times}
-  views["images"], shared = images.astype(jnp.float32), None
-  if objective.decode_times == "first":
-    shared = _float32(gaussians_at(times[:, :1], world_to_camera))
-    if shared.batch_shape[1] > 1:  # one set per view (viewer-dependent colours): chunk them too
-      views["gaussians"], shared = shared, None
+  views, shared = _chunked_views(
+    gaussians_at, times, images, world_to_camera, intrinsics, objective.decode_times
+  )
   scored = functools.partial(
     _score_at_times,
     world_to_camera=world_to_camera,
@@ -166,6 +162,27 @@ def time_conditioned_loss(
     )
 
   return mean_over_view_chunks(chunk_loss, views, objective.view_chunk_size)
+
+
+def _chunked_views(gaussians_at, times, images, world_to_camera, intrinsics, decode_times):
+  """(the views `mean_over_view_chunks` splits, the Gaussians every view shares or None).
+
+  Under `decode_times == "first"` the one decode at the first view's time is shared by every
+  view ([B, 1]), or, one set per view ([B, V]: viewer-dependent colours), chunked with them
+  under "gaussians"; otherwise each chunk decodes its own.
+  """
+  views = {
+    "world_to_camera": world_to_camera,
+    "intrinsics": intrinsics,
+    "images": images.astype(jnp.float32),
+    "times": jnp.asarray(times, jnp.float32),
+  }
+  if decode_times != "first":
+    return views, None
+  shared = _float32(gaussians_at(views["times"][:, :1], world_to_camera))
+  if shared.batch_shape[1] > 1:
+    return {**views, "gaussians": shared}, None
+  return views, shared
 
 
 def _score_at_times(
