@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tokengs_jax import process
 from tokengs_jax.data import (
   BoundedSamplerConfig,
   ChunkedSceneSource,
@@ -60,6 +61,7 @@ def main():
   parser.add_argument("--batches", type=int, default=20)
   parser.add_argument("--workers", type=int, nargs="+", default=[0, 2])
   args = parser.parse_args()
+  process.setup()
   with tempfile.TemporaryDirectory() as tmp:
     root = Path(tmp)
     start = time.perf_counter()

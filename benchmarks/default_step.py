@@ -15,7 +15,7 @@ compiled HLO's op names.
     git worktree add /tmp/old b32f2ed && python benchmarks/default_step.py --checkout /tmp/old
         # the session-3 start (issue 11's "now"): its experiments package was one module
     python benchmarks/default_step.py --host-memory default
-        # glibc's and JAX's own host memory settings (the experiments set `host_memory`'s)
+        # glibc's and JAX's own host memory settings (the experiments set `tokengs_jax.process`'s)
 
 The data set is generated under `--data` when missing (as the default run does).
 """
@@ -50,14 +50,14 @@ def use_checkout(path: str) -> None:
   sys.path.insert(0, path)
 
 
-def retain_freed_memory() -> None:
-  """This checkout's `tokengs_jax.host_memory.retain_freed_memory()`, loaded from its file so that
-  `--checkout` can still choose where `tokengs_jax` itself comes from (older checkouts lack it)."""
-  path = pathlib.Path(__file__).resolve().parent.parent / "tokengs_jax" / "host_memory.py"
-  spec = importlib.util.spec_from_file_location("_this_checkouts_host_memory", path)
+def this_checkouts_process():
+  """This checkout's `tokengs_jax.process`, loaded from its file (it imports nothing of
+  `tokengs_jax`) so that `--checkout` can still choose where `tokengs_jax` itself comes from."""
+  path = pathlib.Path(__file__).resolve().parent.parent / "tokengs_jax" / "process.py"
+  spec = importlib.util.spec_from_file_location("_this_checkouts_process", path)
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)
-  module.retain_freed_memory()
+  return module
 
 
 def _value(text: str):
@@ -132,16 +132,10 @@ def main() -> None:
     "--model", nargs="*", default=[], help="ModelConfig overrides, e.g. matmul_dtype=bfloat16"
   )
   parser.add_argument("--checkout", default=None, help="time the code of this git checkout")
-  parser.add_argument(
-    "--host-memory",
-    choices=("retain", "default"),
-    default="retain",
-    help="retain: this checkout's host_memory.retain_freed_memory() first, as the experiments do "
-    "(also with --checkout); default: glibc's and JAX's own settings",
-  )
+  process = this_checkouts_process()
+  process.add_arguments(parser)
   args = parser.parse_args()
-  if args.host_memory == "retain":
-    retain_freed_memory()
+  process.setup(host_memory=args.host_memory)
   if args.checkout:
     use_checkout(args.checkout)
   from tokengs_jax.train import (

@@ -24,6 +24,7 @@ import types
 import numpy as np
 import torch
 
+from tokengs_jax import process
 from tokengs_jax import lpips as jax_lpips
 
 # torchvision vgg16 `features`: conv widths, "M" = MaxPool2d(2, 2); each conv is followed by a ReLU.
@@ -98,6 +99,7 @@ def main() -> None:
   parser.add_argument("--out", required=True)
   parser.add_argument("--seed", type=int, default=0)
   args = parser.parse_args()
+  process.setup()
 
   params = jax_lpips.load_vgg_params()
   _install_torchvision_stand_in(params)

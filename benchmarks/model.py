@@ -50,7 +50,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tokengs_jax import host_memory
+from tokengs_jax import process
 from tokengs_jax.camera import plucker_rays
 from tokengs_jax.metrics import psnr
 from tokengs_jax.model import decoder as model_decoder
@@ -461,16 +461,9 @@ def main():
     help="also time our PyTorch forward (benchmarks/torch_reference.py)",
   )
   parser.add_argument("--out", default=None, help="write the results as JSON here")
-  parser.add_argument(
-    "--host-memory",
-    choices=("retain", "default"),
-    default="retain",
-    help="retain: call tokengs_jax.host_memory.retain_freed_memory() first, as the experiments "
-    "do; default: glibc's and JAX's own settings",
-  )
+  process.add_arguments(parser)
   args = parser.parse_args()
-  if args.host_memory == "retain":
-    host_memory.retain_freed_memory()
+  process.setup(host_memory=args.host_memory)
   cases = args.case or ["tiny:8", "dl3dv_2view:1", "dl3dv_2view:1:128x224:1024"]
   variants = tuple(args.variant or ["tiled"])
   variants += ("plain",) if args.compare_plain_attention and "plain" not in variants else ()

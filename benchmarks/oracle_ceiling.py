@@ -24,6 +24,7 @@ import json
 import jax.numpy as jnp
 import numpy as np
 
+from tokengs_jax import process
 from tokengs_jax import evaluation
 from tokengs_jax.data.synthetic.generate import render_gallery_scene, render_re10k_like_scene
 from tokengs_jax.gaussians import Gaussians
@@ -96,6 +97,7 @@ def main() -> None:
   parser.add_argument("--footprints", type=float, nargs="+", default=[0.25, 0.4, 0.6])
   parser.add_argument("--out", default=None, help="also write the table as JSON here")
   args = parser.parse_args()
+  process.setup()
 
   methods = dict(evaluation.baselines())
   for stride in args.strides:

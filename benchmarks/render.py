@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tokengs_jax import host_memory
+from tokengs_jax import process
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.splatting import RenderConfig, pipeline, rasterize, render
 
@@ -168,13 +168,7 @@ def parse_args() -> argparse.Namespace:
     description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
   )
   parser.add_argument("--sizes", type=int, nargs="+", default=[4096, 16384, 65536, 262144])
-  parser.add_argument(
-    "--host-memory",
-    choices=("retain", "default"),
-    default="retain",
-    help="retain: call tokengs_jax.host_memory.retain_freed_memory() first, as the experiments "
-    "do; default: glibc's and JAX's own settings",
-  )
+  process.add_arguments(parser)
   parser.add_argument("--images", nargs="+", default=["256x256", "256x448"], help="HxW")
   parser.add_argument("--scene", choices=["fine", "tokengs"], default="fine")
   parser.add_argument(
@@ -254,8 +248,7 @@ def print_row(row: dict) -> None:
 
 def main():
   args = parse_args()
-  if args.host_memory == "retain":
-    host_memory.retain_freed_memory()
+  process.setup(host_memory=args.host_memory)
   if args.stages:
     height, width = map(int, args.images[0].split("x"))
     scene = make_scene(args.sizes[0], tuple(args.scale_range or (0.005, 0.04)))

@@ -12,17 +12,15 @@ field of the chosen preset is a flag (nested fields as `--train.steps`, `--model
 from __future__ import annotations
 
 import dataclasses
-import os
 import sys
 from collections.abc import Mapping, Sequence
 from typing import Annotated, Union
 
-import jax
 import tyro
 
 from experiments.config import Experiment
 from experiments.tasks import COMMANDS, Command, Task, execute
-from tokengs_jax import host_memory
+from tokengs_jax import process
 
 
 def _invocation_type(presets: Mapping[str, Experiment], default_preset: str):
@@ -90,16 +88,5 @@ def main(
 ) -> dict | None:
   argv = sys.argv[1:] if argv is None else list(argv)
   command, experiment = parse(argv, presets, default_preset, prog)
-  enable_compile_cache()
-  host_memory.retain_freed_memory()
+  process.setup()
   return execute(command, experiment, task, invocation=" ".join([prog] + argv))
-
-
-def enable_compile_cache() -> None:
-  """Persistent XLA cache (`$TOKENGS_JAX_CACHE`, default `.jax_cache`): on CPU, compiling the
-  training step and the renderer takes longer than a short run itself, so reruns reuse it."""
-  if not jax.config.jax_compilation_cache_dir:
-    jax.config.update(
-      "jax_compilation_cache_dir", os.environ.get("TOKENGS_JAX_CACHE", ".jax_cache")
-    )
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)

@@ -76,9 +76,18 @@ def init_params(key: jax.Array, config: ModelConfig) -> dict:
 
 
 def reconstruct(
-  params, images: jax.Array, c2w: jax.Array, intrinsics: jax.Array, *, config: ModelConfig
+  params,
+  images: jax.Array,
+  c2w: jax.Array,
+  intrinsics: jax.Array,
+  *,
+  config: ModelConfig,
+  viewer_c2w: jax.Array | None = None,
 ) -> Gaussians:
-  """Images in [0, 1] [B, V, H, W, 3] + cameras -> Gaussians [B, V * H * W] on the pixel rays."""
+  """Images in [0, 1] [B, V, H, W, 3] + cameras -> Gaussians [B, V * H * W] on the pixel rays.
+
+  Where `config.viewer_dependent`, colours are read for the cameras `viewer_c2w` [B, T, 4, 4]
+  as TokenGS's are: one set per camera, Gaussians [B, T, V * H * W]."""
   height, width = images.shape[-3:-1]
   raw = PixelAlignedGS(config).apply(
     {"params": params}, normalize_images(images), plucker_rays(c2w, intrinsics, height, width)
@@ -92,7 +101,13 @@ def reconstruct(
   flat = jnp.concatenate([means, flat[..., 3:]], axis=-1)
   flat = flat.reshape(flat.shape[0], -1, flat.shape[-1])
   if config.gaussian_colours == "inputs":  # the same colour source as the TokenGS it is set beside
-    flat = with_input_colours(flat, InputViews(images, invert_rigid(c2w), intrinsics))
+    viewers = viewer_c2w[..., :3, 3] if config.viewer_dependent else None
+    flat = with_input_colours(
+      flat,
+      InputViews(images, invert_rigid(c2w), intrinsics),
+      viewers=viewers,
+      sharpness=config.viewer_colour_sharpness,
+    )
   return Gaussians.from_flat(flat)
 
 
@@ -116,6 +131,7 @@ def loss_fn(
       batch["context_c2w"],
       batch["context_intrinsics"],
       config=config,
+      viewer_c2w=batch["target_c2w"],
     )
     return supervision_loss(
       gaussians,
@@ -134,8 +150,8 @@ def loss_fn(
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
-def jitted_reconstruct(params, images, c2w, intrinsics, config):
-  return reconstruct(params, images, c2w, intrinsics, config=config)
+def jitted_reconstruct(params, images, c2w, intrinsics, config, viewer_c2w=None):
+  return reconstruct(params, images, c2w, intrinsics, config=config, viewer_c2w=viewer_c2w)
 
 
 def method(params, config: ModelConfig, objective=None):
@@ -146,7 +162,12 @@ def method(params, config: ModelConfig, objective=None):
 
   return evaluation.Method(
     reconstruct=lambda batch: jitted_reconstruct(
-      params, batch["context_images"], batch["context_c2w"], batch["context_intrinsics"], config
+      params,
+      batch["context_images"],
+      batch["context_c2w"],
+      batch["context_intrinsics"],
+      config,
+      batch["target_c2w"],
     ),
     objective=ObjectiveConfig() if objective is None else objective,
   )

@@ -25,8 +25,8 @@ from typing import Annotated
 
 import tyro
 
-from experiments.cli import enable_compile_cache
 from experiments.viewer import app, browser, scenes
+from tokengs_jax import process
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,7 +84,7 @@ def main(argv=None) -> None:
   settings = tyro.cli(
     ViewSettings, args=sys.argv[1:] if argv is None else argv, prog="python -m experiments.view"
   )
-  enable_compile_cache()
+  process.setup()
   server, _ = start(settings)
   url = f"http://{'127.0.0.1' if settings.host == '0.0.0.0' else settings.host}:{server.get_port()}"
   try:

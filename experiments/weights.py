@@ -16,7 +16,7 @@ import sys
 import jax
 
 from experiments.config import Experiment
-from tokengs_jax import model
+from tokengs_jax import model, process
 
 
 def save_params(path, params) -> pathlib.Path:
@@ -114,6 +114,7 @@ def ship(run_dir, destination) -> dict:
 
 
 if __name__ == "__main__":
+  process.setup()
   if len(sys.argv) != 4 or sys.argv[1] != "ship":
     sys.exit("usage: python -m experiments.weights ship RUN_DIR DESTINATION")
   print(json.dumps(ship(sys.argv[2], sys.argv[3])["files"], indent=1))

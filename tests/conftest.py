@@ -1,6 +1,8 @@
 """Test-wide JAX setup: 4 virtual CPU devices (sharding tests) and a persistent compile cache.
 
-Both must be configured before any JAX computation runs, hence here and at import time.
+Both must be configured before any JAX computation runs, hence here and at import time. The
+host memory policy stays JAX's and glibc's own: `tests/test_process.py` compares both in fresh
+interpreters.
 """
 
 import os
@@ -9,13 +11,16 @@ import pathlib
 import jax
 import pytest
 
-jax.config.update("jax_num_cpu_devices", 4)
-_CACHE = pathlib.Path(
-  os.environ.get("TOKENGS_JAX_CACHE", pathlib.Path(__file__).parent.parent / ".jax_cache")
+from tokengs_jax import process
+
+process.setup(
+  compile_cache=os.environ.get(
+    "TOKENGS_JAX_CACHE", pathlib.Path(__file__).parent.parent / ".jax_cache"
+  ),
+  min_compile_seconds=0.5,
+  host_memory="default",
+  cpu_devices=4,
 )
-jax.config.update("jax_compilation_cache_dir", str(_CACHE))
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 FIXTURES = pathlib.Path(__file__).resolve().parent.parent.parent / "shared" / "fixtures"
 

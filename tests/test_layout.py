@@ -66,3 +66,18 @@ def test_one_evaluation_code_path():
   formula = re.compile(r"10(\.0*)?\s*\*\s*[\w.]*log10\(")
   writing = {str(p.relative_to(REPO)) for p in _sources() if formula.search(p.read_text())}
   assert writing == {"tokengs_jax/metrics.py"}, writing
+
+
+def test_every_entry_point_sets_the_process_up():
+  """Every runnable module that uses JAX starts with `tokengs_jax.process.setup` (itself, or
+  through `experiments.cli.main`), so no entry point runs on other JAX settings."""
+  uses_jax = re.compile(r"^(import jax|from (jax|tokengs_jax|experiments)\b)", re.M)
+  skipping = {
+    str(path.relative_to(REPO))
+    for path in _sources()
+    if '__name__ == "__main__"' in (text := path.read_text())
+    and uses_jax.search(text)
+    and "process.setup(" not in text
+    and "from experiments.cli import main" not in text
+  }
+  assert not skipping, f"entry points without process.setup: {skipping}"

@@ -142,9 +142,12 @@ def test_each_output_token_writes_exactly_its_own_patch(baseline, scene):
   np.testing.assert_array_equal(changed, expected)
 
 
-def test_training_loss_has_finite_nonzero_gradients(baseline):
-  """`loss_fn` (render + photometric + visibility terms) differentiates through every layer."""
+@pytest.mark.parametrize("colour_weights", ["mean", "viewer"])
+def test_training_loss_has_finite_nonzero_gradients(baseline, colour_weights):
+  """`loss_fn` (render + photometric + visibility terms) differentiates through every layer,
+  also with colours read for each target camera."""
   config, params = baseline
+  config = config.replace(input_colour_weights=colour_weights)
   height = width = 16  # small renders: the gradient program is the file's largest compile
   context_c2w, context_k = _cameras(2, height, width)
   target_c2w, target_k = _cameras(3, height, width)
@@ -184,3 +187,23 @@ def test_colours_come_from_the_input_views_like_tokengs(baseline, scene, gaussia
   head = pixel_baseline.jitted_reconstruct(params, *scene, config.replace(gaussian_colours="head"))
   np.testing.assert_allclose(head.means, gaussians.means, atol=1e-6)
   assert np.abs(np.asarray(head.colors) - expected).max() > 0.1
+
+
+def test_viewer_colours_give_one_set_per_camera_like_tokengs(baseline, scene, gaussians):
+  """With `input_colour_weights="viewer"` the Gaussians come as one set per viewing camera (here
+  the two input cameras), each coloured by `viewer_colours` for it, at the mean-colour model's
+  positions; the two cameras see different colours."""
+  from tokengs_jax.model.colours import InputViews, viewer_colours
+
+  config, params = baseline
+  viewer = config.replace(input_colour_weights="viewer")
+  images, c2w, intrinsics = scene
+  per_camera = pixel_baseline.jitted_reconstruct(params, *scene, viewer, c2w)
+  assert per_camera.means.shape == (1, 2) + gaussians.means.shape[1:]
+  for t in range(2):
+    np.testing.assert_allclose(per_camera.means[:, t], gaussians.means, atol=1e-6)
+  means = jnp.asarray(gaussians.means)
+  views = InputViews(images, invert_rigid(c2w), intrinsics)
+  expected, _ = viewer_colours(means, views, means, c2w[..., :3, 3], viewer.viewer_colour_sharpness)
+  np.testing.assert_allclose(per_camera.colors, expected, atol=1e-5)
+  assert np.abs(np.asarray(per_camera.colors[:, 0] - per_camera.colors[:, 1])).max() > 0.05

@@ -43,7 +43,7 @@ _SUBMODULES = (
   "tuning",
   "evaluation",
   "export",
-  "host_memory",
+  "process",
 )
 
 __all__ = sorted(_PUBLIC) + list(_SUBMODULES)

@@ -23,7 +23,6 @@ import jax
 import numpy as np
 
 from experiments import data, tasks, training, weights
-from experiments.cli import enable_compile_cache
 from experiments.config import Experiment
 from tokengs_jax import evaluation, model
 
@@ -56,7 +55,6 @@ def train(experiment: Experiment, params, loss_fn=None) -> dict:
 
 def trained_tokengs(settings: StudySettings) -> tuple[model.ModelConfig, dict]:
   """The model config and trained weights (training them with the experiment when missing)."""
-  enable_compile_cache()
   config = settings.experiment.model
   path = pathlib.Path(settings.params)
   if path.exists():

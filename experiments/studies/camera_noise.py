@@ -28,7 +28,7 @@ from experiments.studies import (
   trained_tokengs,
   write_table,
 )
-from tokengs_jax import evaluation
+from tokengs_jax import evaluation, process
 
 
 @dataclasses.dataclass(frozen=True)
@@ -135,4 +135,5 @@ def main(settings: CameraNoise) -> list[dict]:
 
 
 if __name__ == "__main__":
+  process.setup()
   main(tyro.cli(CameraNoise))

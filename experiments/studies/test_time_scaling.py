@@ -21,7 +21,7 @@ import tyro
 
 from experiments import plot
 from experiments.studies import StudySettings, held_out, psnr_of, trained_tokengs, write_table
-from tokengs_jax import evaluation
+from tokengs_jax import evaluation, process
 from tokengs_jax.tuning import TuningConfig
 
 
@@ -158,4 +158,5 @@ def main(settings: TestTimeScaling) -> list[dict]:
 
 
 if __name__ == "__main__":
+  process.setup()
   main(tyro.cli(TestTimeScaling))

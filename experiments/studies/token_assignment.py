@@ -24,7 +24,7 @@ import tyro
 
 from experiments import pictures, plot
 from experiments.studies import StudySettings, held_out, trained_tokengs, write_table
-from tokengs_jax import evaluation, export
+from tokengs_jax import evaluation, export, process
 from tokengs_jax.gaussians import Gaussians
 
 
@@ -128,4 +128,5 @@ def main(settings: TokenAssignment) -> list[dict]:
 
 
 if __name__ == "__main__":
+  process.setup()
   main(tyro.cli(TokenAssignment))

@@ -33,7 +33,7 @@ from experiments.studies import (
   trained_tokengs,
   write_table,
 )
-from tokengs_jax import evaluation, model
+from tokengs_jax import evaluation, model, process
 from tokengs_jax.tuning import TuningConfig
 
 
@@ -130,4 +130,5 @@ def main(settings: TokenCount) -> list[dict]:
 
 
 if __name__ == "__main__":
+  process.setup()
   main(tyro.cli(TokenCount))

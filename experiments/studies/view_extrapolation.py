@@ -21,7 +21,7 @@ import tyro
 
 from experiments import plot
 from experiments.studies import StudySettings, held_out, trained_tokengs, write_table
-from tokengs_jax import evaluation
+from tokengs_jax import evaluation, process
 from tokengs_jax.tuning import TuningConfig
 
 
@@ -119,4 +119,5 @@ def main(settings: ViewExtrapolation) -> list[dict]:
 
 
 if __name__ == "__main__":
+  process.setup()
   main(tyro.cli(ViewExtrapolation))

@@ -11,6 +11,7 @@ import time
 
 import tyro
 
+from tokengs_jax import process
 from tokengs_jax.data.synthetic import generate
 
 
@@ -83,4 +84,5 @@ def main(args: Re10k | Kubric) -> None:
 
 
 if __name__ == "__main__":
+  process.setup()
   main(tyro.extras.subcommand_cli_from_dict({"re10k": Re10k, "kubric": Kubric}))

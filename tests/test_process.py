@@ -1,4 +1,5 @@
-"""`host_memory.retain_freed_memory`: a repeated XLA:CPU run stops page-faulting its temporaries.
+"""`process`: the settings `setup` applies, and `retain_freed_memory`: a repeated XLA:CPU run stops
+page-faulting its temporaries.
 
 Each case runs in a fresh interpreter: the policy is process-wide and must precede the first
 computation, and this test process has long since run many.
@@ -15,9 +16,9 @@ _PROBE = textwrap.dedent(
   """
   import json, resource, sys
   import jax, jax.numpy as jnp
-  from tokengs_jax import host_memory
+  from tokengs_jax import process
 
-  applied = host_memory.retain_freed_memory() if sys.argv[1] == "retain" else None
+  applied = process.retain_freed_memory() if sys.argv[1] == "retain" else None
   # sin(x) feeds a dot, so XLA materialises it: a 64 MB temporary buffer per run.
   program = jax.jit(lambda x: jnp.sin(x) @ jnp.ones((x.shape[1],), x.dtype))
   x = jnp.full((4096, 4096), 0.5, jnp.float32)
@@ -58,14 +59,48 @@ def test_a_late_call_says_the_dispatch_setting_cannot_apply():
     """
     import warnings
     import jax.numpy as jnp
-    from tokengs_jax import host_memory
+    from tokengs_jax import process
 
     jnp.zeros(1).block_until_ready()  # creates the CPU client
     with warnings.catch_warnings(record=True) as caught:
       warnings.simplefilter("always")
-      host_memory.retain_freed_memory()
+      process.retain_freed_memory()
     print([str(w.message) for w in caught])
     """
   )
   done = subprocess.run([sys.executable, "-c", late], capture_output=True, text=True, check=True)
   assert "after the first JAX computation" in done.stdout
+
+
+def test_setup_applies_its_settings_once_and_the_first_call_wins(tmp_path):
+  script = textwrap.dedent(
+    f"""
+    import json
+    import jax
+    from tokengs_jax import process
+
+    first = process.setup(compile_cache={str(tmp_path)!r}, host_memory="default", cpu_devices=3)
+    again = process.setup(compile_cache="elsewhere", cpu_devices=1)
+    print(json.dumps(dict(
+      first=first, again=again, devices=jax.device_count(),
+      cache=jax.config.jax_compilation_cache_dir,
+      dispatch=jax.config.read("jax_cpu_enable_async_dispatch"),
+    )))
+    """
+  )
+  done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
+  seen = json.loads(done.stdout.strip().splitlines()[-1])
+  assert seen["first"] == {
+    "compile_cache": str(tmp_path),
+    "host_memory": "default",
+    "cpu_devices": 3,
+  }
+  assert seen["again"] == seen["first"]
+  assert seen["devices"] == 3 and seen["cache"] == str(tmp_path)
+  assert seen["dispatch"] is True  # "default" leaves JAX's asynchronous dispatch on
+
+
+def test_setup_rejects_an_unknown_memory_policy():
+  script = "from tokengs_jax import process; process.setup(host_memory='keep')"
+  done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+  assert done.returncode != 0 and "host_memory must be one of" in done.stderr
