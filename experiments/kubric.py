@@ -107,7 +107,7 @@ from tokengs_jax.data.kubric import (
 from tokengs_jax.data.synthetic import generate_kubric_like
 from tokengs_jax.data.synthetic.kubric_ood import FROZEN_SEED as OOD_SEED
 from tokengs_jax.data.synthetic.kubric_ood import generate_kubric_ood
-from tokengs_jax.train.supervision import ObjectiveConfig
+from tokengs_jax.objective import ObjectiveConfig
 
 # The held-out dynamic family's subset is also its test set's name in the results.
 TRAIN_SUBSET, TEST_SUBSET, OOD_SUBSET = "v0", "test", "ood_kubric"

@@ -117,7 +117,7 @@ def loss_fn(
   """The TokenGS training objective with this model in place of TokenGS (same terms, same renders;
   `lpips_params`: VGG weights when `loss_config.lambda_lpips > 0`)."""
   from tokengs_jax import losses, splatting
-  from tokengs_jax.train.supervision import ObjectiveConfig, supervision_loss
+  from tokengs_jax.objective import ObjectiveConfig, supervision_loss
 
   loss_config = losses.LossConfig() if loss_config is None else loss_config
   render_config = splatting.RenderConfig() if render_config is None else render_config
@@ -158,7 +158,7 @@ def method(params, config: ModelConfig, objective=None):
   """The trained baseline as an evaluation method: its Gaussians rendered at the targets with
   the objective it was trained with (`loss_fn`'s; None: `ObjectiveConfig()`)."""
   from tokengs_jax import evaluation
-  from tokengs_jax.train.supervision import ObjectiveConfig
+  from tokengs_jax.objective import ObjectiveConfig
 
   return evaluation.Method(
     reconstruct=lambda batch: jitted_reconstruct(

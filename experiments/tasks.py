@@ -15,7 +15,7 @@ from experiments import data, pixel_baseline, results, training, weights
 from experiments.config import Experiment
 from tokengs_jax import evaluation, model
 from tokengs_jax.data import InputPipeline
-from tokengs_jax.train.supervision import ObjectiveConfig
+from tokengs_jax.objective import ObjectiveConfig
 from tokengs_jax.tuning import TuningConfig
 
 Command = Literal["run", "train", "finetune", "eval"]
@@ -105,7 +105,7 @@ class Task:
     return ObjectiveConfig(view_chunk_size=experiment.train.view_chunk_size)
 
   def loss_fn(self, experiment: Experiment, config: model.ModelConfig):
-    from tokengs_jax.train.objective import tokengs_loss_fn
+    from tokengs_jax.objective import tokengs_loss_fn
 
     return tokengs_loss_fn(
       config,

@@ -189,7 +189,7 @@ def test_evaluation_renders_each_method_with_its_objective(monkeypatch):
   from experiments import pixel_baseline
   from experiments.kubric import KubricExperiment, KubricTask
   from tokengs_jax import model, tuning
-  from tokengs_jax.train.supervision import ObjectiveConfig
+  from tokengs_jax.objective import ObjectiveConfig
 
   batch = _batch(np.random.default_rng(9), [0, 4], [1, 3])
   batch["context_images"] *= 0.4  # a mean colour near 0.2, far from the official grey
@@ -269,7 +269,7 @@ def test_feed_forward_and_tuned_methods_on_the_tiny_model(tiny):
 
 @pytest.mark.slow
 def test_dynamic_methods_decode_at_each_target_views_time():
-  from test_train_dynamic import DYNAMIC_CONFIG, HEIGHT, WIDTH, dynamic_batch, dynamic_params
+  from scenes import DYNAMIC_CONFIG, DYNAMIC_SIZE, dynamic_batch, dynamic_params
 
   from tokengs_jax import model
 
@@ -295,8 +295,8 @@ def test_dynamic_methods_decode_at_each_target_views_time():
       gaussians,
       batch["target_c2w"][:, view],
       batch["target_intrinsics"][:, view],
-      height=HEIGHT,
-      width=WIDTH,
+      height=DYNAMIC_SIZE,
+      width=DYNAMIC_SIZE,
     ).rgb
     expected.append(
       np.asarray(metrics.psnr(np.clip(rgb, 0, 1), batch["target_images"][:, view]))[0]

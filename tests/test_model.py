@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 from conftest import reference_fixture
 from safetensors.numpy import load_file, save_file
+from scenes import DYNAMIC_CONFIG, dynamic_batch, dynamic_params
 
+from tokengs_jax import model
 from tokengs_jax.camera import plucker_rays
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.model import (
@@ -19,6 +21,7 @@ from tokengs_jax.model import (
   config_from_official,
   count_params,
   decode,
+  decode_at_times,
   decode_tokens,
   encode,
   encode_views,
@@ -493,6 +496,36 @@ def test_dynamic_tokens_and_time_never_change_static_gaussians():
   )[0]
   moved = np.abs(np.asarray(static_changed - base_tokens)).max(axis=(0, 2))
   assert np.all(moved[first:] > 1e-4) and moved[0] > 0.5
+
+
+def test_decode_at_times_equals_reconstruct_at_each_time():
+  params = dynamic_params()
+  batch = dynamic_batch([[0.0, 1.0], [0.2, 0.9]], [[0.5, 0.0, 1.0], [0.3, 0.6, 0.1]])
+  context = (batch["context_images"], batch["context_c2w"], batch["context_intrinsics"])
+
+  @jax.jit
+  def decoded(params, images, c2w, intrinsics, times, target_times):
+    encoded = model.encode_views(params, images, c2w, intrinsics, DYNAMIC_CONFIG, times=times)
+    return decode_at_times(params, encoded, DYNAMIC_CONFIG, target_times)
+
+  reconstruct = jax.jit(
+    lambda *args, **kwargs: model.reconstruct(*args, config=DYNAMIC_CONFIG, **kwargs)
+  )
+  at_times = decoded(params, *context, batch["context_times"], batch["target_times"])
+  assert at_times.batch_shape == (2, 3)
+  static = DYNAMIC_CONFIG.num_static_gaussians
+  for t in range(3):
+    expected = reconstruct(
+      params, *context, times=batch["context_times"], target_times=batch["target_times"][:, t]
+    )
+    at_t = jax.tree.map(lambda x, index=t: x[:, index], at_times)
+    jax.tree.map(
+      lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6), at_t, expected
+    )
+  # static Gaussians do not depend on the time, dynamic ones do
+  means = np.asarray(at_times.means)
+  np.testing.assert_allclose(means[:, 1, :static], means[:, 0, :static], rtol=1e-6, atol=1e-7)
+  assert np.abs(means[:, 1, static:] - means[:, 0, static:]).max() > 1e-3
 
 
 def test_jit_vmap_grad_through_reconstruct():

@@ -1,4 +1,4 @@
-"""Training infrastructure on a toy regression model: schedules, decay mask, sharding, chunking,
+"""Training infrastructure on a toy regression model: schedules, decay mask, sharding,
 accumulation, precision, token expansion."""
 
 import functools
@@ -14,7 +14,6 @@ from jax.sharding import PartitionSpec as P
 from tokengs_jax.train import (
   OptimConfig,
   Precision,
-  beta1_schedule,
   create_train_state,
   dynamic_tokens_from_static,
   expand_tokens,
@@ -22,11 +21,10 @@ from tokengs_jax.train import (
   make_mesh,
   make_optimizer,
   make_train_step,
-  mean_over_view_chunks,
   shard_batch,
   transplant_params,
-  weight_decay_mask,
 )
+from tokengs_jax.train.optim import beta1_schedule, weight_decay_mask
 
 
 def toy_params(seed=0, num_tokens=4):
@@ -234,62 +232,6 @@ def test_accumulation_equals_full_batch():
     jax.device_get(state_acc.params),
   )
   assert not np.allclose(state_full.params["dense1"]["kernel"], toy_params()["dense1"]["kernel"])
-
-
-def toy_render_loss(params, views):
-  """A per-view nonlinear 'render' [B, C, 64] of params and a camera vector, MSE to targets."""
-  rendered = jnp.tanh(
-    jnp.einsum("bvc,cp->bvp", views["camera"], params["dense1"]["kernel"])
-    @ params["dense2"]["kernel"][:, :1]
-    * jnp.linspace(0, 1, 64)
-  )
-  loss = jnp.mean((rendered - views["target"]) ** 2)
-  return loss, {"rendered_mean": jnp.mean(rendered)}
-
-
-def test_chunked_views_gradient_equals_one_shot():
-  rng = np.random.default_rng(0)
-  views = {
-    "camera": rng.normal(size=(2, 8, 3)).astype(np.float32),
-    "target": rng.normal(size=(2, 8, 64)).astype(np.float32),
-  }
-  params = toy_params()
-
-  def loss(p, chunk_size):
-    return mean_over_view_chunks(lambda v: toy_render_loss(p, v), views, chunk_size)
-
-  (one_shot, aux), grad = jax.value_and_grad(loss, has_aux=True)(params, None)
-  for chunk_size in (1, 2, 4):
-    (chunked, chunked_aux), chunked_grad = jax.jit(
-      jax.value_and_grad(loss, has_aux=True), static_argnums=1
-    )(params, chunk_size)
-    np.testing.assert_allclose(chunked, one_shot, rtol=1e-6)
-    np.testing.assert_allclose(
-      chunked_aux["rendered_mean"], aux["rendered_mean"], rtol=1e-5, atol=1e-7
-    )
-    jax.tree.map(
-      lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-8), chunked_grad, grad
-    )
-  with pytest.raises(ValueError, match="must divide"):
-    loss(params, 3)
-
-
-def test_chunked_views_peak_memory_is_one_chunks():
-  """Compiled temp memory of the gradient: chunks of 2 views need far less than 32 views at once."""
-  views = {"camera": jnp.ones((1, 32, 3)), "target": jnp.zeros((1, 32, 64))}
-
-  def big_render_loss(p, v):  # [B, C, 64 * 64, 16] intermediates dominate memory
-    features = jnp.einsum("bvc,cp->bvp", v["camera"], p["dense1"]["kernel"])[..., None, :]
-    field = jnp.tanh(features * jnp.linspace(0, 1, 64 * 64)[:, None]).sum(-1)
-    return jnp.mean(field.reshape(*field.shape[:2], 64, 64).mean(-1) - v["target"]) ** 2, {}
-
-  def temp_bytes(chunk_size):
-    grad = jax.grad(
-      lambda p: mean_over_view_chunks(lambda v: big_render_loss(p, v), views, chunk_size)[0]
-    )
-    return jax.jit(grad).lower(toy_params()).compile().memory_analysis().temp_size_in_bytes
-
-  assert temp_bytes(2) * 4 < temp_bytes(None)
 
 
 def test_bf16_compute_keeps_float32_state():

@@ -143,7 +143,7 @@ def test_tuning_renders_the_input_views_over_their_mean_colour(tiny):
   inputs' mean colour (here far from the official grey, which gives another loss)."""
   from tokengs_jax.camera import invert_rigid
   from tokengs_jax.losses import LossConfig
-  from tokengs_jax.train.supervision import ObjectiveConfig, supervision_loss
+  from tokengs_jax.objective import ObjectiveConfig, supervision_loss
 
   config, params = tiny
   images, c2w, intrinsics = scene()
@@ -167,7 +167,7 @@ def test_tuning_renders_the_input_views_over_their_mean_colour(tiny):
 
 @pytest.mark.slow
 def test_dynamic_tuning_decodes_at_each_views_time():
-  from test_train_dynamic import DYNAMIC_CONFIG, dynamic_batch, dynamic_params
+  from scenes import DYNAMIC_CONFIG, dynamic_batch, dynamic_params
 
   params = dynamic_params()
   batch = dynamic_batch([[0.0, 1.0]], [[0.3, 0.8]])

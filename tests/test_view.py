@@ -16,7 +16,7 @@ from experiments.viewer import browser, scenes
 from experiments.viewer.app import READY_TEXT, novel_target, vertical_fov
 from tokengs_jax import evaluation, model
 from tokengs_jax.gaussians import Gaussians
-from tokengs_jax.train.supervision import ObjectiveConfig
+from tokengs_jax.objective import ObjectiveConfig
 
 
 def _gaussians(n, seed=0):

@@ -64,8 +64,7 @@ from tokengs_jax.copies import (
 )
 from tokengs_jax.camera import invert_rigid
 from tokengs_jax.gaussians import Gaussians
-from tokengs_jax.train.objective import decode_at_times
-from tokengs_jax.train.supervision import ObjectiveConfig, background_colours
+from tokengs_jax.objective import ObjectiveConfig, background_colours
 
 Scene = tuple[str, dict]  # (scene key, batch of one in the data contract)
 
@@ -109,7 +108,7 @@ def _reconstruct(params, images, c2w, intrinsics, times, target_times, viewer_c2
     return Gaussians.from_flat(
       model.decode(params, encoded, config, times=target_times, viewer_c2w=viewer_c2w)
     )
-  return decode_at_times(params, encoded, config, target_times, viewer_c2w=viewer_c2w)
+  return model.decode_at_times(params, encoded, config, target_times, viewer_c2w=viewer_c2w)
 
 
 def reconstruct(

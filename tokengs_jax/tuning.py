@@ -1,6 +1,6 @@
 """Test-time scaling: token tuning, scene-latent tuning, Gaussian tuning, joint tuning.
 
-All variants minimise the training loss (`train.objective.supervision_loss`: RGB + SSIM +
+All variants minimise the training loss (`objective.supervision_loss`: RGB + SSIM +
 visibility) of renders of the *input* views, with Adam, as one jitted `lax.scan` over the steps.
 The encoder runs once: its keys/values (or scene latents) are computed before the loop and held
 fixed, and the network parameters are never updated (they are closed over, not optimised).
@@ -16,7 +16,7 @@ fixed, and the network parameters are never updated (they are closed over, not o
   Gaussian offsets on top of the decoded Gaussians, each with its own learning rate.
 
 Dynamic (time-conditioned) models: pass the input views' `times`; each input view is then
-rendered from the Gaussians decoded at its time (`train.objective.time_conditioned_loss`), and
+rendered from the Gaussians decoded at its time (`objective.time_conditioned_loss`), and
 the result is decoded at `output_times` (evaluation: the target views' times). The official
 `to_ttt()` drops the target time, so its tuning and its tuned output are time-free; that is what
 `times=None` gives here.
@@ -42,8 +42,7 @@ from tokengs_jax import losses, model, splatting
 from tokengs_jax.camera import invert_rigid
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.model.inputs import check_times
-from tokengs_jax.train.objective import decode_at_times, time_conditioned_loss
-from tokengs_jax.train.supervision import ObjectiveConfig, supervision_loss
+from tokengs_jax.objective import ObjectiveConfig, supervision_loss, time_conditioned_loss
 
 Target = Literal["tokens", "latents", "gaussians", "tokens+gaussians"]
 
@@ -132,7 +131,7 @@ def tune(
 
   Time-conditioned models with `times`: the input views are encoded with their times, and the
   tuning loss renders every input view from the Gaussians decoded at that view's time
-  (`train.objective.time_conditioned_loss`, with the dynamic auxiliary term at its base weight
+  (`objective.time_conditioned_loss`, with the dynamic auxiliary term at its base weight
   when `loss_config.lambda_dyn_aux > 0`); tokens / latents are shared by all times, Gaussian
   offsets are time-independent (added to the Gaussians of every time). Without `times` a
   time-conditioned model decodes time-free (no target-time embedding).
@@ -303,7 +302,7 @@ def _decode(
   else:
     source = model.kv_from_latents(params, latents, model_config).replace(views=encoded.views)
   if at_times is not None:
-    return decode_at_times(params, source, model_config, at_times, tokens, viewer_c2w)
+    return model.decode_at_times(params, source, model_config, at_times, tokens, viewer_c2w)
   if not model_config.viewer_dependent:
     viewer_c2w = None
   return Gaussians.from_flat(model.decode(params, source, model_config, tokens, None, viewer_c2w))

@@ -12,7 +12,7 @@ import numpy as np
 
 from experiments.viewer import scenes as scenes_lib
 from tokengs_jax import export
-from tokengs_jax.train.supervision import ObjectiveConfig
+from tokengs_jax.objective import ObjectiveConfig
 
 _INPUT_COLOUR = (40, 90, 200)
 _TARGET_COLOUR = (220, 60, 40)  # the target view rendered in the panel

@@ -6,6 +6,7 @@ from tokengs_jax.model import preset, init_params, reconstruct
 from tokengs_jax.model.api import (
   count_params,
   decode,
+  decode_at_times,
   decode_tokens,
   encode,
   encode_views,
@@ -33,6 +34,7 @@ __all__ = [
   "config_from_official",
   "count_params",
   "decode",
+  "decode_at_times",
   "decode_tokens",
   "encode",
   "encode_views",

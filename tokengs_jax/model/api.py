@@ -11,6 +11,8 @@ For test-time tuning, encode once and decode many times:
     encoded = encode_views(params, images, c2w, intrinsics, config)
     flat = decode(params, encoded, config, tokens=my_tokens)
 
+Time-conditioned models decode one encoding at several times with `decode_at_times`.
+
 `encode_views` and `reconstruct` check their inputs' shapes and dtypes at trace time
 (`model.inputs.check_views`); the lower-level `encode` / `predict_gaussians` take what they get.
 """
@@ -185,6 +187,50 @@ def decode(
   return TokenGS(config).apply(
     {"params": params}, encoded, tokens, times, viewers, method=TokenGS.decode
   )
+
+
+def decode_at_times(
+  params: Params,
+  encoded: EncoderOutput,
+  model_config: ModelConfig,
+  times: jax.Array,
+  tokens: jax.Array | None = None,
+  viewer_c2w: jax.Array | None = None,
+) -> Gaussians:
+  """Gaussians of a time-conditioned model at several times, from one encoding.
+
+  The decoder is vmapped over the times; the encoder's keys/values are closed over, so they are
+  computed once and shared by every decode.
+
+  Args:
+    params: network parameters.
+    encoded: `model.encode(...)` of the context views (or `model.kv_from_latents(...)`).
+    model_config: `model.ModelConfig` with `time_embedding`.
+    times: [B, T] normalised times to decode at.
+    tokens: [B, num_tokens, C] Gaussian tokens replacing the learnt ones (token tuning); None
+      uses the learnt tokens.
+    viewer_c2w: [B, T, 4, 4] the camera each time's set is rendered from, or with T = 1
+      [B, Vr, 4, 4]: one decode seen from Vr cameras; used where the colours depend on the
+      camera (`model_config.viewer_dependent`), ignored otherwise.
+
+  Returns:
+    `Gaussians` with batch shape [B, T] (static Gaussians first, identical at every time); [B, Vr]
+    for one time seen from Vr cameras with viewer-dependent colours.
+  """
+  if not model_config.viewer_dependent:
+    viewer_c2w = None
+  elif times.shape[1] == 1:
+    return Gaussians.from_flat(
+      decode(params, encoded, model_config, tokens, times[:, 0], viewer_c2w)
+    )
+
+  def decode_one(time, c2w):  # time: [B]; c2w: [B, 4, 4] or None
+    if c2w is None:
+      return decode(params, encoded, model_config, tokens=tokens, times=time)
+    return decode(params, encoded, model_config, tokens, time, c2w[:, None])[:, 0]
+
+  in_axes = (1, None if viewer_c2w is None else 1)
+  return Gaussians.from_flat(jax.vmap(decode_one, in_axes, out_axes=1)(times, viewer_c2w))
 
 
 def predict_gaussians(

@@ -72,7 +72,7 @@ def train(
   """Trains `params` on `batches`, resuming from `loop_config.checkpoint_dir` when it holds one.
 
   Args:
-    loss_fn: `(params, batch, key, step) -> (loss, aux)` (e.g. `tokengs_loss_fn(...)`).
+    loss_fn: `(params, batch, key, step) -> (loss, aux)` (e.g. `objective.tokengs_loss_fn(...)`).
     params: initial parameters (host or device pytree, identical on every process); ignored when
       a checkpoint is resumed.
     batches: iterator of this process's batches (dicts of `[B_local, ...]` numpy arrays), all of

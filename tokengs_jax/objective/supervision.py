@@ -6,19 +6,19 @@ recomputes one chunk's render at a time and peak memory holds one chunk's interm
 of every view's. The gradient is that of the one-shot mean (up to float summation order).
 
 The terms are small top-level functions (`render_views`, `photometric_loss`, `add_visibility`,
-`render_diagnostics`) composed by `supervision_loss`; `objective` builds the model losses on them.
+`render_diagnostics`) composed by `supervision_loss`; `model_loss` builds the model losses on them.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Literal
 
 import jax
 import jax.numpy as jnp
 
 from tokengs_jax.gaussians import Gaussians
+from tokengs_jax.objective.settings import ObjectiveConfig, background_colours
 
 
 def mean_over_view_chunks(chunk_loss: Callable, views, chunk_size: int | None):
@@ -51,55 +51,6 @@ def mean_over_view_chunks(chunk_loss: Callable, views, chunk_size: int | None):
 
   total, aux = jax.lax.scan(body, jnp.zeros((), jnp.float32), jax.tree.map(to_chunks, views))
   return total / num_chunks, jax.tree.map(lambda a: jnp.mean(a, axis=0), aux)
-
-
-@dataclasses.dataclass(frozen=True)
-class ObjectiveConfig:
-  """How the TokenGS objective renders its supervision views.
-
-  Attributes:
-    view_chunk_size: target views rendered (and differentiated) together; None: all at once.
-      Time-conditioned models also decode per chunk, so this bounds the decoder's memory too.
-    background: what is composited behind the Gaussians in every render of the objective
-      (`background_colours`): an RGB (official `bg_color` default "grey" = 0.5), or
-      "input_mean": each example's mean colour of its input (context) views, so that what no
-      input view saw renders as the scene's average colour instead of a grey it may not have.
-    near, far: renderer depth culling (official znear / zfar).
-    decode_times: time-conditioned models only. "per_view": decode the Gaussians at every target
-      view's own time; "first": decode once, at the first target view's time, and render every
-      target view from it (the official `split_data` reads the target time from that one view;
-      identical results, one decode instead of V, when all target views share a time, as the
-      Kubric sampler's do).
-  """
-
-  view_chunk_size: int | None = None
-  background: tuple[float, float, float] | Literal["input_mean"] = (0.5, 0.5, 0.5)
-  near: float = 0.025
-  far: float = 125.0
-  decode_times: Literal["per_view", "first"] = "per_view"
-
-  def __post_init__(self):
-    if self.decode_times not in ("per_view", "first"):
-      raise ValueError(f"decode_times must be 'per_view' or 'first', got {self.decode_times!r}")
-    rgb = not isinstance(self.background, str) and len(self.background) == 3
-    if not (rgb or self.background == "input_mean"):
-      raise ValueError(f"background must be an RGB or 'input_mean', got {self.background!r}")
-
-
-def background_colours(objective: ObjectiveConfig, context_images, world_to_camera) -> jax.Array:
-  """What is composited behind the Gaussians in renders into views `world_to_camera`
-  [B, ..., V, 4, 4] (`splatting.render`'s background).
-
-  A fixed `objective.background`: that RGB [3]. "input_mean": the mean colour of each example's
-  context views `context_images` [B, Vi, H, W, 3], as [B, 1, ..., 1, 3] (one colour behind every
-  view of the example, whatever the view axes).
-  """
-  if objective.background != "input_mean":
-    return jnp.asarray(objective.background, jnp.float32)
-  if context_images is None:
-    raise ValueError("the 'input_mean' background needs the context images")
-  mean = jnp.mean(jnp.asarray(context_images, jnp.float32), axis=(1, 2, 3))  # [B, 3]
-  return mean.reshape(mean.shape[:1] + (1,) * (jnp.ndim(world_to_camera) - 3) + (3,))
 
 
 def render_views(
@@ -186,7 +137,7 @@ def photometric_loss(rgb: jax.Array, images: jax.Array, loss_config, lpips_param
   )
 
 
-def _float32(gaussians: Gaussians) -> Gaussians:
+def gaussians_in_float32(gaussians: Gaussians) -> Gaussians:
   """Gaussians with every field in float32 (what the objective renders)."""
   return jax.tree.map(lambda x: x.astype(jnp.float32), gaussians)
 
@@ -228,7 +179,7 @@ def supervision_loss(
   from tokengs_jax import losses
 
   with_depth = depths is not None and loss_config.lambda_depth > 0
-  gaussians = _float32(gaussians)
+  gaussians = gaussians_in_float32(gaussians)
   height, width = images.shape[-3], images.shape[-2]
   world_to_camera = world_to_camera.astype(jnp.float32)
   intrinsics = intrinsics.astype(jnp.float32)

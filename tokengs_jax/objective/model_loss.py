@@ -4,11 +4,11 @@ Static models are scored by `supervision.supervision_loss` (the memory-lean mean
 views of the render, SSIM/LPIPS and visibility terms).
 
 Dynamic (time-conditioned) models: the context is encoded once; the Gaussians are decoded once
-per target view at that view's time (`decode_at_times`, a vmap over times with the keys/values
-shared), inside the view chunks, so the memory-lean path bounds the decoder's activations too;
-each view is rendered from the Gaussians of its own time (`time_conditioned_loss`), plus the
-dynamic auxiliary loss of the official Kubric models (the same loss on a render of the dynamic
-Gaussians alone) weighted by `losses.dynamic_aux_weight(step)`.
+per target view at that view's time (`model.decode_at_times`, a vmap over times with the
+keys/values shared), inside the view chunks, so the memory-lean path bounds the decoder's
+activations too; each view is rendered from the Gaussians of its own time
+(`time_conditioned_loss`), plus the dynamic auxiliary loss of the official Kubric models (the same
+loss on a render of the dynamic Gaussians alone) weighted by `losses.dynamic_aux_weight(step)`.
 
 `tokengs_loss_fn` picks `static_model_loss` or `dynamic_model_loss` and receives the training
 step as an argument (`loss_fn(params, batch, key, step)`).
@@ -23,62 +23,16 @@ import jax
 import jax.numpy as jnp
 
 from tokengs_jax.gaussians import Gaussians
-from tokengs_jax.train.supervision import (
-  ObjectiveConfig,
-  _float32,
+from tokengs_jax.objective.settings import ObjectiveConfig
+from tokengs_jax.objective.supervision import (
   add_visibility,
+  gaussians_in_float32,
   mean_over_view_chunks,
   photometric_loss,
   render_diagnostics,
   render_views,
   supervision_loss,
 )
-
-
-def decode_at_times(
-  params,
-  encoded,
-  model_config,
-  times: jax.Array,
-  tokens: jax.Array | None = None,
-  viewer_c2w: jax.Array | None = None,
-) -> Gaussians:
-  """Gaussians of a time-conditioned model at several times, from one encoding.
-
-  The decoder is vmapped over the times; the encoder's keys/values are closed over, so they are
-  computed once and shared by every decode.
-
-  Args:
-    params: network parameters.
-    encoded: `model.encode(...)` of the context views (or `model.kv_from_latents(...)`).
-    model_config: `model.ModelConfig` with `time_embedding`.
-    times: [B, T] normalised times to decode at.
-    tokens: [B, num_tokens, C] Gaussian tokens replacing the learnt ones (token tuning); None
-      uses the learnt tokens.
-    viewer_c2w: [B, T, 4, 4] the camera each time's set is rendered from, or with T = 1
-      [B, Vr, 4, 4]: one decode seen from Vr cameras; used where the colours depend on the
-      camera (`model_config.viewer_dependent`), ignored otherwise.
-
-  Returns:
-    `Gaussians` with batch shape [B, T] (static Gaussians first, identical at every time); [B, Vr]
-    for one time seen from Vr cameras with viewer-dependent colours.
-  """
-  from tokengs_jax import model
-
-  if not model_config.viewer_dependent:
-    viewer_c2w = None
-  elif times.shape[1] == 1:
-    return Gaussians.from_flat(
-      model.decode(params, encoded, model_config, tokens, times[:, 0], viewer_c2w)
-    )
-
-  def decode_one(time, c2w):  # time: [B]; c2w: [B, 4, 4] or None
-    if c2w is None:
-      return model.decode(params, encoded, model_config, tokens=tokens, times=time)
-    return model.decode(params, encoded, model_config, tokens, time, c2w[:, None])[:, 0]
-
-  in_axes = (1, None if viewer_c2w is None else 1)
-  return Gaussians.from_flat(jax.vmap(decode_one, in_axes, out_axes=1)(times, viewer_c2w))
 
 
 def _slice_gaussians(gaussians: Gaussians, start: int) -> Gaussians:
@@ -116,8 +70,8 @@ def time_conditioned_loss(
 
   Args:
     gaussians_at: `(times [B, T], world_to_camera [B, T, 4, 4]) -> Gaussians [B, T]` to render
-      at those times from those cameras (e.g. `decode_at_times`); under "first" called once with
-      times [B, 1] and every view's camera: one set [B, 1] or one per view [B, V].
+      at those times from those cameras (e.g. `model.decode_at_times`); under "first" called
+      once with times [B, 1] and every view's camera: one set [B, 1] or one per view [B, V].
     times: [B, V] normalised time of each supervision view.
     images: [B, V, H, W, 3] supervision images in [0, 1].
     world_to_camera: [B, V, 4, 4].
@@ -156,7 +110,7 @@ def time_conditioned_loss(
   def chunk_loss(views):
     gaussians = shared if shared is not None else views.get("gaussians")
     if gaussians is None:
-      gaussians = _float32(gaussians_at(views["times"], views["world_to_camera"]))
+      gaussians = gaussians_in_float32(gaussians_at(views["times"], views["world_to_camera"]))
     return _scored_with_dynamic_aux(
       scored, gaussians, views, num_static_gaussians, aux_weight, step, loss_config
     )
@@ -179,7 +133,7 @@ def _chunked_views(gaussians_at, times, images, world_to_camera, intrinsics, dec
   }
   if decode_times != "first":
     return views, None
-  shared = _float32(gaussians_at(views["times"][:, :1], world_to_camera))
+  shared = gaussians_in_float32(gaussians_at(views["times"][:, :1], world_to_camera))
   if shared.batch_shape[1] > 1:
     return {**views, "gaussians": shared}, None
   return views, shared
@@ -314,9 +268,9 @@ def dynamic_model_loss(
   lpips_params=None,
 ):
   """Time-conditioned models: context views and `batch["context_times"]` -> `encode_views` once
-  -> `decode_at_times` at `batch["target_times"]` -> `time_conditioned_loss`, plus the dynamic
-  auxiliary loss (weight scheduled by `step`) when the model has static and dynamic tokens and
-  `loss_config.lambda_dyn_aux > 0`, as official."""
+  -> `model.decode_at_times` at `batch["target_times"]` -> `time_conditioned_loss`, plus the
+  dynamic auxiliary loss (weight scheduled by `step`) when the model has static and dynamic tokens
+  and `loss_config.lambda_dyn_aux > 0`, as official."""
   from tokengs_jax import model
   from tokengs_jax.camera import invert_rigid
 
@@ -334,7 +288,7 @@ def dynamic_model_loss(
     times=batch["context_times"],
   )
   return time_conditioned_loss(
-    lambda times, world_to_camera: decode_at_times(
+    lambda times, world_to_camera: model.decode_at_times(
       params, encoded, model_config, times, viewer_c2w=invert_rigid(world_to_camera)
     ),
     batch["target_times"],

@@ -1,0 +1,108 @@
+"""Small scenes the objective, model and training tests share (imported by them; no tests here).
+
+- Gaussians in front of an identity camera looking down +z (the objective's terms).
+- A time-conditioned model and random views of it at given times, 16x16 (the dynamic objective,
+  `model.decode_at_times`, dynamic training).
+- Colour ramps for the tiny preset, 32x32 (the static objective, training).
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from tokengs_jax import model
+
+
+def gaussians_in_front(means_key, colours_key, shape, *, spread, opacity, scale):
+  """Round Gaussians [*shape] of one opacity and size, centred within `spread` of (0, 0, 2):
+  in front of an identity camera looking down +z."""
+  from tokengs_jax.gaussians import Gaussians
+
+  means = jax.random.uniform(means_key, (*shape, 3), minval=-spread, maxval=spread)
+  return Gaussians(
+    means=means.at[..., 2].add(2.0),
+    opacities=jnp.full(shape, opacity),
+    scales=jnp.full((*shape, 3), scale),
+    quats=jnp.tile(jnp.array([1.0, 0, 0, 0]), (*shape, 1)),
+    colors=jax.random.uniform(colours_key, (*shape, 3)),
+  )
+
+
+def scene_of_two_examples():
+  """Gaussians [2, N] that cover part of two views, and two examples' input views
+  [2, 3, 16, 16, 3] of different mean colours (neither of them grey)."""
+  key = jax.random.split(jax.random.key(1), 3)
+  gaussians = gaussians_in_front(key[0], key[1], (2, 24), spread=0.6, opacity=0.8, scale=0.08)
+  tint = jnp.array([[0.2, 0.9, 0.5], [0.8, 0.1, 0.3]])[:, None, None, None]
+  context = tint * jax.random.uniform(key[2], (2, 3, 16, 16, 3), minval=0.5, maxval=1.5)
+  return gaussians, context
+
+
+DYNAMIC_SIZE = 16  # height and width of `dynamic_batch`'s views
+# 4 static + 2 dynamic tokens of 16 Gaussians: 96 Gaussians, cheap to render and compile.
+DYNAMIC_CONFIG = model.preset(
+  "tiny",
+  enc_depth=1,
+  dec_depth=1,
+  enc_embed_dim=32,
+  enc_num_heads=2,
+  num_gs_tokens=4,
+  num_dynamic_gs_tokens=2,
+  dec_patch_size=4,
+  time_embedding=True,
+  dec_init_values=1.0,
+)
+
+
+def dynamic_params(seed=0):
+  """Fresh parameters whose (zero-initialised) time embeddings are made non-zero, so that the
+  decoded dynamic Gaussians depend on the time; decoder LayerScale 1 (config) for the same reason."""
+  params = model.init_params(jax.random.PRNGKey(seed), DYNAMIC_CONFIG)
+  keys = jax.random.split(jax.random.PRNGKey(seed + 1), 2)
+  for key, name in zip(keys, ("patch_time_embed", "patch_time_embed_tgt")):
+    kernel = params[name]["proj"]["kernel"]
+    params[name]["proj"]["kernel"] = 0.5 * jax.random.normal(key, kernel.shape)
+  return params
+
+
+def dynamic_batch(context_times, target_times, seed=0):
+  """Random images seen from cameras stepping along x; times [B, Vc] and [B, Vt]."""
+  context_times = np.asarray(context_times, np.float32)
+  target_times = np.asarray(target_times, np.float32)
+  batch_size, num_context = context_times.shape
+  views = num_context + target_times.shape[1]
+  rng = np.random.default_rng(seed)
+  images = rng.random((batch_size, views, DYNAMIC_SIZE, DYNAMIC_SIZE, 3)).astype(np.float32)
+  c2w = np.tile(np.eye(4, dtype=np.float32), (batch_size, views, 1, 1))
+  c2w[:, :, 0, 3] = np.linspace(-0.1, 0.1, views)
+  intrinsics = np.tile(np.array([16, 16, 8, 8], np.float32), (batch_size, views, 1))
+  batch = {"context_times": context_times, "target_times": target_times}
+  for name, value in (("images", images), ("c2w", c2w), ("intrinsics", intrinsics)):
+    batch[f"context_{name}"], batch[f"target_{name}"] = (
+      value[:, :num_context],
+      value[:, num_context:],
+    )
+  return batch
+
+
+RAMP_SIZE = 32  # height and width of `synthetic_batch`'s views
+
+
+def synthetic_batch(batch_size=2, context_views=2, target_views=4, seed=0):
+  """Smooth colour ramps seen from cameras stepping along x (learnable, unlike noise)."""
+  rng = np.random.default_rng(seed)
+  views = context_views + target_views
+  ramp = np.linspace(0, 1, RAMP_SIZE, dtype=np.float32)
+  images = np.empty((batch_size, views, RAMP_SIZE, RAMP_SIZE, 3), np.float32)
+  for b in range(batch_size):
+    colour = rng.uniform(0.2, 0.8, 3).astype(np.float32)
+    for v in range(views):
+      images[b, v] = colour * (0.5 + 0.5 * np.roll(ramp, 2 * v))[None, :, None]
+  c2w = np.tile(np.eye(4, dtype=np.float32), (batch_size, views, 1, 1))
+  c2w[:, :, 0, 3] = np.linspace(-0.1, 0.1, views)
+  intrinsics = np.tile(np.array([32, 32, 16, 16], np.float32), (batch_size, views, 1))
+  split = lambda x: (x[:, :context_views], x[:, context_views:])
+  batch = {}
+  for name, value in (("images", images), ("c2w", c2w), ("intrinsics", intrinsics)):
+    batch[f"context_{name}"], batch[f"target_{name}"] = split(value)
+  return batch

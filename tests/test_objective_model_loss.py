@@ -1,0 +1,248 @@
+"""The model losses: time-conditioned decoding against the static path, the dynamic auxiliary
+term and its schedule, view chunks and the input-mean background with the real model, one
+Gaussian set per view."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scenes import (
+  DYNAMIC_CONFIG,
+  dynamic_batch,
+  dynamic_params,
+  scene_of_two_examples,
+  synthetic_batch,
+)
+
+from tokengs_jax import losses, model, splatting
+from tokengs_jax.camera import invert_rigid
+from tokengs_jax.objective import (
+  ObjectiveConfig,
+  supervision_loss,
+  time_conditioned_loss,
+  tokengs_loss_fn,
+)
+
+
+def _loss_and_grads(loss_fn, params, batch):
+  return jax.jit(jax.value_and_grad(loss_fn, has_aux=True))(params, batch, jax.random.PRNGKey(0), 0)
+
+
+def _assert_same(result, expected):
+  (loss, _), grads = result
+  (expected_loss, _), expected_grads = expected
+  np.testing.assert_allclose(loss, expected_loss, rtol=1e-5)
+  scale = max(float(np.max(np.abs(g))) for g in jax.tree.leaves(expected_grads))
+  jax.tree.map(
+    lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-5 * scale),
+    grads,
+    expected_grads,
+  )
+
+
+@pytest.mark.slow
+def test_time_conditioned_loss_matches_the_static_path_when_targets_share_a_time():
+  """With every target view at one time t, rendering each view from the Gaussians decoded at its
+  time (one-shot, chunked with the decoder inside the chunks, or decoding once as official) is
+  the static objective on `reconstruct(..., target_times=t)`: same loss, same gradient."""
+  params = dynamic_params()
+  batch = dynamic_batch([[0.0, 1.0]], [[0.4, 0.4]])
+  loss_config = losses.LossConfig()
+
+  def reference(params, batch, key, step):
+    del key, step
+    gaussians = model.reconstruct(
+      params,
+      batch["context_images"],
+      batch["context_c2w"],
+      batch["context_intrinsics"],
+      config=DYNAMIC_CONFIG,
+      times=batch["context_times"],
+      target_times=batch["target_times"][:, 0],
+    )
+    return supervision_loss(
+      gaussians,
+      batch["target_images"],
+      invert_rigid(batch["target_c2w"]),
+      batch["target_intrinsics"],
+      loss_config,
+      splatting.RenderConfig(),
+    )
+
+  expected = _loss_and_grads(reference, params, batch)
+  for objective in (
+    ObjectiveConfig(),
+    ObjectiveConfig(view_chunk_size=1),
+    ObjectiveConfig(decode_times="first"),
+  ):
+    result = _loss_and_grads(
+      tokengs_loss_fn(DYNAMIC_CONFIG, loss_config, objective=objective), params, batch
+    )
+    _assert_same(result, expected)
+    for name in ("rgb", "ssim", "visibility"):
+      np.testing.assert_allclose(result[0][1][name], expected[0][1][name], rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.slow
+def test_dynamic_aux_loss_is_the_loss_of_the_dynamic_gaussians_alone_with_its_schedule():
+  params = dynamic_params()
+  batch = dynamic_batch([[0.0, 1.0]], [[0.4, 0.4]])
+  loss_config = losses.LossConfig(
+    lambda_dyn_aux=0.3, dyn_aux_hold_steps=2, dyn_aux_decay_steps=4, dyn_aux_min=0.0
+  )
+  plain = dataclasses.replace(loss_config, lambda_dyn_aux=0.0)
+  gaussians = model.reconstruct(
+    params,
+    batch["context_images"],
+    batch["context_c2w"],
+    batch["context_intrinsics"],
+    config=DYNAMIC_CONFIG,
+    times=batch["context_times"],
+    target_times=batch["target_times"][:, 0],
+  )
+  dynamic = jax.tree.map(lambda x: x[:, DYNAMIC_CONFIG.num_static_gaussians :], gaussians)
+  views = (batch["target_images"], invert_rigid(batch["target_c2w"]), batch["target_intrinsics"])
+  main = float(supervision_loss(gaussians, *views, plain, splatting.RenderConfig())[0])
+  dyn = float(supervision_loss(dynamic, *views, plain, splatting.RenderConfig())[0])
+
+  loss_fn = jax.jit(
+    tokengs_loss_fn(DYNAMIC_CONFIG, loss_config, objective=ObjectiveConfig(decode_times="first"))
+  )
+  for step, weight in ((0, 0.3), (2, 0.3), (4, 0.15), (7, 0.0)):
+    loss, terms = loss_fn(params, batch, None, step)
+    np.testing.assert_allclose(terms["dyn_aux_weight"], weight, rtol=1e-6)
+    np.testing.assert_allclose(terms["dyn_aux"], dyn if weight else 0.0, rtol=1e-5)
+    np.testing.assert_allclose(loss, main + weight * dyn, rtol=1e-5)
+
+
+@pytest.mark.slow
+def test_chunked_objective_matches_one_shot(tiny):
+  config, params = tiny
+  batch = synthetic_batch(batch_size=1, target_views=2)
+  key = jax.random.PRNGKey(0)
+  results = []
+  for chunk_size in (None, 1):
+    loss_fn = tokengs_loss_fn(config, objective=ObjectiveConfig(view_chunk_size=chunk_size))
+    results.append(jax.jit(jax.value_and_grad(loss_fn, has_aux=True))(params, batch, key, 0))
+  ((loss, terms), grads), ((chunked_loss, chunked_terms), chunked_grads) = results
+  np.testing.assert_allclose(chunked_loss, loss, rtol=1e-5)
+  for name in ("rgb", "ssim", "visibility", "psnr"):
+    np.testing.assert_allclose(chunked_terms[name], terms[name], rtol=1e-5, atol=1e-7)
+  scale = max(float(np.max(np.abs(g))) for g in jax.tree.leaves(grads))
+  jax.tree.map(
+    lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-5 * scale),
+    chunked_grads,
+    grads,
+  )
+
+
+@pytest.mark.slow
+def test_input_mean_objective_uses_each_examples_own_inputs(tiny):
+  """The loss of two examples with different inputs is the mean of each one's loss over the fixed
+  RGB of its own inputs' mean colour (the inputs', not the targets')."""
+  config, params = tiny
+  batch = synthetic_batch(batch_size=2, target_views=1)
+  batch["target_images"] = 1.0 - batch["target_images"]  # mean colours unlike the inputs'
+  key = jax.random.PRNGKey(0)
+  input_mean = tokengs_loss_fn(config, objective=ObjectiveConfig(background="input_mean"))
+  alone = []
+  for b in range(2):
+    one = {name: value[b : b + 1] for name, value in batch.items()}
+    mean = tuple(float(c) for c in one["context_images"].mean(axis=(0, 1, 2, 3)))
+    loss_fn = tokengs_loss_fn(config, objective=ObjectiveConfig(background=mean))
+    alone.append(float(loss_fn(params, one, key, 0)[0]))
+  np.testing.assert_allclose(input_mean(params, batch, key, 0)[0], np.mean(alone), rtol=1e-5)
+
+
+def _two_supervision_views():
+  """(images [2, 2, 16, 16, 3], world_to_camera, intrinsics): two examples, two views 0.3 apart."""
+  images = jax.random.uniform(jax.random.key(2), (2, 2, 16, 16, 3))
+  w2c = jnp.tile(jnp.eye(4), (2, 2, 1, 1)).at[:, 1, 0, 3].set(0.3)
+  intrinsics = jnp.tile(jnp.array([16.0, 16.0, 8.0, 8.0]), (2, 2, 1))
+  return images, w2c, intrinsics
+
+
+def test_objectives_with_input_mean_use_each_examples_own_input_colour():
+  """Two examples with different inputs, scored together (in view chunks), lose exactly what
+  each loses alone over the fixed RGB of its own inputs' mean colour: static and time-conditioned
+  objectives, the dynamic auxiliary render included."""
+
+  gaussians, context = scene_of_two_examples()
+  images, w2c, intrinsics = _two_supervision_views()
+  times = jnp.array([[0.2, 0.7], [0.4, 0.9]])
+  loss_config = losses.LossConfig(lambda_dyn_aux=0.3)
+  render = splatting.RenderConfig()
+
+  def static(g, views, objective, ctx=None):
+    return supervision_loss(g, *views, loss_config, render, objective, context_images=ctx)[0]
+
+  def timed(g, views, t, objective, ctx=None):
+    def at(t, _world_to_camera):  # the same Gaussians at every time and camera: [B, T]
+      return jax.tree.map(lambda x: jnp.repeat(x[:, None], t.shape[1], axis=1), g)
+
+    return time_conditioned_loss(
+      at, t, *views, loss_config, render, objective, num_static_gaussians=12, context_images=ctx
+    )[0]
+
+  together = ObjectiveConfig(view_chunk_size=1, background="input_mean")
+  alone = [
+    ObjectiveConfig(background=tuple(float(c) for c in jnp.mean(context[b], axis=(0, 1, 2))))
+    for b in range(2)
+  ]
+  views = (images, w2c, intrinsics)
+  one = lambda x, b: jax.tree.map(lambda y: y[b : b + 1], x)
+  each = np.mean([static(one(gaussians, b), one(views, b), alone[b]) for b in range(2)])
+  np.testing.assert_allclose(static(gaussians, views, together, context), each, rtol=1e-5)
+  # the swapped inputs' colours give another loss: each example reads its own
+  assert abs(float(static(gaussians, views, together, context[::-1])) - each) > 1e-4
+  each = np.mean(
+    [timed(one(gaussians, b), one(views, b), times[b : b + 1], alone[b]) for b in range(2)]
+  )
+  np.testing.assert_allclose(timed(gaussians, views, times, together, context), each, rtol=1e-5)
+
+
+def test_objectives_render_one_set_per_view_as_each_view_alone():
+  """Gaussians [B, V] (colours for each camera, `model.decode(viewer_c2w=)`): the static and
+  the time-conditioned objectives (one decode for every view) score view v with set v alone,
+  in view chunks or not; the same set repeated scores as the shared set."""
+
+  gaussians, _ = scene_of_two_examples()
+  images, w2c, intrinsics = _two_supervision_views()
+  render = splatting.RenderConfig()
+  recoloured = dataclasses.replace(gaussians, colors=1.0 - gaussians.colors)
+  per_view = jax.tree.map(lambda a, b: jnp.stack([a, b], axis=1), gaussians, recoloured)
+  repeated = jax.tree.map(lambda a: jnp.stack([a, a], axis=1), gaussians)
+
+  def static(g, objective, loss_config, view=slice(None)):
+    views = (images[:, view], w2c[:, view], intrinsics[:, view])
+    return float(supervision_loss(g, *views, loss_config, render, objective)[0])
+
+  def timed(g, objective, loss_config):
+    first = ObjectiveConfig(view_chunk_size=objective.view_chunk_size, decode_times="first")
+    at = lambda times, world_to_camera: g  # one decode: a set per view's camera, or [B, 1]
+    times = jnp.zeros((2, 2))
+    return float(
+      time_conditioned_loss(at, times, images, w2c, intrinsics, loss_config, render, first)[0]
+    )
+
+  with_vis, without = losses.LossConfig(), losses.LossConfig(lambda_vis=0.0)
+  one = jax.tree.map(lambda a: a[:, None], gaussians)
+  objective = ObjectiveConfig(view_chunk_size=1)  # the chunked path: it slices the sets
+  shared = static(gaussians, objective, with_vis)
+  np.testing.assert_allclose(static(repeated, objective, with_vis), shared, rtol=1e-6)
+  alone = [static(g, objective, without, slice(v, v + 1)) for v, g in enumerate(_sets_of(per_view))]
+  np.testing.assert_allclose(static(per_view, objective, without), np.mean(alone), rtol=1e-5)
+  assert abs(static(per_view, objective, without) - static(gaussians, objective, without)) > 1e-4
+  np.testing.assert_allclose(
+    timed(repeated, objective, with_vis), timed(one, objective, with_vis), rtol=1e-5
+  )
+  np.testing.assert_allclose(
+    timed(per_view, objective, without), static(per_view, objective, without), rtol=1e-5
+  )
+
+
+def _sets_of(gaussians):
+  """Gaussians [B, V] -> the V sets [B]."""
+  return [jax.tree.map(lambda a: a[:, v], gaussians) for v in range(gaussians.batch_shape[1])]
