@@ -14,7 +14,7 @@ from typing import Literal
 from tokengs_jax import model
 from tokengs_jax.data.synthetic import WalkConfig
 
-# Domain randomisation of the rooms' camera path (docs/generalisation.md, "Lever sweep"): the
+# Domain randomisation of the rooms' camera path (the issue-10 lever sweep, in git history): the
 # RE10K-like walk looks almost level and straight ahead; this one pitches from -34 to +9 degrees,
 # turns 2.5x as fast and dollies sideways twice as often, so the model meets more of the viewing
 # geometry a scene can have. Rooms, textures, objects and light are unchanged.

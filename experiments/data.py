@@ -51,6 +51,65 @@ def _publish(root: pathlib.Path, parts: tuple[str, ...], write: Callable[[pathli
   shutil.rmtree(staging, ignore_errors=True)
 
 
+def _discard(path: pathlib.Path) -> None:
+  """Removes a published part, renamed aside first so no process reads it half-deleted (one that
+  another process discarded meanwhile is skipped)."""
+  aside = path.with_name(f".{path.name}.{os.getpid()}.stale")
+  try:
+    os.rename(path, aside)
+  except FileNotFoundError:
+    return
+  if aside.is_dir():
+    shutil.rmtree(aside)
+  else:
+    aside.unlink()
+
+
+def ensure_generated_set(
+  root: pathlib.Path,
+  parts: tuple[str, ...],
+  settings: dict,
+  write: Callable[[pathlib.Path], object],
+  *,
+  stamp: str,
+  what: str,
+  replace_other_settings: bool = False,
+) -> None:
+  """Makes `root` hold the generated set `settings` describes, unless it holds it already.
+
+  `write(staging_root)` writes every part; the settings are recorded in the stamp (`stamp`,
+  relative to `root`: a part, or a file inside one) and the set is published whole (`_publish`),
+  so an interrupted run never leaves a set that is later taken as complete. The set is there
+  when every part but the stamp exists.
+
+  Raises ValueError if it is there without a stamp (written by a version that did not record its
+  settings, or not by this code at all) or, unless `replace_other_settings` (then it is written
+  anew), with other settings: using it would silently not be the experiment asked for.
+  """
+  wanted = json.loads(json.dumps(settings))  # tuples -> lists, as read back
+  if all((root / part).exists() for part in parts if part != stamp):
+    found = json.loads((root / stamp).read_text()) if (root / stamp).exists() else None
+    if found == wanted:
+      return
+    if found is None or not replace_other_settings:
+      raise ValueError(
+        f"{(root / stamp).parent} holds a synthetic set written with other settings "
+        f"({found or 'not recorded'}; this experiment needs {wanted}): delete it or pass "
+        "another --synthetic-dir"
+      )
+    for part in parts:
+      _discard(root / part)
+  print(f"[data] writing {what}", flush=True)
+  start = time.perf_counter()
+
+  def write_stamped(staging: pathlib.Path):
+    write(staging)
+    (staging / stamp).write_text(json.dumps(wanted, indent=1))
+
+  _publish(root, parts, write_stamped)
+  print(f"[data] written in {time.perf_counter() - start:.1f} s", flush=True)
+
+
 def _generator_settings(experiment: Experiment) -> dict:
   """What the synthetic set's content depends on (`generator.json` beside `train/`, `test/`)."""
   s = experiment.synthetic
@@ -82,27 +141,11 @@ def ensure_synthetic(experiment: Experiment) -> pathlib.Path:
   that did not record them): training on it would silently not be the experiment asked for.
   """
   root = pathlib.Path(experiment.synthetic_dir)
-  wanted = json.loads(json.dumps(_generator_settings(experiment)))  # tuples -> lists
-  if all((root / split / "index.json").exists() for split in ("train", "test")):
-    stamp = root / "generator.json"
-    found = json.loads(stamp.read_text()) if stamp.exists() else None
-    if found != wanted:
-      raise ValueError(
-        f"{root} holds a synthetic set written with other settings ({found or 'not recorded'}; "
-        f"this experiment needs {wanted}): delete it or pass another --synthetic-dir"
-      )
-    return root
-  from tokengs_jax.data.synthetic import generate_re10k_like  # only needed to write the set
-
   s = experiment.synthetic
-  print(
-    f"[data] writing the synthetic RE10K-format set to {root} ({s.num_train} train + "
-    f"{s.num_test} test scenes, {s.frames} frames of {experiment.image_size})",
-    flush=True,
-  )
-  start = time.perf_counter()
 
   def write(staging: pathlib.Path):
+    from tokengs_jax.data.synthetic import generate_re10k_like  # only needed to write the set
+
     generate_re10k_like(
       staging,
       s.num_train,
@@ -113,10 +156,18 @@ def ensure_synthetic(experiment: Experiment) -> pathlib.Path:
       config=_room_family(s),
       workers=s.workers,
     )
-    (staging / "generator.json").write_text(json.dumps(wanted, indent=1))
 
-  _publish(root, ("generator.json", "train", "test"), write)
-  print(f"[data] written in {time.perf_counter() - start:.1f} s", flush=True)
+  ensure_generated_set(
+    root,
+    ("generator.json", "train", "test"),
+    _generator_settings(experiment),
+    write,
+    stamp="generator.json",
+    what=(
+      f"the synthetic RE10K-format set to {root} ({s.num_train} train + {s.num_test} test "
+      f"scenes, {s.frames} frames of {experiment.image_size})"
+    ),
+  )
   return root
 
 
@@ -233,18 +284,22 @@ class _WithTrueDepths:
     return {**record, "depths": depths}
 
 
+def local_batch_size(batch_size: int) -> int:
+  """This process's share of the global batch of `batch_size` examples; raises ValueError
+  unless every process gets the same share."""
+  processes = jax.process_count()
+  if batch_size % processes:
+    raise ValueError(f"batch_size {batch_size} is not divisible by {processes} processes")
+  return batch_size // processes
+
+
 def training_batches(experiment: Experiment) -> InputPipeline:
   """This process's share of the global batch, forever, from `<root>/train` (with the scenes'
   true depths when `train.lambda_depth > 0`)."""
+  local = local_batch_size(experiment.train.batch_size)  # before any data is written
   source = ChunkedSceneSource(data_root(experiment) / "train", skip_bad=bool(experiment.data_dir))
   if experiment.train.lambda_depth > 0:
     source = _WithTrueDepths(source)
-  local = experiment.train.batch_size // jax.process_count()
-  if local * jax.process_count() != experiment.train.batch_size:
-    raise ValueError(
-      f"batch_size {experiment.train.batch_size} is not divisible by "
-      f"{jax.process_count()} processes"
-    )
   return InputPipeline(
     source,
     example_config(experiment, training=True),

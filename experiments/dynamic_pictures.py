@@ -16,11 +16,6 @@ from tokengs_jax.camera import invert_rigid, project_points
 from tokengs_jax.gaussians import Gaussians
 
 
-def subset_of(gaussians: Gaussians, part: slice) -> Gaussians:
-  """The Gaussians `part` of every batch entry ([B, N] leaves)."""
-  return jax.tree.map(lambda x: x[:, part], gaussians)
-
-
 def write_pictures(
   out: pathlib.Path, params, config, example, flow_times: int, flow_tracks: int, writer, step
 ) -> dict:
@@ -43,11 +38,7 @@ def write_pictures(
 
   split = config.num_static_gaussians
   at_target = _seen_from(params, batch, config, batch["target_times"][:, 0], camera[0])
-  parts = [
-    at_target,
-    subset_of(at_target, slice(0, split)),
-    subset_of(at_target, slice(split, None)),
-  ]
+  parts = [at_target, *at_target.static_and_dynamic(split)]
   row = [batch["target_images"][0, 0]] + [
     evaluation.render_targets(g, *camera, height=height, width=width).rgb[0, 0] for g in parts
   ]
@@ -108,7 +99,7 @@ def _target_alphas(params, config, scene: dict) -> tuple[np.ndarray, np.ndarray]
     alphas.append(
       [
         evaluation.render_targets(g, *seen_by, height=height, width=width).alpha[0, 0, ..., 0]
-        for g in (at_view, subset_of(at_view, slice(split, None)))
+        for g in (at_view, at_view.static_and_dynamic(split)[1])
       ]
     )
   full, dynamic = np.moveaxis(np.asarray(alphas), 1, 0)

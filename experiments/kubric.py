@@ -68,13 +68,11 @@ from __future__ import annotations
 import dataclasses
 import functools
 import pathlib
-import time
 from typing import Literal
 
-import jax
 import numpy as np
 
-from experiments import dynamic_pictures, weights
+from experiments import data, dynamic_pictures, weights
 from experiments.cli import main
 from experiments.config import (
   PRETRAINED_KUBRIC,
@@ -180,35 +178,40 @@ class KubricTask(Task):
     self.root(experiment)
 
   def root(self, experiment: KubricExperiment) -> pathlib.Path:
-    """The data root; synthetic: writes each subset that has fewer camera tars than wanted (the
-    training family's train / test, and `synthetic.num_ood` scenes of the frozen held-out family,
-    `tokengs_jax.data.synthetic.kubric_ood`)."""
+    """The data root; synthetic: writes each subset (the training family's train / test, and
+    `synthetic.num_ood` scenes of the frozen held-out family,
+    `tokengs_jax.data.synthetic.kubric_ood`) that is missing or was written with other arguments
+    (`data.ensure_generated_set`: staged, stamped `<subset>/generator.json`)."""
     if experiment.data_dir:
       return pathlib.Path(experiment.data_dir)
     root = pathlib.Path(experiment.synthetic_dir)
     s = experiment.synthetic
-    wanted = {
-      TRAIN_SUBSET: (s.num_train, functools.partial(generate_kubric_like, seed=experiment.seed)),
-      TEST_SUBSET: (
-        s.num_test,
-        functools.partial(generate_kubric_like, seed=experiment.seed + 1000),
-      ),
-      OOD_SUBSET: (s.num_ood, generate_kubric_ood),
+    generators = {
+      TRAIN_SUBSET: (generate_kubric_like, s.num_train, {"seed": experiment.seed}),
+      TEST_SUBSET: (generate_kubric_like, s.num_test, {"seed": experiment.seed + 1000}),
+      OOD_SUBSET: (generate_kubric_ood, s.num_ood, {}),  # its own frozen seed
     }
-    for subset, (count, generate) in wanted.items():
-      if len(list((root / subset).glob("scene_*/output_*.tar"))) < count * experiment.num_cameras:
-        print(f"[data] writing {count} synthetic Kubric scenes to {root / subset}", flush=True)
-        start = time.perf_counter()
-        generate(
-          root,
-          count,
-          *experiment.image_size,
-          frames=s.frames,
-          num_cameras=experiment.num_cameras,
-          subset=subset,
-          workers=s.workers,
-        )
-        print(f"[data] written in {time.perf_counter() - start:.1f} s", flush=True)
+    height, width = experiment.image_size
+    for subset, (generate, count, seed_argument) in generators.items():
+      if count <= 0:
+        continue
+      arguments = {
+        "num_scenes": count,
+        "height": height,
+        "width": width,
+        "frames": s.frames,
+        "num_cameras": experiment.num_cameras,
+        **seed_argument,
+      }
+      data.ensure_generated_set(
+        root,
+        (subset,),
+        {"generator": generate.__name__, **arguments},
+        functools.partial(generate, subset=subset, workers=s.workers, **arguments),
+        stamp=f"{subset}/generator.json",
+        what=f"{count} synthetic Kubric scenes to {root / subset}",
+        replace_other_settings=True,
+      )
     return root
 
   def sources(self, experiment: KubricExperiment) -> tuple[KubricSceneSource, KubricSceneSource]:
@@ -250,11 +253,12 @@ class KubricTask(Task):
   def training_batches(self, experiment: KubricExperiment):
     """This process's batches from the shared input pipeline: grain workers, and an iterator
     state the checkpoints save, so a resumed run continues the data stream where it stopped."""
+    local = data.local_batch_size(experiment.train.batch_size)  # before any data is written
     train, _ = self.sources(experiment)
     pipeline = InputPipeline(
       train,
       kubric_example_config(experiment, training=True),
-      batch_size=experiment.train.batch_size // jax.process_count(),
+      batch_size=local,
       seed=experiment.seed,
       num_workers=experiment.train.num_workers,
       select_views=kubric_views(experiment, experiment.train.num_target_views),

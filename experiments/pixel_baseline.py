@@ -114,10 +114,11 @@ def reconstruct(
 def loss_fn(
   config: ModelConfig, loss_config=None, render_config=None, objective=None, lpips_params=None
 ):
-  """The TokenGS training objective with this model in place of TokenGS (same terms, same renders;
-  `lpips_params`: VGG weights when `loss_config.lambda_lpips > 0`)."""
+  """The TokenGS training objective with this model in place of TokenGS (`static_model_loss`
+  with this `reconstruct`: same terms, same renders, colours read for the target cameras where
+  they depend on the viewer; `lpips_params`: VGG weights when `loss_config.lambda_lpips > 0`)."""
   from tokengs_jax import losses, splatting
-  from tokengs_jax.objective import ObjectiveConfig, supervision_loss
+  from tokengs_jax.objective import ObjectiveConfig, static_model_loss
 
   loss_config = losses.LossConfig() if loss_config is None else loss_config
   render_config = splatting.RenderConfig() if render_config is None else render_config
@@ -125,25 +126,15 @@ def loss_fn(
 
   def compute(params, batch, key, step):
     del key, step
-    gaussians = reconstruct(
+    return static_model_loss(
       params,
-      batch["context_images"],
-      batch["context_c2w"],
-      batch["context_intrinsics"],
-      config=config,
-      viewer_c2w=batch["target_c2w"],
-    )
-    return supervision_loss(
-      gaussians,
-      batch["target_images"],
-      invert_rigid(batch["target_c2w"]),
-      batch["target_intrinsics"],
-      loss_config,
-      render_config,
-      objective,
-      depths=batch.get("target_depths"),
-      context_images=batch["context_images"],
+      batch,
+      model_config=config,
+      loss_config=loss_config,
+      render_config=render_config,
+      objective=objective,
       lpips_params=lpips_params,
+      reconstruct=reconstruct,
     )
 
   return compute

@@ -22,16 +22,26 @@ from tokengs_jax import evaluation, export, splatting
 
 
 def markdown_table(
-  rows: Mapping[str, Mapping[str, float]], columns: Sequence[str], header: str = "method"
+  rows: Mapping[str, Mapping[str, object]] | Sequence[Mapping[str, object]],
+  columns: Sequence[str],
+  header: str = "method",
+  float_format: str = ".4f",
 ) -> str:
-  """A Markdown table: one row per key of `rows`, one column per metric (blank where missing)."""
-  lines = [f"| {header} | " + " | ".join(columns) + " |", "|" + "---|" * (len(columns) + 1)]
-  for name, values in rows.items():
+  """A Markdown table, one column per name of `columns` (blank where a row lacks it; floats as
+  `float_format`): `rows` maps each row's name (the first column, under `header`) to its values,
+  or is the rows themselves."""
+  if isinstance(rows, Mapping):
+    rows = [{**values, header: name} for name, values in rows.items()]
+    columns = [header, *columns]
+  lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+  for values in rows:
     cells = [
-      f"{values[c]:.4f}" if isinstance(values.get(c), float) else str(values.get(c, ""))
+      format(values[c], float_format)
+      if isinstance(values.get(c), float)
+      else str(values.get(c, ""))
       for c in columns
     ]
-    lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    lines.append("| " + " | ".join(cells) + " |")
   return "\n".join(lines) + "\n"
 
 

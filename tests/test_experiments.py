@@ -4,6 +4,7 @@ import dataclasses
 import json
 import math
 import pathlib
+import shutil
 import subprocess
 import sys
 
@@ -557,6 +558,93 @@ def test_generated_sets_are_published_whole_and_the_first_copy_kept(tmp_path):
   data._publish(root, ("test",), writer("second"))
   assert (root / "test" / "index.json").read_text() == "first"
   assert sorted(p.name for p in tmp_path.iterdir()) == ["set"]  # no staging folder left
+
+
+def _tiny_kubric(tmp_path, **changes):
+  """The Kubric default on one training and one test scene of 2 cameras x 4 frames at 16x16 (no
+  held-out family) under `tmp_path / "data"`, with these settings changed."""
+  from experiments import kubric
+  from experiments.config import SyntheticSettings
+
+  tiny = kubric.PRESETS["synthetic-tiny"]
+  return dataclasses.replace(
+    tiny,
+    synthetic_dir=str(tmp_path / "data"),
+    output_dir=str(tmp_path / "out"),
+    model=tiny.model.replace(image_size=(16, 16)),
+    num_cameras=2,
+    synthetic=SyntheticSettings(num_train=1, num_test=1, frames=4, num_ood=0, workers=1),
+    **changes,
+  )
+
+
+@pytest.mark.parametrize("entry_point", ["re10k", "kubric"])
+def test_a_batch_that_does_not_split_evenly_across_processes_is_rejected(
+  tmp_path, monkeypatch, entry_point
+):
+  """Both entry points split the global batch with one check, before any data is written."""
+  from experiments import kubric
+
+  monkeypatch.setattr(jax, "process_count", lambda: 3)
+  if entry_point == "kubric":
+    task, experiment = kubric.KubricTask(), _tiny_kubric(tmp_path)
+  else:
+    task, experiment = tasks.Task(), _small_smoke(tmp_path)
+  experiment = dataclasses.replace(
+    experiment, train=dataclasses.replace(experiment.train, batch_size=4)
+  )
+  with pytest.raises(ValueError, match="batch_size 4 is not divisible by 3 processes"):
+    task.training_batches(experiment)
+  assert not (tmp_path / "data").exists()
+  assert data.local_batch_size(6) == 2
+
+
+def test_kubric_synthetic_subsets_are_published_whole_stamped_and_rewritten_when_changed(
+  tmp_path, monkeypatch
+):
+  """Each subset goes through `data.ensure_generated_set`: reused under the same settings,
+  written anew under others, never left half-written, and refused when it records none."""
+  from experiments import kubric
+
+  task, experiment = kubric.KubricTask(), _tiny_kubric(tmp_path)
+  root = task.root(experiment)
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]  # no staging folder left
+  assert sorted(p.name for p in root.iterdir()) == ["test", "v0"]
+  stamp = json.loads((root / "v0" / "generator.json").read_text())
+  assert stamp["generator"] == "generate_kubric_like" and stamp["seed"] == experiment.seed
+  for subset in ("v0", "test"):
+    (root / subset / "kept").touch()
+  task.root(experiment)  # the same settings: both subsets reused
+  assert (root / "v0" / "kept").exists() and (root / "test" / "kept").exists()
+
+  reseeded = dataclasses.replace(experiment, seed=experiment.seed + 1)
+  task.root(reseeded)  # another seed: both subsets written anew, nothing left aside
+  assert not (root / "v0" / "kept").exists() and not (root / "test" / "kept").exists()
+  assert json.loads((root / "v0" / "generator.json").read_text())["seed"] == reseeded.seed
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
+  assert sorted(p.name for p in root.iterdir()) == ["test", "v0"]
+  more = dataclasses.replace(
+    reseeded, synthetic=dataclasses.replace(reseeded.synthetic, num_train=2)
+  )
+  assert len(task.sources(more)[0]) == 2
+
+  def interrupted(staging, subset, **arguments):
+    (staging / subset / "scene_000000").mkdir(parents=True)
+    raise RuntimeError("interrupted")
+
+  shutil.rmtree(root / "v0")  # missing: the next call writes it
+  monkeypatch.setattr(kubric, "generate_kubric_like", interrupted)
+  with pytest.raises(RuntimeError, match="interrupted"):
+    task.root(more)
+  assert not (root / "v0").exists()  # the half-written subset was never published
+  monkeypatch.undo()
+  assert len(task.sources(more)[0]) == 2
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
+
+  (root / "v0" / "generator.json").unlink()  # a subset from before the settings were recorded
+  with pytest.raises(ValueError, match="not recorded.*another --synthetic-dir"):
+    task.root(more)
+  assert (root / "v0" / "scene_000000").exists()  # refused, not deleted
 
 
 def _small_smoke(tmp_path, eval_changes=None, **train_changes):

@@ -61,3 +61,17 @@ def test_first_set_takes_index_zero_of_every_batch_axis():
   np.testing.assert_array_equal(first.to_flat(), flat[0, 0])
   single = Gaussians.from_flat(flat[0])
   np.testing.assert_array_equal(single.first_set().to_flat(), flat[0, 0])
+
+
+def test_static_and_dynamic_split_every_field_at_the_static_count():
+  flat = jnp.arange(2 * 3 * 5 * 14, dtype=jnp.float32).reshape(2, 3, 5, 14)
+  static, dynamic = Gaussians.from_flat(flat).static_and_dynamic(2)
+  assert static.batch_shape == dynamic.batch_shape == (2, 3)
+  np.testing.assert_array_equal(static.to_flat(), flat[..., :2, :])
+  np.testing.assert_array_equal(dynamic.to_flat(), flat[..., 2:, :])
+  # host arrays (the dynamic pictures) and traced ones (the auxiliary loss) alike
+  host = jax.tree.map(np.asarray, Gaussians.from_flat(flat[0]))
+  assert isinstance(host.static_and_dynamic(2)[1].opacities, np.ndarray)
+  np.testing.assert_array_equal(host.static_and_dynamic(2)[1].to_flat(), flat[0, :, 2:])
+  traced = jax.jit(lambda g: g.static_and_dynamic(4)[1].to_flat())(Gaussians.from_flat(flat))
+  np.testing.assert_array_equal(traced, flat[..., 4:, :])

@@ -142,17 +142,13 @@ def test_each_output_token_writes_exactly_its_own_patch(baseline, scene):
   np.testing.assert_array_equal(changed, expected)
 
 
-@pytest.mark.parametrize("colour_weights", ["mean", "viewer"])
-def test_training_loss_has_finite_nonzero_gradients(baseline, colour_weights):
-  """`loss_fn` (render + photometric + visibility terms) differentiates through every layer,
-  also with colours read for each target camera."""
-  config, params = baseline
-  config = config.replace(input_colour_weights=colour_weights)
-  height = width = 16  # small renders: the gradient program is the file's largest compile
+def _training_batch(key) -> dict:
+  """Two 16x16 input views and one target view from a third camera (small renders: the gradient
+  program is the file's largest compile)."""
+  height = width = 16
   context_c2w, context_k = _cameras(2, height, width)
   target_c2w, target_k = _cameras(3, height, width)
-  key = jax.random.key(2)
-  batch = {
+  return {
     "context_images": jax.random.uniform(key, (1, 2, height, width, 3)),
     "context_c2w": context_c2w,
     "context_intrinsics": context_k,
@@ -160,6 +156,16 @@ def test_training_loss_has_finite_nonzero_gradients(baseline, colour_weights):
     "target_c2w": target_c2w[:, 2:],
     "target_intrinsics": target_k[:, 2:],
   }
+
+
+@pytest.mark.parametrize("colour_weights", ["mean", "viewer"])
+def test_training_loss_has_finite_nonzero_gradients(baseline, colour_weights):
+  """`loss_fn` (render + photometric + visibility terms) differentiates through every layer,
+  also with colours read for each target camera."""
+  config, params = baseline
+  config = config.replace(input_colour_weights=colour_weights)
+  key = jax.random.key(2)
+  batch = _training_batch(key)
   compute = pixel_baseline.loss_fn(config)
   (loss, terms), grads = jax.jit(jax.value_and_grad(compute, has_aux=True))(params, batch, key, 0)
   assert np.isfinite(float(loss)) and float(loss) > 0
@@ -169,6 +175,32 @@ def test_training_loss_has_finite_nonzero_gradients(baseline, colour_weights):
   for name in ("rgb_embed", "ray_embed", "block_0", "block_1", "unpatchify"):
     norm = sum(float(jnp.sum(g**2)) for g in jax.tree.leaves(grads[name]))
     assert norm > 0, name
+
+
+def test_training_loss_is_the_tokengs_objective_on_the_baseline_gaussians(baseline):
+  """`loss_fn` scores the baseline's Gaussians, coloured for the target camera, with TokenGS's
+  `supervision_loss` (the same terms, LPIPS left off)."""
+  from tokengs_jax import losses, splatting
+  from tokengs_jax.objective import ObjectiveConfig, supervision_loss
+
+  config, params = baseline
+  config = config.replace(input_colour_weights="viewer")
+  batch = _training_batch(jax.random.key(3))
+  loss, terms = jax.jit(pixel_baseline.loss_fn(config))(params, batch, None, 0)
+  gaussians = pixel_baseline.method(params, config).reconstruct(batch)  # for the target cameras
+  expected, expected_terms = supervision_loss(
+    gaussians,
+    batch["target_images"],
+    invert_rigid(batch["target_c2w"]),
+    batch["target_intrinsics"],
+    losses.LossConfig(),
+    splatting.RenderConfig(),
+    ObjectiveConfig(),
+    context_images=batch["context_images"],
+  )
+  np.testing.assert_allclose(float(loss), float(expected), rtol=1e-5)
+  for name, value in expected_terms.items():
+    np.testing.assert_allclose(terms[name], value, rtol=1e-5, atol=1e-7, err_msg=name)
 
 
 def test_colours_come_from_the_input_views_like_tokengs(baseline, scene, gaussians):

@@ -193,7 +193,7 @@ def test_chunking_and_tile_scheduling_do_not_change_the_result():
     grads_small.means, grads_default.means, rtol=1e-4, atol=1e-5 * np.abs(grads_default.means).max()
   )
   assert int(out_small.stats.tile_chunks[0]) > int(out_default.stats.tile_chunks[0])
-  # 8-pixel tiles (the speed knob of docs/benchmarks.md): same image and gradients
+  # 8-pixel tiles (a RenderConfig option, not the default): same image and gradients
   (_, out_tile8), grads_tile8 = _tiled_loss_and_grad(
     g, weights, RenderConfig(tile_size=8, tiles_per_step=64)
   )

@@ -84,6 +84,21 @@ class Gaussians:
   def batch_shape(self) -> tuple[int, ...]:
     return self.means.shape[:-2]
 
+  def static_and_dynamic(self, num_static: int) -> tuple["Gaussians", "Gaussians"]:
+    """(Gaussians [..., :num_static], Gaussians [..., num_static:]) of every set: those of the
+    static tokens and those of the dynamic ones, which a model emits after the static ones
+    (`ModelConfig.num_static_gaussians`)."""
+    return self._subset(slice(None, num_static)), self._subset(slice(num_static, None))
+
+  def _subset(self, part: slice) -> "Gaussians":
+    """The Gaussians `part` of the N axis of every set."""
+    return Gaussians(
+      **{
+        name: getattr(self, name)[(..., part) + (slice(None),) * len(tail)]
+        for name, tail in _FIELD_TAILS.items()
+      }
+    )
+
   def first_set(self) -> "Gaussians":
     """The set at index 0 of every batch axis (e.g. [1] or [1, T] -> fields [N, ...])."""
     index = (0,) * len(self.batch_shape)

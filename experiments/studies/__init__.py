@@ -24,6 +24,7 @@ import numpy as np
 
 from experiments import data, tasks, training, weights
 from experiments.config import Experiment
+from experiments.results import markdown_table
 from tokengs_jax import evaluation, model
 
 
@@ -93,14 +94,8 @@ def write_table(
 ) -> pathlib.Path:
   """`<name>.json` (rows + notes) and `<name>.md` (a table) in `out_dir` (process 0 only)."""
   out_dir = pathlib.Path(out_dir)
-  lines = [f"# {title}\n", "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
-  for row in rows:
-    lines.append(
-      "| "
-      + " | ".join(f"{row[c]:.4g}" if isinstance(row[c], float) else str(row[c]) for c in columns)
-      + " |"
-    )
-  lines += [""] + [f"- {n}" for n in notes]
+  lines = [f"# {title}\n", markdown_table(rows, columns, float_format=".4g")]
+  lines += [f"- {n}" for n in notes]
   path = out_dir / f"{name}.md"
   print("\n".join(lines), flush=True)
   if evaluation.writes_results():

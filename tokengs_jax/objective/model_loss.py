@@ -35,11 +35,6 @@ from tokengs_jax.objective.supervision import (
 )
 
 
-def _slice_gaussians(gaussians: Gaussians, start: int) -> Gaussians:
-  """Gaussians [..., start:] of each scene (the dynamic ones, for start = #static)."""
-  return Gaussians.from_flat(gaussians.to_flat()[..., start:, :])
-
-
 def time_conditioned_loss(
   gaussians_at: Callable[[jax.Array, jax.Array], Gaussians],
   times: jax.Array,
@@ -207,7 +202,7 @@ def _scored_with_dynamic_aux(
   terms.update(render_diagnostics(stats))
   if num_static_gaussians is None or not loss_config.lambda_dyn_aux > 0:
     return loss, terms
-  dynamic = _slice_gaussians(gaussians, num_static_gaussians)
+  _, dynamic = gaussians.static_and_dynamic(num_static_gaussians)
 
   def dynamic_loss():
     loss, terms, _ = scored(dynamic, views)
@@ -229,12 +224,20 @@ def static_model_loss(
   render_config,
   objective: ObjectiveConfig,
   lpips_params=None,
+  reconstruct: Callable[..., Gaussians] | None = None,
 ):
-  """Static models: context views -> `model.reconstruct` -> `supervision_loss` on the targets."""
+  """Static models: context views -> `reconstruct` -> `supervision_loss` on the targets.
+
+  reconstruct: `(params, images [B, V, H, W, 3], c2w [B, V, 4, 4], intrinsics [B, V, 4], *,
+    config, viewer_c2w [B, T, 4, 4] or None) -> Gaussians` of the model (None:
+    `model.reconstruct`); another model with its signature (the pixel-aligned baseline) is
+    scored by the same objective.
+  """
   from tokengs_jax import model
   from tokengs_jax.camera import invert_rigid
 
-  gaussians = model.reconstruct(
+  reconstruct = model.reconstruct if reconstruct is None else reconstruct
+  gaussians = reconstruct(
     params,
     batch["context_images"],
     batch["context_c2w"],
