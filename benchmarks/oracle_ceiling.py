@@ -26,7 +26,7 @@ import numpy as np
 
 from tokengs_jax import process
 from tokengs_jax import evaluation
-from tokengs_jax.data.synthetic.generate import render_gallery_scene, render_re10k_like_scene
+from tokengs_jax.data.synthetic import render_gallery_scene, render_re10k_like_scene
 from tokengs_jax.gaussians import Gaussians
 
 SIZE = 32
@@ -104,7 +104,7 @@ def main() -> None:
     for footprint in args.footprints:
       count = 2 * (SIZE // stride) ** 2
       methods[f"oracle_{count}g_f{footprint}"] = evaluation.Method(
-        reconstruct=lambda b, s=stride, f=footprint: unprojected_gaussians(b, s, f)
+        gaussians=lambda b, s=stride, f=footprint: unprojected_gaussians(b, s, f)
       )
   results = evaluation.evaluate_sets(
     test_sets(args.rooms, args.galleries), methods, evaluation.Scorer(lpips=False)

@@ -249,8 +249,15 @@ def example_config(experiment: Experiment, *, training: bool) -> ExampleConfig:
     low, high = (
       (t.min_context_gap, t.max_context_gap) if training else (e.context_gap, e.context_gap)
     )
-    sampler = BoundedSamplerConfig(
-      experiment.num_context_views, num_targets, low, high, 0, 0, low, high
+    sampler = BoundedSamplerConfig(  # the gaps hold from step 0: no warm-up
+      num_context_views=experiment.num_context_views,
+      num_target_views=num_targets,
+      min_context_gap=low,
+      max_context_gap=high,
+      min_target_distance=0,
+      warm_up_steps=0,
+      initial_min_context_gap=low,
+      initial_max_context_gap=high,
     )
     config = ExampleConfig(
       experiment.image_size, sampler, DATASET_PRESETS["re10k"].translation_scale

@@ -76,7 +76,7 @@ def write_pictures(
 def _seen_from(params, batch, config, time, c2w) -> Gaussians:
   """Host Gaussians [1] of `batch` at `time` [1], coloured for the camera `c2w` [1, 1, 4, 4]
   where the model's colours depend on the viewer."""
-  gaussians = jax.device_get(evaluation.reconstruct(params, batch, config, time, c2w))
+  gaussians = jax.device_get(evaluation.gaussians_for_batch(params, batch, config, time, c2w))
   if len(gaussians.batch_shape) == 2:
     gaussians = jax.tree.map(lambda x: x[:, 0], gaussians)
   return gaussians
@@ -90,7 +90,7 @@ def _target_alphas(params, config, scene: dict) -> tuple[np.ndarray, np.ndarray]
   alphas = []
   for view in range(scene["target_images"].shape[1]):
     at_view = jax.device_get(
-      evaluation.reconstruct(params, scene, config, scene["target_times"][:, view])
+      evaluation.gaussians_for_batch(params, scene, config, scene["target_times"][:, view])
     )
     seen_by = (
       scene["target_c2w"][:, view : view + 1],
@@ -119,7 +119,7 @@ def scene_flow_report(out: pathlib.Path, params, config, examples) -> dict:
     if "object_motions" not in scene:
       continue
     ends = [
-      jax.device_get(evaluation.reconstruct(params, scene, config, jnp.asarray([t])))
+      jax.device_get(evaluation.gaussians_for_batch(params, scene, config, jnp.asarray([t])))
       for t in (0.0, 1.0)
     ]
     try:

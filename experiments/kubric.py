@@ -270,10 +270,10 @@ class KubricTask(Task):
     """Its test split and, when synthetic, every scene of the held-out dynamic family
     (`ood_kubric`; the default protocol's views, drawn with the family's frozen seed so they do
     not follow `--seed`). The static galleries and courtyards are not scored: they do not move."""
-    sets = {"test": self.evaluation_examples(experiment)}
+    sets = {"test": self.evaluation_scenes(experiment)}
     ood = self.ood_source(experiment)
     if ood is not None:
-      sets[OOD_SUBSET] = self._examples(
+      sets[OOD_SUBSET] = self._evaluation_scenes(
         experiment, ood, self._default_views(experiment, ood, 0, OOD_SEED), OOD_SEED
       )
     return sets
@@ -326,13 +326,15 @@ class KubricTask(Task):
       chosen.append((position, views))
     return chosen
 
-  def evaluation_examples(self, experiment: KubricExperiment) -> list[tuple[str, dict]]:
-    """(key, batch of one) per evaluated scene of the test split (`_examples`)."""
+  def evaluation_scenes(self, experiment: KubricExperiment) -> list[tuple[str, dict]]:
+    """(key, batch of one) per evaluated scene of the test split (`_evaluation_scenes`)."""
     _, test = self.sources(experiment)
-    return self._examples(experiment, test, self.evaluation_views(experiment)[0], experiment.seed)
+    return self._evaluation_scenes(
+      experiment, test, self.evaluation_views(experiment)[0], experiment.seed
+    )
 
   @staticmethod
-  def _examples(
+  def _evaluation_scenes(
     experiment: KubricExperiment,
     source: KubricSceneSource,
     chosen: list[tuple[int, tuple[np.ndarray, np.ndarray]]],

@@ -152,7 +152,7 @@ def method(params, config: ModelConfig, objective=None):
   from tokengs_jax.objective import ObjectiveConfig
 
   return evaluation.Method(
-    reconstruct=lambda batch: jitted_reconstruct(
+    gaussians=lambda batch: jitted_reconstruct(
       params,
       batch["context_images"],
       batch["context_c2w"],

@@ -66,14 +66,14 @@ class Task:
     printed and kept in metrics.json after training)."""
     return data.training_batches(experiment)
 
-  def evaluation_examples(self, experiment: Experiment) -> list[evaluation.Scene]:
+  def evaluation_scenes(self, experiment: Experiment) -> list[evaluation.Scene]:
     return data.evaluation_scenes(experiment)
 
   def test_sets(self, experiment: Experiment) -> dict[str, list[evaluation.Scene]]:
     """Named held-out sets, all scored with the same methods; the first is the primary one
     (top of metrics.json, grids/, PLY and fly-through). Synthetic runs add the
     out-of-distribution galleries and the frozen courtyards (`data.held_out_families`)."""
-    sets = {"test": self.evaluation_examples(experiment)}
+    sets = {"test": self.evaluation_scenes(experiment)}
     for name, held_out in data.held_out_families(experiment).items():
       sets[name] = data.evaluation_scenes(experiment, held_out=held_out)
     return sets
@@ -198,7 +198,7 @@ def _write_pictures(
       tag="eval" if position == 0 else f"eval/{name}",
     )
   primary = next(iter(scored.values()))
-  splatted = [name for name, m in methods.items() if m.reconstruct is not None]
+  splatted = [name for name, m in methods.items() if m.gaussians is not None]
   if primary.kept and splatted:
     results.write_scene_exports(out, primary.kept[0], splatted[-1], experiment.eval.video_frames)
 

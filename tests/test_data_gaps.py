@@ -1,5 +1,5 @@
 """List-format DL3DV evaluation index, the pipeline's "pointmap" scale on Kubric, the synthetic
-sampler preset, and the host-side rigid inverse."""
+sampler and dataset presets, and the host-side rigid inverse."""
 
 import dataclasses
 import json
@@ -147,11 +147,11 @@ def test_pointmap_batches_and_a_record_without_depths(kubric_root):
     )
 
 
-# ---- the synthetic preset
+# ---- the synthetic presets (the generator's 32-frame walks)
 
 
-def test_synthetic_preset_fits_the_32_frame_walks():
-  preset = SAMPLER_PRESETS["synthetic"]
+def test_synthetic_32_frames_preset_fits_the_32_frame_walks():
+  preset = SAMPLER_PRESETS["synthetic_32_frames"]
   rng = np.random.default_rng(0)
   for step in (0, preset.warm_up_steps // 2, 10 * preset.warm_up_steps):
     low, high = context_gap_bounds(preset, step)
@@ -163,7 +163,7 @@ def test_synthetic_preset_fits_the_32_frame_walks():
   assert context.tolist() == [0, preset.max_context_gap]
 
 
-def test_synthetic_default_trains_with_its_preset(tmp_path):
+def test_synthetic_dataset_preset_batches_generated_walks(tmp_path):
   config = dataclasses.replace(generate.Re10kLikeConfig(), supersample=1)
   generate.generate_re10k_like(tmp_path, 2, 0, 16, 16, 32, seed=1, config=config)
   preset = dataclasses.replace(DATASET_PRESETS["synthetic"], image_shape=(16, 16))

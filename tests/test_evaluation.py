@@ -114,7 +114,7 @@ def test_a_method_has_exactly_one_predictor():
   with pytest.raises(ValueError, match="exactly one"):
     evaluation.Method()
   with pytest.raises(ValueError, match="exactly one"):
-    evaluation.Method(reconstruct=lambda b: None, images=lambda b: None)
+    evaluation.Method(gaussians=lambda b: None, images=lambda b: None)
 
 
 def test_only_process_zero_writes(monkeypatch):
@@ -165,7 +165,7 @@ def test_render_targets_renders_one_set_per_target_view_when_given():
 def test_evaluate_renders_gaussian_methods_and_keeps_pictures():
   batch = _batch(np.random.default_rng(5), [0, 4], [1, 3])
   gaussians = _gaussians((1,))
-  methods = {"splats": evaluation.Method(reconstruct=lambda b: gaussians), **evaluation.baselines()}
+  methods = {"splats": evaluation.Method(gaussians=lambda b: gaussians), **evaluation.baselines()}
   scored = evaluation.evaluate([("s", batch)], methods, evaluation.Scorer(lpips=False), keep=1)
   expected = evaluation.render_targets(
     gaussians, batch["target_c2w"], batch["target_intrinsics"], height=HEIGHT, width=WIDTH
@@ -196,8 +196,8 @@ def test_evaluation_renders_each_method_with_its_objective(monkeypatch):
   gaussians = _gaussians((1,))
   input_mean = ObjectiveConfig(background="input_mean")
   methods = {
-    "grey": evaluation.Method(reconstruct=lambda b: gaussians),
-    "input_mean": evaluation.Method(reconstruct=lambda b: gaussians, objective=input_mean),
+    "grey": evaluation.Method(gaussians=lambda b: gaussians),
+    "input_mean": evaluation.Method(gaussians=lambda b: gaussians, objective=input_mean),
   }
   scored = evaluation.evaluate([("s", batch)], methods, evaluation.Scorer(lpips=False), keep=1)
   black = evaluation.render_targets(
@@ -224,13 +224,13 @@ def test_evaluation_renders_each_method_with_its_objective(monkeypatch):
 
   monkeypatch.setattr(evaluation.tuning, "tune", fake_tune)
   tuned = evaluation.tuned(None, config, TuningConfig(), objective=input_mean)
-  tuned.reconstruct(batch)
+  tuned.gaussians(batch)
   assert seen["objective"] == tuned.objective == input_mean
   assert evaluation.feed_forward(None, config, input_mean).objective == input_mean
   assert pixel_baseline.method(None, config, input_mean).objective == input_mean
   experiment = KubricExperiment(background="input_mean")
   run = KubricTask().methods(experiment, None, include_untrained=False)
-  rendered = {name: m.objective for name, m in run.items() if m.reconstruct is not None}
+  rendered = {name: m.objective for name, m in run.items() if m.gaussians is not None}
   assert set(rendered) == {"trained", "trained+token_tuning"}
   assert all(o == KubricTask().objective(experiment) for o in rendered.values())
   assert KubricTask().objective(experiment).background == "input_mean"
@@ -305,7 +305,7 @@ def test_dynamic_methods_decode_at_each_target_views_time():
     scored.scores["ff"].per_view[0]["psnr"], np.concatenate(expected), rtol=1e-5
   )
   tuned = evaluation.tuned(params, DYNAMIC_CONFIG, TuningConfig(steps=2, learning_rate=1e-2))
-  assert tuned.reconstruct(batch).batch_shape == (1, 2)  # one tuned set per target time
+  assert tuned.gaussians(batch).batch_shape == (1, 2)  # one tuned set per target time
 
 
 def test_geometry_scores_for_rendering_methods_only():
@@ -316,7 +316,7 @@ def test_geometry_scores_for_rendering_methods_only():
   )
   batch["target_depths"] = np.where(rendered.alpha[..., 0] > 0.5, 2.0 * rendered.depth[..., 0], 0)
   batch["target_depths"][0, :, 0, 0] = 1.0  # at least one known pixel per view
-  methods = {"splats": evaluation.Method(reconstruct=lambda b: gaussians), **evaluation.baselines()}
+  methods = {"splats": evaluation.Method(gaussians=lambda b: gaussians), **evaluation.baselines()}
   scored = evaluation.evaluate([("s", batch)], methods, evaluation.Scorer(lpips=False))
   splats = scored.scores["splats"].per_view[0]
   np.testing.assert_allclose(splats["holes"], metrics.holes(rendered.alpha[0]))
@@ -392,7 +392,7 @@ def test_psnr_moving_scores_every_method_over_the_moving_pixels_only():
   still["target_motion_masks"] = np.zeros((1, 1, HEIGHT, WIDTH), bool)
   static = _batch(rng, [0, 4], [2])  # no masks at all: no psnr_moving
   scenes = [("moving", moving), ("still", still), ("static", static)]
-  methods = {"splats": evaluation.Method(reconstruct=lambda b: _gaussians((1,)))}
+  methods = {"splats": evaluation.Method(gaussians=lambda b: _gaussians((1,)))}
   methods.update(evaluation.baselines())
   scored = evaluation.evaluate(scenes, methods, evaluation.Scorer(lpips=False))
   for name, scores in scored.scores.items():
@@ -414,7 +414,7 @@ def _scored_rgb(method: evaluation.Method, batch: dict) -> np.ndarray:
   if method.images is not None:
     return method.images(batch)
   return evaluation.render_targets(
-    method.reconstruct(batch),
+    method.gaussians(batch),
     batch["target_c2w"],
     batch["target_intrinsics"],
     height=HEIGHT,

@@ -437,7 +437,7 @@ def test_tick_labels_keep_significant_zeros():
   assert plot._label(19.0, np.array([18.5, 19.0, 19.5])) == "19"
 
 
-def test_evaluation_examples_read_a_list_format_index(tmp_path):
+def test_evaluation_scenes_read_a_list_format_index(tmp_path):
   """A Long-LRM list index (official DL3DV eval form): its context list, every frame a target."""
   smoke = re10k.PRESETS["smoke"]
   experiment = dataclasses.replace(

@@ -112,7 +112,7 @@ def test_experiment_batches_never_score_an_input_view(data_root):
   experiment = _experiment(data_root)
   task = kubric_experiment.KubricTask()
   assert task.check_evaluation(experiment) is None
-  examples = task.evaluation_examples(experiment)
+  examples = task.evaluation_scenes(experiment)
   assert [key for key, _ in examples] == ["scene_000000", "scene_000001"]
   for _, batch in examples:
     vt = batch["target_images"].shape[1]
@@ -148,7 +148,7 @@ def test_index_views_are_read_as_camera_and_frame(data_root, tmp_path):
     "evaluated": 1,
     "missing": ["scene_404"],
   }
-  [(key, batch)] = task.evaluation_examples(experiment)
+  [(key, batch)] = task.evaluation_scenes(experiment)
   assert key == "scene_000001"
   scene = data_root / "test" / key
   for side, pairs in (("context", [[0, 1], [2, 4]]), ("target", [[1, 2], [0, 4], [2, 1]])):

@@ -187,7 +187,7 @@ def test_training_loss_is_the_tokengs_objective_on_the_baseline_gaussians(baseli
   config = config.replace(input_colour_weights="viewer")
   batch = _training_batch(jax.random.key(3))
   loss, terms = jax.jit(pixel_baseline.loss_fn(config))(params, batch, None, 0)
-  gaussians = pixel_baseline.method(params, config).reconstruct(batch)  # for the target cameras
+  gaussians = pixel_baseline.method(params, config).gaussians(batch)  # for the target cameras
   expected, expected_terms = supervision_loss(
     gaussians,
     batch["target_images"],

@@ -19,7 +19,6 @@ from experiments import data, re10k, weights
 from experiments.studies import (
   StudySettings,
   camera_noise,
-  held_out,
   psnr_of,
   test_time_scaling,
   token_assignment,
@@ -293,7 +292,7 @@ def test_trained_tokengs_loads_saved_weights_without_training(smoke_study, smoke
 
 def test_psnr_of_scores_every_scene_and_times_the_first_twice(smoke_study, smoke_model):
   """Invisible Gaussians render the grey background: PSNR = that of grey vs the targets."""
-  examples = held_out(smoke_study.experiment)
+  examples = data.evaluation_scenes(smoke_study.experiment)
   assert len(examples) == 2
   calls = []
   n = smoke_model[0].num_gaussians  # the e2e test's Gaussian count: the render compiles once
@@ -309,7 +308,7 @@ def test_psnr_of_scores_every_scene_and_times_the_first_twice(smoke_study, smoke
     )
 
   scores, seconds = psnr_of(
-    evaluation.Method(reconstruct=method), examples, evaluation.Scorer(lpips=False)
+    evaluation.Method(gaussians=method), examples, evaluation.Scorer(lpips=False)
   )
   assert [id(b) for b in calls] == [id(examples[0][1])] * 2 + [id(examples[1][1])]
   assert seconds >= 0 and len(scores) == 2
@@ -343,7 +342,7 @@ def test_token_assignment_main_end_to_end(smoke_study, smoke_model):
   # num_scenes=1: one picture, of the first scene: 5 labelled rows (inputs, targets, renders,
   # token colours at the targets, at the inputs) of two 32x32 views upscaled 4x to 128x128
   pictures = list((out / "scenes").glob("*.png"))
-  key = held_out(settings.experiment)[0][0]
+  key = data.evaluation_scenes(settings.experiment)[0][0]
   assert [p.name for p in pictures] == [f"{key}.png"]
   image = np.asarray(Image.open(pictures[0]))
   assert image.shape[0] == 5 * 128 + 6 * 4 and image.shape[1] > 2 * 128 + 2 * 4

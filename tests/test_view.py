@@ -146,7 +146,7 @@ def test_results_source_rebuilds_the_evaluation_scenes(results):
   np.testing.assert_array_equal(scene.targets.c2w, examples[1][1]["target_c2w"][0])
   assert source.scene(1) is scene  # reconstructed once
   # the same network output as the evaluation's
-  expected = evaluation.reconstruct(source.params, examples[1][1], experiment.model)
+  expected = evaluation.gaussians_for_batch(source.params, examples[1][1], experiment.model)
   np.testing.assert_allclose(scene.gaussians.means, np.asarray(expected.means)[0], atol=1e-6)
 
 

@@ -7,7 +7,7 @@ Entry points (`experiments.*`), the studies and the tests all score through `eva
     evaluation = evaluate(scenes, methods, Scorer(lpips=True))
     evaluation.scores["trained"].summary()            # {"psnr": ..., "ssim": ..., "lpips": ...}
 
-A `Method` either reconstructs Gaussians from a batch (rendered at the target cameras by
+A `Method` either gives Gaussians for a batch (`gaussians`, rendered at the target cameras by
 `render_targets`, the single place where evaluation renders, with the objective the method's model
 was trained with: its background, near / far) or predicts the target images directly (the image
 baselines). Scores follow the pixelSplat / MVSplat protocol: per target view, averaged per scene
@@ -83,20 +83,20 @@ class Method:
   """One evaluated method: exactly one of the two predictors.
 
   Attributes:
-    reconstruct: batch -> Gaussians [B] (one set for every target) or [B, Vt] (one set per
+    gaussians: batch -> Gaussians [B] (one set for every target) or [B, Vt] (one set per
       target view, e.g. a dynamic model decoded at each target's time); rendered at the targets.
     images: batch -> target-view images [B, Vt, H, W, 3] (image baselines; nothing rendered).
-    objective: how `reconstruct`'s Gaussians are rendered (background, near / far): the one
+    objective: how the `gaussians` are rendered (background, near / far): the one
       their model was trained with, so that evaluation sees what training supervised.
   """
 
-  reconstruct: Callable[[dict], Gaussians] | None = None
+  gaussians: Callable[[dict], Gaussians] | None = None
   images: Callable[[dict], np.ndarray] | None = None
   objective: ObjectiveConfig = ObjectiveConfig()
 
   def __post_init__(self):
-    if (self.reconstruct is None) == (self.images is None):
-      raise ValueError("a Method has exactly one of `reconstruct` and `images`")
+    if (self.gaussians is None) == (self.images is None):
+      raise ValueError("a Method has exactly one of `gaussians` and `images`")
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
@@ -111,7 +111,7 @@ def _reconstruct(params, images, c2w, intrinsics, times, target_times, viewer_c2
   return model.decode_at_times(params, encoded, config, target_times, viewer_c2w=viewer_c2w)
 
 
-def reconstruct(
+def gaussians_for_batch(
   params, batch: dict, config: model.ModelConfig, target_times=None, viewer_c2w=None
 ) -> Gaussians:
   """The network's Gaussians for a batch's context views.
@@ -146,7 +146,9 @@ def feed_forward(
 ) -> Method:
   """The network's Gaussians (dynamic models: at every target view's time), rendered with the
   training `objective`."""
-  return Method(reconstruct=lambda batch: reconstruct(params, batch, config), objective=objective)
+  return Method(
+    gaussians=lambda batch: gaussians_for_batch(params, batch, config), objective=objective
+  )
 
 
 def tuned(
@@ -181,7 +183,7 @@ def tuned(
       **keywords,
     ).gaussians
 
-  return Method(reconstruct=predict, objective=objective)
+  return Method(gaussians=predict, objective=objective)
 
 
 def baselines(dynamic: bool = False) -> dict[str, Method]:
@@ -339,7 +341,7 @@ def _predict(method: Method, batch: dict, render_config) -> tuple[dict, float]:
     return {"rgb": rgb, "depth": None, "alpha": None, "gaussians": None}, (
       time.perf_counter() - start
     )
-  gaussians = jax.block_until_ready(method.reconstruct(batch))
+  gaussians = jax.block_until_ready(method.gaussians(batch))
   seconds = time.perf_counter() - start
   height, width = batch["target_images"].shape[-3:-1]
   rendered = render_targets(

@@ -22,7 +22,7 @@ from collections.abc import Sequence
 import jax
 import numpy as np
 
-from experiments import data, tasks, training, weights
+from experiments import tasks, training, weights
 from experiments.config import Experiment
 from experiments.results import markdown_table
 from tokengs_jax import evaluation, model
@@ -65,13 +65,6 @@ def trained_tokengs(settings: StudySettings) -> tuple[model.ModelConfig, dict]:
   params = train(experiment, model.init_params(jax.random.key(experiment.seed), config))
   weights.save_params(path, params)
   return config, params
-
-
-def held_out(
-  experiment: Experiment, views: data.ViewChooser | None = None
-) -> list[evaluation.Scene]:
-  """The experiment's held-out scenes (optionally with chosen views)."""
-  return data.evaluation_scenes(experiment, views=views)
 
 
 def psnr_of(

@@ -19,15 +19,8 @@ import jax
 import numpy as np
 import tyro
 
-from experiments import pixel_baseline, plot, weights
-from experiments.studies import (
-  StudySettings,
-  held_out,
-  psnr_of,
-  train,
-  trained_tokengs,
-  write_table,
-)
+from experiments import data, pixel_baseline, plot, weights
+from experiments.studies import StudySettings, psnr_of, train, trained_tokengs, write_table
 from tokengs_jax import evaluation, process
 
 
@@ -90,7 +83,7 @@ def main(settings: CameraNoise) -> list[dict]:
   out = pathlib.Path(settings.output_dir) / "camera_noise"
   config, params = trained_tokengs(settings)
   baseline = baseline_params(settings, config, out)
-  examples = held_out(settings.experiment)
+  examples = data.evaluation_scenes(settings.experiment)
   scorer = evaluation.Scorer(lpips=False)
   methods = {
     "TokenGS": evaluation.feed_forward(params, config),

@@ -19,8 +19,8 @@ import pathlib
 import numpy as np
 import tyro
 
-from experiments import plot
-from experiments.studies import StudySettings, held_out, psnr_of, trained_tokengs, write_table
+from experiments import data, plot
+from experiments.studies import StudySettings, psnr_of, trained_tokengs, write_table
 from tokengs_jax import evaluation, process
 from tokengs_jax.tuning import TuningConfig
 
@@ -82,7 +82,7 @@ def context_extension_rows(
   gap = settings.experiment.eval.context_gap
   rows = []
   for count in settings.views:
-    examples = held_out(
+    examples = data.evaluation_scenes(
       settings.experiment.with_views(count), views=spaced_views(count, gap, targets)
     )
     rows.append(_row("input views", count, *psnr_of(method, examples, scorer)))
@@ -135,7 +135,9 @@ def main(settings: TestTimeScaling) -> list[dict]:
   feed_forward = evaluation.feed_forward(params, config)
   targets = shared_targets(settings.views, e.context_gap, e.num_target_views)
   view_rows = context_extension_rows(settings, feed_forward, scorer, targets)
-  examples = held_out(settings.experiment, views=spaced_views(2, e.context_gap, targets))
+  examples = data.evaluation_scenes(
+    settings.experiment, views=spaced_views(2, e.context_gap, targets)
+  )
   base = _row("no tuning (2 views)", 0, *psnr_of(feed_forward, examples, scorer))
   by_target = tuning_rows(settings, params, config, examples, scorer)
   rows = [*view_rows, base, *(row for target_rows in by_target.values() for row in target_rows)]

@@ -22,8 +22,8 @@ import jax
 import numpy as np
 import tyro
 
-from experiments import pictures, plot
-from experiments.studies import StudySettings, held_out, trained_tokengs, write_table
+from experiments import data, pictures, plot
+from experiments.studies import StudySettings, trained_tokengs, write_table
 from tokengs_jax import evaluation, export, process
 from tokengs_jax.gaussians import Gaussians
 
@@ -81,10 +81,10 @@ def main(settings: TokenAssignment) -> list[dict]:
   config, params = trained_tokengs(settings)
   per_token = config.gaussians_per_token
   palette = np.repeat(token_colours(config.num_tokens), per_token, axis=0)  # [N, 3]
-  examples = held_out(settings.experiment)
+  examples = data.evaluation_scenes(settings.experiment)
   spreads, opacities = [], []
   for position, (key, batch) in enumerate(examples):
-    gaussians = jax.device_get(evaluation.reconstruct(params, batch, config))
+    gaussians = jax.device_get(evaluation.gaussians_for_batch(params, batch, config))
     stats = per_token_statistics(jax.tree.map(lambda x: x[0], gaussians), per_token)
     spreads.append(stats["relative_spread"])
     opacities.append(stats["opacity"])

@@ -24,15 +24,8 @@ import jax
 import numpy as np
 import tyro
 
-from experiments import plot, weights
-from experiments.studies import (
-  StudySettings,
-  held_out,
-  psnr_of,
-  train,
-  trained_tokengs,
-  write_table,
-)
+from experiments import data, plot, weights
+from experiments.studies import StudySettings, psnr_of, train, trained_tokengs, write_table
 from tokengs_jax import evaluation, model, process
 from tokengs_jax.tuning import TuningConfig
 
@@ -66,7 +59,7 @@ def model_for(settings: TokenCount, config, params, count: int, out: pathlib.Pat
 def main(settings: TokenCount) -> list[dict]:
   out = pathlib.Path(settings.output_dir) / "token_count"
   config, params = trained_tokengs(settings)
-  examples = held_out(settings.experiment)
+  examples = data.evaluation_scenes(settings.experiment)
   scorer = evaluation.Scorer(lpips=False)
   lr = settings.experiment.eval.tuning_learning_rate
   rows = []

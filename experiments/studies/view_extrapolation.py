@@ -19,8 +19,8 @@ import pathlib
 import numpy as np
 import tyro
 
-from experiments import plot
-from experiments.studies import StudySettings, held_out, trained_tokengs, write_table
+from experiments import data, plot
+from experiments.studies import StudySettings, trained_tokengs, write_table
 from tokengs_jax import evaluation, process
 from tokengs_jax.tuning import TuningConfig
 
@@ -63,7 +63,7 @@ def main(settings: ViewExtrapolation) -> list[dict]:
       np.array(list(frames.values())),
     )
 
-  examples = held_out(settings.experiment, views=views)
+  examples = data.evaluation_scenes(settings.experiment, views=views)
   methods = {"TokenGS": evaluation.feed_forward(params, config)}
   if settings.with_tuning:
     e = settings.experiment.eval

@@ -213,20 +213,20 @@ class ResultsSource:
     task.prepare(experiment)  # regenerates a missing synthetic set (before JAX starts threads)
     self.folder, self.experiment, self.config = folder, experiment, experiment.model
     self.params = weights.initial_params(experiment, finetune=False)
-    self.examples = task.evaluation_examples(experiment)
+    self.evaluation_scenes = task.evaluation_scenes(experiment)
     self.title = saved.get("title", str(folder))
     self._scenes: dict[tuple[int, float | None], ViewScene] = {}
 
   @property
   def keys(self) -> list[str]:
-    return [key for key, _ in self.examples]
+    return [key for key, _ in self.evaluation_scenes]
 
   @property
   def time_conditioned(self) -> bool:
     return bool(self.config.time_embedding)
 
   def default_time(self, index: int) -> float | None:
-    batch = self.examples[index][1]
+    batch = self.evaluation_scenes[index][1]
     return float(batch["target_times"][0, 0]) if self.time_conditioned else None
 
   def scene(self, index: int, time: float | None = None) -> ViewScene:
@@ -236,14 +236,16 @@ class ResultsSource:
     return self._scenes[index, time]
 
   def _reconstruct(self, index: int, time: float | None) -> ViewScene:
-    key, batch = self.examples[index]
+    key, batch = self.evaluation_scenes[index]
     if self.time_conditioned and time is None:
       time = self.default_time(index)
     target_times = jnp.asarray([time], jnp.float32) if self.time_conditioned else None
     # the browser draws one colour per Gaussian: colours that depend on the viewer are those
     # seen from the first input camera
     first_camera = batch["context_c2w"][:, :1]
-    gaussians = evaluation.reconstruct(self.params, batch, self.config, target_times, first_camera)
+    gaussians = evaluation.gaussians_for_batch(
+      self.params, batch, self.config, target_times, first_camera
+    )
     gaussians = jax.tree.map(
       lambda x: np.asarray(x, np.float32), jax.device_get(gaussians.first_set())
     )

@@ -121,9 +121,10 @@ DATASET_PRESETS = {
     (256, 256), SAMPLER_PRESETS["depthsplat_re10k"], TRANSLATION_SCALES["re10k"]
   ),
   "dl3dv": ExampleConfig((256, 448), SAMPLER_PRESETS["tokengs_dl3dv"], TRANSLATION_SCALES["dl3dv"]),
-  # the embedded default (`tokengs_jax.data.synthetic`, generated at 64x64 by default)
+  # the embedded generator's set (`tokengs_jax.data.synthetic`: 32-frame walks at 64x64 by
+  # default); the experiments' synthetic default builds its own (`experiments.data`)
   "synthetic": ExampleConfig(
-    (64, 64), SAMPLER_PRESETS["synthetic"], TRANSLATION_SCALES["synthetic"]
+    (64, 64), SAMPLER_PRESETS["synthetic_32_frames"], TRANSLATION_SCALES["synthetic"]
   ),
   # official `finetune_dl3dv_kubric_dyn` + registry: 256x256, mean_cam, pointmap scale 1.0.
   # Pass `kubric_view_selector(4, 4, 3, 23)` as `select_views`: the bounded sampler, here only

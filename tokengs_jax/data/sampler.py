@@ -82,7 +82,9 @@ SAMPLER_PRESETS = {
   # ours, for the 32-frame synthetic RE10K-like walks (tokengs_jax.data.synthetic, 3-8 cm per
   # frame, median depth ~3.8 m): gaps 8-24 give context baselines of ~0.11-0.34 x the median
   # depth (measured, docs/benchmarks.md); the warm-up starts at 4-12. Fits 32 frames (max gap 31).
-  "synthetic": BoundedSamplerConfig(2, 4, 8, 24, 0, 5_000, 4, 12),
+  # Not the experiments' synthetic default, whose sampler `experiments.data.example_config`
+  # builds from the experiment's gaps, without warm-up.
+  "synthetic_32_frames": BoundedSamplerConfig(2, 4, 8, 24, 0, 5_000, 4, 12),
 }
 
 
