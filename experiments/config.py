@@ -125,7 +125,8 @@ class EvalSettings:
 # 150x larger head readout (the official 0.002 starts every Gaussian in one clump, which a few CPU
 # minutes cannot spread) and colours read from the input views (`gaussian_colours="inputs"`, not
 # in the paper: head-regressed colours stay too smooth to beat copying an input view after a few
-# CPU minutes).
+# CPU minutes), each view weighted by how near its ray is to the rendering camera's
+# (`input_colour_weights="viewer"`, session 12; docs/generalisation.md).
 SYNTHETIC_MODEL = model.preset(
   "tiny",
   image_size=(32, 32),
@@ -134,6 +135,7 @@ SYNTHETIC_MODEL = model.preset(
   dec_patch_size=4,
   clip_head_readout_std=0.3,
   gaussian_colours="inputs",
+  input_colour_weights="viewer",
 )
 
 

@@ -443,9 +443,7 @@ _PRETRAIN = KubricExperiment(
   output_dir="outputs/kubric/pretrain",
   synthetic_dir="outputs/synthetic_kubric",
   checkpoint=str(PRETRAINED_SYNTHETIC / "params.msgpack"),
-  model=SYNTHETIC_MODEL.replace(
-    num_input_views=4, num_dynamic_gs_tokens=32, time_embedding=True, input_colour_weights="viewer"
-  ),
+  model=SYNTHETIC_MODEL.replace(num_input_views=4, num_dynamic_gs_tokens=32, time_embedding=True),
   synthetic=SyntheticSettings(num_train=96, num_test=4, frames=12, num_ood=8, workers=2),
   background="input_mean",
   normalization="first_cam",

@@ -21,8 +21,9 @@ Presets:
   delta < 1.25). The model: `tiny` with 128 tokens x 16 Gaussians (`num_gs_tokens=128`,
   `dec_patch_size=4`: 2048 Gaussians), a 150x larger head initialisation
   (`clip_head_readout_std=0.3`: the official 0.002 starts every Gaussian in one clump, which a
-  few CPU minutes cannot spread over a room) and Gaussian colours read from the input views
-  (`gaussian_colours="inputs"`, not in the paper; docs/generalisation.md).
+  few CPU minutes cannot spread over a room) and Gaussian colours read from the input views, each
+  view weighted toward the rendering camera's ray (`gaussian_colours="inputs"`,
+  `input_colour_weights="viewer"`; not in the paper; docs/generalisation.md).
 - `pretrain`: what trained the shipped weights: the same model from scratch on 960 scenes for
   6000 steps (batch 4, 2 context + 2 target views, lr 3e-3 cosine, 100 warm-up), with the
   pixel-aligned baseline trained the same way (`--eval.pixel-baseline`); about an hour idle.
