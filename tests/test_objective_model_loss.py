@@ -126,16 +126,10 @@ def test_chunked_objective_matches_one_shot(tiny):
   for chunk_size in (None, 1):
     loss_fn = tokengs_loss_fn(config, objective=ObjectiveConfig(view_chunk_size=chunk_size))
     results.append(jax.jit(jax.value_and_grad(loss_fn, has_aux=True))(params, batch, key, 0))
-  ((loss, terms), grads), ((chunked_loss, chunked_terms), chunked_grads) = results
-  np.testing.assert_allclose(chunked_loss, loss, rtol=1e-5)
+  _assert_same(results[1], results[0])
+  ((_, terms), _), ((_, chunked_terms), _) = results
   for name in ("rgb", "ssim", "visibility", "psnr"):
     np.testing.assert_allclose(chunked_terms[name], terms[name], rtol=1e-5, atol=1e-7)
-  scale = max(float(np.max(np.abs(g))) for g in jax.tree.leaves(grads))
-  jax.tree.map(
-    lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-5 * scale),
-    chunked_grads,
-    grads,
-  )
 
 
 @pytest.mark.slow

@@ -64,7 +64,7 @@ from tokengs_jax.copies import (
 )
 from tokengs_jax.camera import invert_rigid
 from tokengs_jax.gaussians import Gaussians
-from tokengs_jax.objective import ObjectiveConfig, background_colours
+from tokengs_jax.objective import ObjectiveConfig, render_settings
 
 Scene = tuple[str, dict]  # (scene key, batch of one in the data contract)
 
@@ -252,10 +252,8 @@ def render_targets(
     intrinsics,
     height=height,
     width=width,
-    background=background_colours(objective, context_images, world_to_camera),
-    near=objective.near,
-    far=objective.far,
     config=render_config,
+    **render_settings(objective, context_images, world_to_camera),
   )
   views = [np.asarray(x) for x in (result.rgb, result.depth, result.alpha)]
   if per_view:

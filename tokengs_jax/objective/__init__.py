@@ -1,7 +1,8 @@
 """The TokenGS objective, one home for training, test-time tuning and evaluation.
 
 - `settings`: `ObjectiveConfig` (background, near / far, view chunks, decode times) and
-  `background_colours`, what every render of the objective and of evaluation composites over.
+  `background_colours` / `render_settings`, what every render of the objective and of evaluation
+  composites over and culls at.
 - `supervision`: renders of Gaussians scored against views (`supervision_loss`), its terms and
   the memory-lean mean over view chunks (`mean_over_view_chunks`).
 - `model_loss`: the losses of a model's parameters on a batch (`tokengs_loss_fn`, static and
@@ -16,7 +17,7 @@ from tokengs_jax.objective.model_loss import (
   time_conditioned_loss,
   tokengs_loss_fn,
 )
-from tokengs_jax.objective.settings import ObjectiveConfig, background_colours
+from tokengs_jax.objective.settings import ObjectiveConfig, background_colours, render_settings
 from tokengs_jax.objective.supervision import (
   add_visibility,
   mean_over_view_chunks,
@@ -34,6 +35,7 @@ __all__ = [
   "mean_over_view_chunks",
   "photometric_loss",
   "render_diagnostics",
+  "render_settings",
   "render_views",
   "static_model_loss",
   "supervision_loss",

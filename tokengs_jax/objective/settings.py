@@ -1,5 +1,5 @@
 """How the objective renders: its settings (`ObjectiveConfig`) and the background behind every
-render (`background_colours`).
+render (`background_colours`), handed to the renderer as `render_settings`.
 
 Training, tuning and evaluation read the same settings, so that a model is scored over the
 background and near / far it was supervised with.
@@ -61,3 +61,15 @@ def background_colours(objective: ObjectiveConfig, context_images, world_to_came
     raise ValueError("the 'input_mean' background needs the context images")
   mean = jnp.mean(jnp.asarray(context_images, jnp.float32), axis=(1, 2, 3))  # [B, 3]
   return mean.reshape(mean.shape[:1] + (1,) * (jnp.ndim(world_to_camera) - 3) + (3,))
+
+
+def render_settings(objective: ObjectiveConfig, context_images, world_to_camera) -> dict:
+  """The keyword arguments of `splatting.render` / `render_exact` that `objective` decides for
+  renders into views `world_to_camera` [B, ..., V, 4, 4]: `background` (`background_colours`)
+  and the `near` / `far` culling. Training, tuning and evaluation all render through it, so a
+  run is scored with the render settings it was trained with."""
+  return dict(
+    background=background_colours(objective, context_images, world_to_camera),
+    near=objective.near,
+    far=objective.far,
+  )

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 
 from tokengs_jax.gaussians import Gaussians
-from tokengs_jax.objective.settings import ObjectiveConfig, background_colours
+from tokengs_jax.objective.settings import ObjectiveConfig, render_settings
 
 
 def mean_over_view_chunks(chunk_loss: Callable, views, chunk_size: int | None):
@@ -64,7 +64,7 @@ def render_views(
   context_images=None,
 ):
   """Float32 renders of Gaussians [B(, ...)] into views [B(, ...), V] (`splatting.render`) over
-  `background_colours` (context_images [B, Vi, H, W, 3]: needed by "input_mean" only)."""
+  the objective's `render_settings` (context_images [B, Vi, H, W, 3]: needed by "input_mean" only)."""
   from tokengs_jax import splatting  # the heavy areas only when this objective is used
 
   return splatting.render(
@@ -73,10 +73,8 @@ def render_views(
     intrinsics,
     height=height,
     width=width,
-    background=background_colours(objective, context_images, world_to_camera),
-    near=objective.near,
-    far=objective.far,
     config=render_config,
+    **render_settings(objective, context_images, world_to_camera),
   )
 
 
