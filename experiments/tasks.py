@@ -128,10 +128,15 @@ class Task:
       )
     methods["trained"] = evaluation.feed_forward(params, config, objective)
     if e.tuning_steps > 0:
-      methods["trained+token_tuning"] = evaluation.tuned(
+      methods[evaluation.TUNED_METHODS[e.tuning_target]] = evaluation.tuned(
         params,
         config,
-        TuningConfig(steps=e.tuning_steps, learning_rate=e.tuning_learning_rate),
+        TuningConfig(
+          target=e.tuning_target,
+          steps=e.tuning_steps,
+          learning_rate=e.tuning_learning_rate,
+          gaussian_learning_rate=e.tuning_gaussian_learning_rate,
+        ),
         loss_config=self.tuning_loss_config(experiment),
         objective=objective,
       )

@@ -69,6 +69,15 @@ from tokengs_jax.objective import ObjectiveConfig, render_settings
 Scene = tuple[str, dict]  # (scene key, batch of one in the data contract)
 
 
+# The method name of each test-time tuning target (`tuning.TuningConfig.target`) in results.
+TUNED_METHODS = {
+  "tokens": "trained+token_tuning",
+  "gaussians": "trained+gaussian_tuning",
+  "tokens+gaussians": "trained+joint_tuning",
+  "latents": "trained+latent_tuning",
+}
+
+
 def writes_results() -> bool:
   """True on the process that writes results (metrics, pictures, weights): process 0."""
   return jax.process_index() == 0
@@ -465,7 +474,9 @@ def checks(summary: Mapping[str, Mapping[str, float]]) -> dict[str, str]:
       if other in psnr:
         margin = psnr["trained"] - psnr[other]
         lines[f"trained beats {other}"] = f"{margin > 0} (PSNR margin {margin:+.3f} dB)"
-    if "trained+token_tuning" in psnr:
-      gain = psnr["trained+token_tuning"] - psnr["trained"]
-      lines["token tuning improves trained"] = f"{gain > 0} (PSNR gain {gain:+.3f} dB)"
+    for method in TUNED_METHODS.values():
+      if method in psnr:
+        gain = psnr[method] - psnr["trained"]
+        label = method.removeprefix("trained+").replace("_", " ")
+        lines[f"{label} improves trained"] = f"{gain > 0} (PSNR gain {gain:+.3f} dB)"
   return lines
