@@ -402,6 +402,7 @@ class KubricTask(Task):
       lambda_ssim=0.2,
       lambda_vis=1.0,
       lambda_dyn_aux=experiment.lambda_dyn_aux,
+      lambda_motion=experiment.train.lambda_motion,
       dyn_aux_hold_steps=round(experiment.dyn_aux_hold_fraction * steps),
       dyn_aux_decay_steps=max(round(experiment.dyn_aux_decay_fraction * steps), 1),
     )

@@ -211,3 +211,34 @@ def test_depth_loss_is_opacity_weighted_relative_error_over_known_pixels():
   # An empty render (alpha 0, expected depth a huge 0/0 stand-in) has a finite gradient.
   grad = jax.grad(lambda d: losses.depth_loss(d, jnp.zeros_like(d), truth))(depth * 1e10)
   assert np.isfinite(np.asarray(grad)).all()
+
+
+def test_moving_pixels_compare_each_target_with_the_input_of_the_nearest_camera():
+  rng = np.random.default_rng(0)
+  context = rng.random((1, 2, 6, 6, 3)).astype(np.float32)
+  context_c2w = np.tile(np.eye(4, dtype=np.float32), (1, 2, 1, 1))
+  context_c2w[0, 1, :3, 3] = [2.0, 0.0, 0.0]
+  # target 0 near camera 1, target 1 near camera 0; each changed in one block
+  target_c2w = context_c2w[:, ::-1].copy()
+  target_c2w[..., 1, 3] = 0.1
+  target = context[:, ::-1].copy()
+  target[0, 0, :2, :3, 1] += 0.5
+  target[0, 1, 4:, 4:, 0] -= 0.05  # under the threshold
+  target[0, 1, 3, 0, 2] += 0.2
+  moving = losses.moving_pixels(target, target_c2w, context, context_c2w, threshold=0.1)
+  expected = np.zeros((1, 2, 6, 6), np.float32)
+  expected[0, 0, :2, :3] = 1
+  expected[0, 1, 3, 0] = 1
+  np.testing.assert_array_equal(moving, expected)
+
+
+def test_motion_loss_is_the_error_of_the_moving_pixels_over_all_pixels():
+  pred = jnp.zeros((1, 2, 2, 3))
+  target = jnp.full((1, 2, 2, 3), 0.5)
+  moving = jnp.array([[[1.0, 0.0], [0.0, 0.0]]])
+  assert float(losses.motion_loss(pred, target, moving, "l2")) == pytest.approx(0.25 / 4)
+  assert float(losses.motion_loss(pred, target, moving, "l1")) == pytest.approx(0.5 / 4)
+  everywhere = jnp.ones((1, 2, 2))
+  assert float(losses.motion_loss(pred, target, everywhere)) == pytest.approx(
+    float(losses.rgb_loss(pred, target))
+  )

@@ -117,6 +117,32 @@ def test_dynamic_aux_loss_is_the_loss_of_the_dynamic_gaussians_alone_with_its_sc
     np.testing.assert_allclose(loss, main + weight * dyn, rtol=1e-5)
 
 
+def test_motion_term_weighs_the_moving_pixels_one_plus_lambda_times():
+  params = dynamic_params()
+  batch = dynamic_batch([[0.0, 1.0]], [[0.4, 0.4]])
+  plain = losses.LossConfig(rgb_loss="l1", lambda_rgb=0.8)
+  objective = ObjectiveConfig(decode_times="first")
+
+  def terms_with(**changes):
+    loss_fn = tokengs_loss_fn(
+      DYNAMIC_CONFIG, dataclasses.replace(plain, **changes), objective=objective
+    )
+    return jax.jit(loss_fn)(params, batch, None, 0)
+
+  base_loss, base_terms = terms_with()
+  assert "motion" not in base_terms
+  # every pixel moves: the term is the RGB term itself; none moves: it is 0
+  loss, terms = terms_with(lambda_motion=2.0, motion_threshold=-1.0)
+  np.testing.assert_allclose(terms["motion"], base_terms["rgb"], rtol=1e-6)
+  np.testing.assert_allclose(loss, base_loss + 0.8 * 2.0 * base_terms["rgb"], rtol=1e-5)
+  _, terms = terms_with(lambda_motion=2.0, motion_threshold=2.0)
+  assert float(terms["motion"]) == 0.0
+  # random images: some pixels move, a share of the RGB error
+  loss, terms = terms_with(lambda_motion=2.0)
+  assert 0 < float(terms["motion"]) < float(base_terms["rgb"])
+  np.testing.assert_allclose(loss, base_loss + 0.8 * 2.0 * terms["motion"], rtol=1e-5)
+
+
 @pytest.mark.slow
 def test_chunked_objective_matches_one_shot(tiny):
   config, params = tiny

@@ -52,6 +52,12 @@ class LossConfig:
     lambda_depth: weight of the depth term (`depth_loss`) on supervision views that carry true
       depth (the synthetic sets). Not in the paper or the official code (0 there): a geometry
       prior for training on synthetic data, where the truth is known (docs/deviations.md).
+    lambda_motion: dynamic models: the photometric error of the target pixels where the scene
+      moved (`moving_pixels`) counts `1 + lambda_motion` times (`motion_loss`). Not in the paper
+      or the official code (0 there; docs/deviations.md): most of a target is static, and the
+      input view from its own camera already explains that part.
+    motion_threshold: the colour change (max over channels, in [0, 1]) that marks a target pixel
+      as moving.
   """
 
   rgb_loss: Literal["l2", "l1"] = "l2"
@@ -66,6 +72,8 @@ class LossConfig:
   dyn_aux_decay_steps: int = 0
   dyn_aux_min: float = 0.0
   lambda_depth: float = 0.0
+  lambda_motion: float = 0.0
+  motion_threshold: float = 0.1
 
   def __post_init__(self):
     if self.rgb_loss not in ("l2", "l1"):
@@ -78,6 +86,39 @@ def rgb_loss(pred: jax.Array, target: jax.Array, kind: str = "l2") -> jax.Array:
   """Mean squared ("l2") or absolute ("l1") error.  pred, target: [..., H, W, 3] -> []."""
   diff = pred - target
   return jnp.mean(diff * diff) if kind == "l2" else jnp.mean(jnp.abs(diff))
+
+
+def moving_pixels(
+  target_images: jax.Array,
+  target_c2w: jax.Array,
+  context_images: jax.Array,
+  context_c2w: jax.Array,
+  threshold: float,
+) -> jax.Array:
+  """Target pixels where the scene moved: their colour differs by more than `threshold` (max
+  over channels) from the input view whose camera centre is nearest the target's (in bullet-time
+  data, the target camera's own view at another time; any parallax left counts as motion).
+
+  target_images: [B, T, H, W, 3]; target_c2w: [B, T, 4, 4]; context_images: [B, V, H, W, 3];
+  context_c2w: [B, V, 4, 4] -> [B, T, H, W] float32 (1: moved), without gradient.
+  """
+  gap = jnp.linalg.norm(target_c2w[:, :, None, :3, 3] - context_c2w[:, None, :, :3, 3], axis=-1)
+  nearest = jnp.argmin(gap, axis=-1)  # [B, T]
+  source = jnp.take_along_axis(context_images, nearest[:, :, None, None, None], axis=1)
+  change = jnp.max(jnp.abs(target_images - source), axis=-1)
+  return jax.lax.stop_gradient((change > threshold).astype(jnp.float32))
+
+
+def motion_loss(pred: jax.Array, target: jax.Array, moving: jax.Array, kind: str = "l2"):
+  """`rgb_loss`'s error restricted to the moving pixels, averaged over all pixels (so that
+  `lambda_rgb * (rgb_loss + lambda_motion * motion_loss)` weighs a moving pixel
+  `1 + lambda_motion` times).
+
+  pred, target: [..., H, W, 3]; moving: [..., H, W] in {0, 1} -> [].
+  """
+  diff = pred - target
+  error = diff * diff if kind == "l2" else jnp.abs(diff)
+  return jnp.mean(moving[..., None] * error)
 
 
 def ssim_loss(pred: jax.Array, target: jax.Array) -> jax.Array:

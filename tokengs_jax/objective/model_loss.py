@@ -49,6 +49,7 @@ def time_conditioned_loss(
   num_static_gaussians: int | None = None,
   step: jax.Array | int = 0,
   context_images: jax.Array | None = None,
+  moving: jax.Array | None = None,
 ):
   """Loss of time-conditioned Gaussians against views taken at different times.
 
@@ -78,6 +79,8 @@ def time_conditioned_loss(
     num_static_gaussians: where the dynamic Gaussians start (None: no auxiliary loss).
     step: [] int, the training step the auxiliary weight's schedule reads.
     context_images: [B, Vi, H, W, 3] the input views (every "input_mean" background's colour).
+    moving: [B, V, H, W] the views' moving pixels (`losses.moving_pixels`), weighted
+      `1 + loss_config.lambda_motion` (None or lambda_motion 0: no motion term).
 
   Returns:
     `(loss, terms)`: as `supervision_loss`, plus "dyn_aux" (the auxiliary loss, 0 while its
@@ -91,6 +94,8 @@ def time_conditioned_loss(
   views, shared = _chunked_views(
     gaussians_at, times, images, world_to_camera, intrinsics, objective.decode_times
   )
+  if moving is not None and loss_config.lambda_motion > 0:
+    views["moving"] = moving
   scored = functools.partial(
     _score_at_times,
     world_to_camera=world_to_camera,
@@ -148,12 +153,14 @@ def _score_at_times(
 ):
   """Loss of Gaussians [B, Vc or 1, N] (one set per view time) rendered into a chunk's views.
 
-  views: the chunk's "world_to_camera" [B, Vc, 4, 4], "intrinsics" [B, Vc, 4] and "images"
-  [B, Vc, H, W, 3]; world_to_camera [B, V, 4, 4] / intrinsics [B, V, 4]: all the views, which
+  views: the chunk's "world_to_camera" [B, Vc, 4, 4], "intrinsics" [B, Vc, 4], "images"
+  [B, Vc, H, W, 3] and, for the motion term, "moving" [B, Vc, H, W]; world_to_camera [B, V, 4, 4] / intrinsics [B, V, 4]: all the views, which
   the visibility term projects every time's Gaussians into; context_images: the input views
   [B, Vi, H, W, 3] behind an "input_mean" background, or None.
   Returns `(loss, terms, render stats [B, Vc, 1])`.
   """
+  from tokengs_jax import losses
+
   height, width = views["images"].shape[-3], views["images"].shape[-2]
   rendered = render_views(
     gaussians,
@@ -166,6 +173,12 @@ def _score_at_times(
     context_images,
   )
   loss, terms = photometric_loss(rendered.rgb[:, :, 0], views["images"], loss_config, lpips_params)
+  if "moving" in views:
+    terms["motion"] = losses.motion_loss(
+      rendered.rgb[:, :, 0], views["images"], views["moving"], loss_config.rgb_loss
+    )
+    loss = loss + loss_config.lambda_rgb * loss_config.lambda_motion * terms["motion"]
+    terms["loss"] = loss
   # the Gaussians of each time against every view: [B, Vc or 1]
   loss, terms = add_visibility(
     loss,
@@ -273,8 +286,9 @@ def dynamic_model_loss(
   """Time-conditioned models: context views and `batch["context_times"]` -> `encode_views` once
   -> `model.decode_at_times` at `batch["target_times"]` -> `time_conditioned_loss`, plus the
   dynamic auxiliary loss (weight scheduled by `step`) when the model has static and dynamic tokens
-  and `loss_config.lambda_dyn_aux > 0`, as official."""
-  from tokengs_jax import model
+  and `loss_config.lambda_dyn_aux > 0`, as official, and the motion term
+  (`loss_config.lambda_motion > 0`: the targets' `losses.moving_pixels`)."""
+  from tokengs_jax import losses, model
   from tokengs_jax.camera import invert_rigid
 
   with_aux = (
@@ -290,6 +304,15 @@ def dynamic_model_loss(
     model_config,
     times=batch["context_times"],
   )
+  moving = None
+  if loss_config.lambda_motion > 0:
+    moving = losses.moving_pixels(
+      batch["target_images"].astype(jnp.float32),
+      batch["target_c2w"],
+      batch["context_images"].astype(jnp.float32),
+      batch["context_c2w"],
+      loss_config.motion_threshold,
+    )
   return time_conditioned_loss(
     lambda times, world_to_camera: model.decode_at_times(
       params, encoded, model_config, times, viewer_c2w=invert_rigid(world_to_camera)
@@ -305,6 +328,7 @@ def dynamic_model_loss(
     num_static_gaussians=model_config.num_static_gaussians if with_aux else None,
     step=step,
     context_images=batch["context_images"],
+    moving=moving,
   )
 
 
