@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import json
 import os
@@ -30,6 +32,34 @@ from tokengs_jax.data.synthetic.generate import read_true_depths
 
 # (record, scene position) -> (context frames, target frames)
 ViewChooser = Callable[[dict, int], tuple[np.ndarray, np.ndarray]]
+
+
+_REFUSING_GENERATION: contextvars.ContextVar[str | None] = contextvars.ContextVar(
+  "refusing_generation", default=None
+)
+
+
+class GenerationRefused(FileNotFoundError):
+  """A synthetic set is missing (or stale) where writing one was refused (`refusing_generation`)."""
+
+
+@contextlib.contextmanager
+def refusing_generation(advice: str):
+  """Within, a synthetic set that would be written (missing, or a Kubric subset with other
+  settings) raises `GenerationRefused`, one line naming it and ending with `advice`, instead:
+  for a program that reads another run's settings (the viewer), which must not write where those
+  settings point unless asked."""
+  token = _REFUSING_GENERATION.set(advice)
+  try:
+    yield
+  finally:
+    _REFUSING_GENERATION.reset(token)
+
+
+def _may_write(what: str) -> None:
+  advice = _REFUSING_GENERATION.get()
+  if advice is not None:
+    raise GenerationRefused(f"not writing {what}: {advice}")
 
 
 def _publish(root: pathlib.Path, parts: tuple[str, ...], write: Callable[[pathlib.Path], object]):
@@ -84,19 +114,22 @@ def ensure_generated_set(
 
   Raises ValueError if it is there without a stamp (written by a version that did not record its
   settings, or not by this code at all) or, unless `replace_other_settings` (then it is written
-  anew), with other settings: using it would silently not be the experiment asked for.
+  anew), with other settings: using it would silently not be the experiment asked for; and
+  GenerationRefused where it would write under `refusing_generation`.
   """
   wanted = json.loads(json.dumps(settings))  # tuples -> lists, as read back
-  if all((root / part).exists() for part in parts if part != stamp):
-    found = json.loads((root / stamp).read_text()) if (root / stamp).exists() else None
-    if found == wanted:
-      return
-    if found is None or not replace_other_settings:
-      raise ValueError(
-        f"{(root / stamp).parent} holds a synthetic set written with other settings "
-        f"({found or 'not recorded'}; this experiment needs {wanted}): delete it or pass "
-        "another --synthetic-dir"
-      )
+  there = all((root / part).exists() for part in parts if part != stamp)
+  found = json.loads((root / stamp).read_text()) if there and (root / stamp).exists() else None
+  if there and found == wanted:
+    return
+  if there and (found is None or not replace_other_settings):
+    raise ValueError(
+      f"{(root / stamp).parent} holds a synthetic set written with other settings "
+      f"({found or 'not recorded'}; this experiment needs {wanted}): delete it or pass "
+      "another --synthetic-dir"
+    )
+  _may_write(what)
+  if there:
     for part in parts:
       _discard(root / part)
   print(f"[data] writing {what}", flush=True)
@@ -181,7 +214,9 @@ def _ensure_test_family(experiment: Experiment, name: str, generate) -> pathlib.
   root = pathlib.Path(experiment.synthetic_dir) / name
   if (root / "eval_index.json").exists():
     return root
-  print(f"[data] writing {s.num_ood} held-out {name} scenes to {root}", flush=True)
+  what = f"{s.num_ood} held-out {name} scenes to {root}"
+  _may_write(what)
+  print(f"[data] writing {what}", flush=True)
   start = time.perf_counter()
   # The index last: its presence is what marks the set complete.
   _publish(root, ("test", "eval_index.json"), generate)

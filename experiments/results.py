@@ -6,12 +6,18 @@ Every writer here writes only on the process that writes results
 metrics.json: the run's settings and facts, plus the first (primary) test set's `metrics`
 (method -> {"mean", "per_scene", "seconds"}) and `checks`; further test sets go under
 `other_test_sets` (name -> {"metrics", "checks"}). metrics.md has one table per test set.
+
+Names read from data (scene keys) never become paths as they are: `data_path` makes them safe
+file names inside their folder. Pictures and exports run in `media_step`s, after metrics.json.
 """
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import json
 import pathlib
+import re
 from collections.abc import Mapping, Sequence
 
 import jax
@@ -19,6 +25,50 @@ import numpy as np
 
 from experiments import pictures
 from tokengs_jax import evaluation, export, splatting
+
+
+_UNSAFE = re.compile(r"[^A-Za-z0-9._-]+")
+_NAME_CHARACTERS = 120  # of the sanitised name: with the hash and a suffix, far below 255 bytes
+
+
+def safe_file_name(name: str) -> str:
+  """A file name for a name read from data (a scene key): the name itself when it is letters,
+  digits, `.`, `_` and `-` not starting with a dot; otherwise every run of other characters
+  becomes `_`, leading dots go, and `+` and a hash of the original name are appended. So
+  `/abs/x` or `../../x` names no other folder, and two keys never share a file: an unchanged
+  name has no `+`, and changed ones differ by their hashes."""
+  name = str(name)
+  cleaned = _UNSAFE.sub("_", name).lstrip(".")[:_NAME_CHARACTERS]
+  if cleaned and cleaned == name:
+    return name
+  return f"{cleaned}+{hashlib.sha256(name.encode()).hexdigest()[:12]}"
+
+
+def data_path(folder, name: str, suffix: str) -> pathlib.Path:
+  """`folder / (safe_file_name(name) + suffix)`: the path of a file named after data.
+
+  Raises ValueError when it does not resolve inside `folder` (a link there pointing out of it):
+  data never chooses where a file is written."""
+  folder = pathlib.Path(folder)
+  path = folder / (safe_file_name(name) + suffix)
+  if not path.resolve().is_relative_to(folder.resolve()):
+    raise ValueError(f"refusing to write {path}: it resolves to {path.resolve()}, outside {folder}")
+  return path
+
+
+@contextlib.contextmanager
+def media_step(what: str, failures: list[str]):
+  """One picture or export of a results folder, run after its metrics.json: an exception is
+  printed in one line and appended to `failures` instead of raised, so a picture that cannot be
+  written (a NaN Gaussian `write_ply` refuses, a missing video encoder, a path `data_path`
+  refuses) costs itself only, never the scores or the other pictures."""
+  try:
+    yield
+  except Exception as error:  # whatever broke a picture: reported, never fatal
+    message = str(error).strip().splitlines()
+    reason = f"{what}: {type(error).__name__}" + (f": {message[0]}" if message else "")
+    print(f"[results] not written: {reason}", flush=True)
+    failures.append(reason)
 
 
 def markdown_table(
@@ -157,43 +207,48 @@ def write_grids(
   written = []
   for entry in kept:
     grid = scene_grid(entry, methods)
-    written.append(export.save_png(out_dir / f"{entry['key']}.png", grid))
+    written.append(export.save_png(data_path(out_dir, entry["key"], ".png"), grid))
     if writer is not None:
       writer.add_image(f"{tag}/{entry['key']}", grid, step, dataformats="HWC")
   return written
 
 
-def write_scene_exports(
+def _first_set(entry: dict, method: str):
+  """The first set ([1] or [1, Vt] -> [1]) of a kept scene's `method` Gaussians, on the host."""
+  return jax.tree.map(np.asarray, entry[method]["gaussians"].first_set())
+
+
+def write_scene_ply(out_dir, entry: dict, method: str) -> list[pathlib.Path]:
+  """gaussians.ply of one kept scene's `method` Gaussians."""
+  if not evaluation.writes_results():
+    return []
+  one = _first_set(entry, method)
+  path = pathlib.Path(out_dir) / "gaussians.ply"
+  return [export.write_ply(path, one.means, one.opacities, one.scales, one.quats, one.colors)]
+
+
+def write_flythrough(
   out_dir,
   entry: dict,
   method: str,
   video_frames: int,
   render_config: splatting.RenderConfig | None = None,
 ) -> list[pathlib.Path]:
-  """gaussians.ply and flythrough.mp4 of one kept scene's `method` Gaussians."""
+  """flythrough.mp4 of one kept scene's `method` Gaussians: `video_frames` frames through its
+  input cameras and back."""
   if not evaluation.writes_results():
     return []
-  out_dir = pathlib.Path(out_dir)
-  gaussians = entry[method]["gaussians"]
-  one = jax.tree.map(np.asarray, gaussians.first_set())  # [1] or [1, Vt]: the first set
-  written = [
-    export.write_ply(
-      out_dir / "gaussians.ply", one.means, one.opacities, one.scales, one.quats, one.colors
-    )
-  ]
-  if video_frames > 0:
-    batch = entry["batch"]
-    keyframes = np.concatenate([batch["context_c2w"][0], batch["context_c2w"][0][::-1]])
-    poses = export.fly_through_poses(keyframes, video_frames)
-    height, width = batch["target_images"].shape[-3:-1]
-    intrinsics = np.broadcast_to(batch["context_intrinsics"][0, :1], (len(poses), 4))
-    single = jax.tree.map(lambda x: x[None], one)
-    rgb = evaluation.render_targets(
-      single, poses[None], intrinsics[None], height=height, width=width, render_config=render_config
-    ).rgb
-    frames = [pictures.upscale(export.to_uint8(frame), 256) for frame in rgb[0]]
-    written.append(export.write_mp4(out_dir / "flythrough.mp4", frames, fps=12))
-  return written
+  batch = entry["batch"]
+  keyframes = np.concatenate([batch["context_c2w"][0], batch["context_c2w"][0][::-1]])
+  poses = export.fly_through_poses(keyframes, video_frames)
+  height, width = batch["target_images"].shape[-3:-1]
+  intrinsics = np.broadcast_to(batch["context_intrinsics"][0, :1], (len(poses), 4))
+  single = jax.tree.map(lambda x: x[None], _first_set(entry, method))
+  rgb = evaluation.render_targets(
+    single, poses[None], intrinsics[None], height=height, width=width, render_config=render_config
+  ).rgb
+  frames = [pictures.upscale(export.to_uint8(frame), 256) for frame in rgb[0]]
+  return [export.write_mp4(pathlib.Path(out_dir) / "flythrough.mp4", frames, fps=12)]
 
 
 def tensorboard_writer(out_dir):

@@ -188,24 +188,31 @@ class Task:
 
 def _write_pictures(
   experiment: Experiment, scored: dict[str, evaluation.Evaluation], methods, writer, step: int
-) -> None:
+) -> list[str]:
   """grids/ (grids/<set>/ for the non-primary sets); PLY and fly-through of the primary set's
-  first scene, from the last method with Gaussians."""
-  out = pathlib.Path(experiment.output_dir)
+  first scene, from the last method with Gaussians. Each is a `results.media_step`: returns the
+  one-line reasons of those that failed."""
+  out, failures = pathlib.Path(experiment.output_dir), []
   for position, (name, result) in enumerate(scored.items()):
     folder = out / "grids" if position == 0 else out / "grids" / name
-    results.write_grids(
-      folder,
-      result.kept,
-      list(methods),
-      writer,
-      step,
-      tag="eval" if position == 0 else f"eval/{name}",
-    )
+    with results.media_step(f"grids of test set {name}", failures):
+      results.write_grids(
+        folder,
+        result.kept,
+        list(methods),
+        writer,
+        step,
+        tag="eval" if position == 0 else f"eval/{name}",
+      )
   primary = next(iter(scored.values()))
   splatted = [name for name, m in methods.items() if m.gaussians is not None]
   if primary.kept and splatted:
-    results.write_scene_exports(out, primary.kept[0], splatted[-1], experiment.eval.video_frames)
+    with results.media_step("gaussians.ply", failures):
+      results.write_scene_ply(out, primary.kept[0], splatted[-1])
+    if experiment.eval.video_frames > 0:
+      with results.media_step("flythrough.mp4", failures):
+        results.write_flythrough(out, primary.kept[0], splatted[-1], experiment.eval.video_frames)
+  return failures
 
 
 def run_eval(
@@ -253,13 +260,18 @@ def run_eval(
     "devices": [str(d) for d in jax.devices()],
     **(extra_info or {}),
   }
-  _write_pictures(experiment, scored, methods, writer, step)
+  # the scores before any picture (then again with the pictures' facts and the timings)
+  results.write_metrics(experiment.output_dir, scored, info)
+  failures = _write_pictures(experiment, scored, methods, writer, step)
   if evaluation.writes_results():  # pictures only: the other processes write nothing
-    info.update(
-      task.extra_visuals(
-        experiment, experiment.model, params, next(iter(test_sets.values())), writer, step
+    with results.media_step("the task's pictures", failures):
+      info.update(
+        task.extra_visuals(
+          experiment, experiment.model, params, next(iter(test_sets.values())), writer, step
+        )
       )
-    )
+  if failures:
+    info["media_failures"] = failures
   info["eval_seconds"] = time.perf_counter() - start
   info["total_seconds"] = time.perf_counter() - (start if started is None else started)
   payload = results.write_metrics(experiment.output_dir, scored, info)

@@ -12,7 +12,9 @@ and the target camera (red) as frustums, a slider over the scenes, an opacity th
 count of Gaussians that reach it, static / dynamic switches and a time slider for Kubric models,
 and the target view beside our renderer's image of the shown Gaussians (with PSNR).
 `--checkpoint`, `--data-dir` and `--synthetic-dir` point the folder's settings at other weights or
-scenes. The viewer's web client is served from the installed viser package; nothing is downloaded.
+scenes. Opening a folder writes nothing: a synthetic set its settings name that is not there is an
+error, unless `--generate-data` asks for it to be written. The viewer's web client is served from
+the installed viser package (nothing is downloaded), and its websocket answers only that page.
 `--screenshot PATH` writes a headless-Chromium screenshot and exits instead of serving.
 """
 
@@ -25,7 +27,9 @@ from typing import Annotated
 
 import tyro
 
+from experiments import data
 from experiments.viewer import app, browser, scenes
+from experiments.viewer import server as viewer_server
 from tokengs_jax import process
 
 
@@ -38,6 +42,8 @@ class ViewSettings:
     checkpoint: other weights (`params.msgpack`) with the folder's settings.
     data_dir: real-data root of the held-out scenes, if not the run's.
     synthetic_dir: synthetic set of the held-out scenes, if not the run's.
+    generate_data: write the synthetic set the folder's settings name when it is missing (without
+      it, opening a folder writes nothing: the folder may come from anyone).
     num_scenes: held-out scenes offered (0: the run's `eval.num_scenes`).
     host: address to serve on (127.0.0.1: this machine only; 0.0.0.0: the network).
     port: port (the next free one is taken when it is busy).
@@ -52,6 +58,7 @@ class ViewSettings:
   checkpoint: str | None = None
   data_dir: str | None = None
   synthetic_dir: str | None = None
+  generate_data: bool = False
   num_scenes: int = 0
   host: str = "127.0.0.1"
   port: int = 8080
@@ -64,13 +71,9 @@ class ViewSettings:
 
 def start(settings: ViewSettings):
   """Loads the source and serves it; returns (server, app)."""
-  import viser
-
-  options = {
-    k: getattr(settings, k) for k in ("checkpoint", "data_dir", "synthetic_dir", "num_scenes")
-  }
-  source = scenes.open_source(settings.source, **options)
-  server = viser.ViserServer(host=settings.host, port=settings.port, verbose=False)
+  names = ("checkpoint", "data_dir", "synthetic_dir", "generate_data", "num_scenes")
+  source = scenes.open_source(settings.source, **{k: getattr(settings, k) for k in names})
+  server = viewer_server.start(settings.host, settings.port)
   return server, app.ViewerApp(
     source,
     server,
@@ -85,7 +88,10 @@ def main(argv=None) -> None:
     ViewSettings, args=sys.argv[1:] if argv is None else argv, prog="python -m experiments.view"
   )
   process.setup()
-  server, _ = start(settings)
+  try:
+    server, _ = start(settings)
+  except data.GenerationRefused as refused:
+    raise SystemExit(f"[view] {refused}") from None
   url = f"http://{'127.0.0.1' if settings.host == '0.0.0.0' else settings.host}:{server.get_port()}"
   try:
     if settings.screenshot:

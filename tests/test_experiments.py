@@ -4,6 +4,7 @@ import dataclasses
 import json
 import math
 import pathlib
+import re
 import shutil
 import subprocess
 import sys
@@ -16,6 +17,7 @@ from PIL import Image
 
 from experiments import cli, data, pictures, plot, re10k, results, tasks
 from tokengs_jax import evaluation, export, model
+from tokengs_jax.gaussians import Gaussians
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
 
@@ -162,6 +164,123 @@ def test_scene_grid_is_readable_upscaled_labelled_with_a_depth_colour_bar():
   bar = np.asarray(pictures._colour_bar(128, (1.0, 3.0), pictures._font()))
   np.testing.assert_array_equal(bar[0, 0], export.to_uint8(export.depth_ramp(1.0)))
   np.testing.assert_array_equal(bar[-1, 0], export.to_uint8(export.depth_ramp(0.0)))
+
+
+def test_names_from_data_become_safe_distinct_file_names_inside_their_folder(tmp_path):
+  keys = ["scene-01.v2", "/abs/x", "../../x", "..", "", "a b", "a_b", ".hidden", "é" * 300]
+  names = [results.safe_file_name(key) for key in keys]
+  assert names[0] == "scene-01.v2"  # a plain key is its own name
+  assert len(set(names)) == len(keys)  # "a b" and "a_b" too
+  assert all(re.fullmatch(r"[A-Za-z0-9_+-][A-Za-z0-9._+-]{0,140}", name) for name in names)
+  assert results.data_path(tmp_path / "grids", "../../x", ".png").parent == tmp_path / "grids"
+  (tmp_path / "grids").mkdir()
+  (tmp_path / "grids" / "s.png").symlink_to(tmp_path / "elsewhere.png")
+  with pytest.raises(ValueError, match="outside"):
+    results.data_path(tmp_path / "grids", "s", ".png")
+
+
+def _view_batch(seed: int) -> dict:
+  """A batch of one: two 16x16 input views and two targets, identity intrinsics-style cameras."""
+  rng = np.random.default_rng(seed)
+  c2w = np.tile(np.eye(4, dtype=np.float32), (1, 2, 1, 1))
+  c2w[0, 1, 0, 3] = 0.1
+  intrinsics = np.tile(np.float32([16, 16, 8, 8]), (1, 2, 1))
+  return {
+    "context_images": rng.uniform(size=(1, 2, 16, 16, 3)).astype(np.float32),
+    "target_images": rng.uniform(size=(1, 2, 16, 16, 3)).astype(np.float32),
+    "context_c2w": c2w,
+    "target_c2w": c2w,
+    "context_intrinsics": intrinsics,
+    "target_intrinsics": intrinsics,
+  }
+
+
+class _HandMadeTask(tasks.Task):
+  """Given test sets scored by one method of given Gaussians: `run_eval` without data or model."""
+
+  def __init__(self, test_sets, gaussians):
+    self._test_sets, self._gaussians = test_sets, gaussians
+
+  def test_sets(self, experiment):
+    return self._test_sets
+
+  def methods(self, experiment, params, include_untrained):
+    return {"splats": evaluation.Method(gaussians=lambda batch: self._gaussians)}
+
+
+def _gaussians(nan: bool = False):
+  n = 8
+  means = np.random.default_rng(0).uniform(-0.4, 0.4, (1, n, 3)).astype(np.float32)
+  means[..., 2] += 2.0
+  means[0, 0, 0] = np.nan if nan else means[0, 0, 0]
+  return Gaussians(
+    means=means,
+    opacities=np.full((1, n), 0.8, np.float32),
+    scales=np.full((1, n, 3), 0.15, np.float32),
+    quats=np.tile(np.float32([1, 0, 0, 0]), (1, n, 1)),
+    colors=np.full((1, n, 3), 0.7, np.float32),
+  )
+
+
+def _hand_made_eval(out: pathlib.Path, task: tasks.Task, video_frames: int = 0) -> dict:
+  smoke = re10k.PRESETS["smoke"]
+  experiment = dataclasses.replace(
+    smoke,
+    output_dir=str(out),
+    eval=dataclasses.replace(smoke.eval, lpips=False, grid_scenes=2, video_frames=video_frames),
+  )
+  return tasks.run_eval(experiment, None, task=task)
+
+
+def test_eval_names_grids_after_keys_inside_the_output_folder(tmp_path):
+  """Scene keys from a data chunk (`/abs/x`, `../../x`) never place a grid outside --output-dir,
+  in grids/ or in a further test set's grids/<set>/."""
+  out = tmp_path / "out"
+  outside = tmp_path / "outside" / "x"  # absolute: where the key alone would have put it
+  task = _HandMadeTask(
+    {
+      "test": [(str(outside), _view_batch(0)), ("../../escaped", _view_batch(1))],
+      "ood_kubric": [("../../../escaped_too", _view_batch(2))],
+    },
+    _gaussians(),
+  )
+  _hand_made_eval(out, task)
+  written = {p.relative_to(tmp_path).parts[0] for p in tmp_path.rglob("*") if p.is_file()}
+  assert written == {"out"}
+  grids = sorted(p.name for p in (out / "grids").glob("*.png"))
+  assert grids == sorted(
+    results.safe_file_name(k) + ".png" for k in (str(outside), "../../escaped")
+  )
+  assert [p.name for p in (out / "grids" / "ood_kubric").glob("*.png")] == [
+    results.safe_file_name("../../../escaped_too") + ".png"
+  ]
+
+
+def test_eval_writes_metrics_before_media_and_survives_a_failing_export(
+  tmp_path, monkeypatch, capsys
+):
+  """A NaN Gaussian in the first scene: write_ply refuses it, and that costs the PLY only: the
+  scores are in metrics.json (written before any picture), the grids and the fly-through are
+  written, and the reason is printed in one line and kept in metrics.json."""
+  out = tmp_path / "out"
+  before_grids, plain = [], results.write_grids
+
+  def write_grids(*args, **kwargs):
+    before_grids.append((out / "metrics.json").exists())
+    return plain(*args, **kwargs)
+
+  monkeypatch.setattr(results, "write_grids", write_grids)
+  task = _HandMadeTask({"test": [("s", _view_batch(0))]}, _gaussians(nan=True))
+  payload = _hand_made_eval(out, task, video_frames=2)
+  assert before_grids == [True]
+  written = json.loads((out / "metrics.json").read_text())
+  assert math.isfinite(written["metrics"]["splats"]["mean"]["psnr"])
+  assert written == json.loads(json.dumps(payload, default=str))
+  [reason] = written["media_failures"]
+  assert reason.startswith("gaussians.ply: ValueError: refusing to write non-finite Gaussians")
+  assert f"[results] not written: {reason}\n" in capsys.readouterr().out
+  assert not (out / "gaussians.ply").exists()
+  assert (out / "grids" / "s.png").exists() and (out / "flythrough.mp4").stat().st_size > 0
 
 
 def test_upscale_is_nearest_neighbour_to_at_least_the_minimum():

@@ -355,3 +355,26 @@ def test_camera_noise_needs_the_clean_angle():
   with pytest.raises(ValueError, match="must include 0"):
     camera_noise.CameraNoise(angles=(1.0, 5.0))
   assert camera_noise.CameraNoise(angles=(5.0, 0.0)).angles == (5.0, 0.0)
+
+
+def test_token_assignment_names_pictures_inside_its_folder(smoke_study, monkeypatch, tmp_path):
+  """A scene key like `../../../x` (from a data chunk) names a picture in scenes/, nowhere else."""
+  from experiments import results
+
+  examples = data.evaluation_scenes(smoke_study.experiment)
+  monkeypatch.setattr(
+    data, "evaluation_scenes", lambda *args: [("../../../escaped", examples[0][1])]
+  )
+  settings = token_assignment.TokenAssignment(
+    experiment=smoke_study.experiment,
+    params=smoke_study.params,
+    output_dir=str(tmp_path / "studies"),
+    num_scenes=1,
+  )
+  token_assignment.main(settings)
+  written = {p.relative_to(tmp_path).parts[0] for p in tmp_path.rglob("*") if p.is_file()}
+  assert written == {"studies"}
+  scenes_folder = tmp_path / "studies" / "token_assignment" / "scenes"
+  assert [p.name for p in scenes_folder.iterdir()] == [
+    results.safe_file_name("../../../escaped") + ".png"
+  ]

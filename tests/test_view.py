@@ -13,6 +13,7 @@ from PIL import Image
 
 from experiments import data, kubric, re10k, weights
 from experiments.viewer import browser, scenes
+from experiments.viewer import server as viewer_server
 from experiments.viewer.app import READY_TEXT, novel_target, vertical_fov
 from tokengs_jax import evaluation, model
 from tokengs_jax.gaussians import Gaussians
@@ -157,6 +158,24 @@ def test_open_source_refuses_what_it_cannot_show(results, tmp_path):
     scenes.open_source(tmp_path / "g.ply", checkpoint="x")
 
 
+def test_opening_a_results_folder_writes_no_data_unless_asked(results, tmp_path):
+  """metrics.json names a synthetic set that is not there: opening the folder refuses in one line
+  naming the flag and writes nothing; with the flag the set is written."""
+  out, experiment = results
+  folder = tmp_path / "results"
+  folder.mkdir()
+  absent = tmp_path / "absent"
+  fields = {**dataclasses.asdict(experiment), "synthetic_dir": str(absent)}
+  (folder / "metrics.json").write_text(json.dumps({"experiment": fields}, default=str))
+  with pytest.raises(FileNotFoundError, match="--generate-data") as refused:  # GenerationRefused
+    scenes.open_source(folder, checkpoint=str(out / "params.msgpack"))
+  assert "\n" not in str(refused.value) and str(absent) in str(refused.value)
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["results"]
+  assert sorted(p.name for p in folder.iterdir()) == ["metrics.json"]
+  source = scenes.open_source(folder, checkpoint=str(out / "params.msgpack"), generate_data=True)
+  assert len(source.keys) == len(data.evaluation_scenes(experiment)) and absent.is_dir()
+
+
 def _free_port() -> int:
   with socket.socket() as s:
     s.bind(("127.0.0.1", 0))
@@ -174,6 +193,35 @@ def viewer(results):
   )  # the untrained model's grey splats show on white
   yield server, app
   server.stop()
+
+
+def test_same_page_origin_only():
+  assert viewer_server.same_page_origin("http://127.0.0.1:8080", "127.0.0.1:8080")
+  assert viewer_server.same_page_origin("http://localhost:8080", "localhost:8080")
+  assert viewer_server.same_page_origin("http://[::1]:8080", "[::1]:8080")
+  assert viewer_server.same_page_origin("http://10.1.2.3:8080", "10.1.2.3:8080")  # --host 0.0.0.0
+  assert not viewer_server.same_page_origin("http://evil.example", "127.0.0.1:8080")
+  assert not viewer_server.same_page_origin("http://127.0.0.1:9999", "127.0.0.1:8080")
+  assert not viewer_server.same_page_origin(None, "127.0.0.1:8080")  # no browser
+  # a name rebound to this machine by its DNS: same "origin" as Host, still another site's page
+  assert not viewer_server.same_page_origin("http://evil.example:8080", "evil.example:8080")
+
+
+def test_viewer_websocket_answers_only_its_own_page(viewer):
+  """Another site's page (or a client without an Origin) gets HTTP 403 at the handshake; the
+  page the viewer served connects."""
+  import viser
+  from websockets.exceptions import InvalidStatus
+  from websockets.sync.client import connect
+
+  port = viewer[0].get_port()
+  url, protocol = f"ws://127.0.0.1:{port}", [f"viser-v{viser.__version__}"]
+  for origin in ("http://evil.example", None):
+    with pytest.raises(InvalidStatus) as refused:
+      connect(url, origin=origin, subprotocols=protocol, open_timeout=10)
+    assert refused.value.response.status_code == 403
+  with connect(url, origin=f"http://127.0.0.1:{port}", subprotocols=protocol, open_timeout=10):
+    pass
 
 
 def test_viewer_state_follows_the_controls(viewer):
@@ -286,6 +334,37 @@ def test_viewer_dynamic_controls():
     assert "with all finite ones" in app.scores.content
   finally:
     server.stop()
+
+
+class _KeyedSource(_DynamicSource):
+  """`_DynamicSource` with scene keys as a data chunk may hold them, saving under `folder`."""
+
+  def __init__(self, keys, folder):
+    self.keys, self.folder = keys, folder
+
+
+def test_viewer_saves_inside_its_folder_whatever_the_scene_key(tmp_path):
+  import viser
+
+  from experiments import results
+  from experiments.viewer.app import ViewerApp
+
+  outside = tmp_path / "outside" / "x"  # absolute: where the key alone would have put it
+  source = _KeyedSource(["../../escaped", str(outside)], tmp_path / "results")
+  server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
+  try:
+    app = ViewerApp(source, server, render_size=16)
+    saved = [app.save_shown()]
+    app.scene_index.value = 1
+    saved.append(app.save_shown())
+  finally:
+    server.stop()
+  assert [p.parent for p in saved] == [tmp_path / "results" / "viewer"] * 2
+  assert [p.name for p in saved] == [
+    results.safe_file_name(f"{key}_opacity0.00_time0.{t}") + ".ply"
+    for key, t in zip(source.keys, (25, 50))
+  ]
+  assert [p.relative_to(tmp_path).parts[0] for p in tmp_path.rglob("*.ply")] == ["results"] * 2
 
 
 def test_viewer_shows_a_ply(tmp_path):

@@ -8,8 +8,8 @@ centres (mean distance to their centroid) relative to the whole scene's spread, 
     python -m experiments.studies.token_assignment
 
 Writes `token_assignment.{json,md}`, `spread.png` and `scenes/<key>.png` (rows: input views |
-targets | renders | token colours at the targets | token colours at the inputs) to
-`<output_dir>/token_assignment/`.
+targets | renders | token colours at the targets | token colours at the inputs; the key made a
+safe file name by `results.data_path`) to `<output_dir>/token_assignment/`.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import jax
 import numpy as np
 import tyro
 
-from experiments import data, pictures, plot
+from experiments import data, pictures, plot, results
 from experiments.studies import StudySettings, trained_tokengs, write_table
 from tokengs_jax import evaluation, export, process
 from tokengs_jax.gaussians import Gaussians
@@ -90,7 +90,7 @@ def main(settings: TokenAssignment) -> list[dict]:
     opacities.append(stats["opacity"])
     if position < settings.num_scenes and evaluation.writes_results():
       export.save_png(
-        out / "scenes" / f"{key}.png",
+        results.data_path(out / "scenes", key, ".png"),
         scene_picture(gaussians, dataclasses.replace(gaussians, colors=palette[None]), batch),
       )
   spreads, opacities = np.stack(spreads), np.stack(opacities)  # [S, T]

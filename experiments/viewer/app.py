@@ -10,6 +10,7 @@ import threading
 import jax
 import numpy as np
 
+from experiments import results
 from experiments.viewer import scenes as scenes_lib
 from tokengs_jax import export
 from tokengs_jax.objective import ObjectiveConfig
@@ -221,7 +222,8 @@ class ViewerApp:
 
   def save_shown(self):
     """Writes the shown Gaussians (threshold and parts applied) as a 3DGS PLY under
-    `<source folder>/viewer/`; returns the path."""
+    `<source folder>/viewer/`, named after the scene as `results.data_path` allows (the key
+    comes from the data); returns the path."""
     with self._lock:
       scene, visible = self.scene, self.selection()
       name = f"{scene.key}_opacity{float(self.threshold.value):.2f}"
@@ -229,7 +231,7 @@ class ViewerApp:
         name += f"_time{scene.time:.2f}"
       g = jax.tree.map(lambda x: x[visible], scene.gaussians)
       path = export.write_ply(
-        self.source.folder / "viewer" / f"{name}.ply",
+        results.data_path(self.source.folder / "viewer", name, ".ply"),
         g.means,
         g.opacities,
         g.scales,

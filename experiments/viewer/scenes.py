@@ -3,7 +3,8 @@ cameras and renders by our own renderer, and the selection (opacity threshold, s
 
 A results folder (`experiments.tasks.run_eval`) holds `metrics.json` with the run's `experiment`
 settings (the model's architecture included) and `params.msgpack`; from them the held-out scenes
-are rebuilt exactly as the evaluation saw them (same views) and reconstructed on demand.
+are rebuilt exactly as the evaluation saw them (same views) and reconstructed on demand. The
+folder may come from anyone: opening it reads, and writes no data where its settings point.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments import kubric, weights
+from experiments import data, kubric, weights
 from experiments.config import Experiment
 from experiments.tasks import Task
 from tokengs_jax import evaluation, export, metrics
@@ -173,6 +174,12 @@ def experiment_from_fields(fields: dict):
   return _from_fields(kubric.KubricExperiment, fields), kubric.KubricTask()
 
 
+_MISSING_DATA = (
+  "opening a results folder writes no data; pass --generate-data to write it, or --synthetic-dir "
+  "/ --data-dir to point at the held-out scenes"
+)
+
+
 class ResultsSource:
   """The held-out scenes of a results folder, reconstructed by its trained weights on demand.
 
@@ -181,6 +188,8 @@ class ResultsSource:
     checkpoint: other weights (`params.msgpack`) to look at with the folder's settings; default
       the folder's trained `params.msgpack`, else the weights the run evaluated.
     data_dir / synthetic_dir: where the held-out scenes are, if not where the run had them.
+    generate_data: write the synthetic set the settings name if it is missing; otherwise a
+      missing set raises `data.GenerationRefused` (one line naming `--generate-data`).
     num_scenes: held-out scenes offered (0: the run's `eval.num_scenes`).
   """
 
@@ -190,6 +199,7 @@ class ResultsSource:
     checkpoint=None,
     data_dir: str | None = None,
     synthetic_dir: str | None = None,
+    generate_data: bool = False,
     num_scenes: int = 0,
   ):
     folder = pathlib.Path(folder)
@@ -210,10 +220,12 @@ class ResultsSource:
       experiment = dataclasses.replace(
         experiment, eval=dataclasses.replace(experiment.eval, num_scenes=num_scenes)
       )
-    task.prepare(experiment)  # regenerates a missing synthetic set (before JAX starts threads)
+    if generate_data:
+      task.prepare(experiment)  # writes a missing synthetic set (before JAX starts threads)
+    with data.refusing_generation(_MISSING_DATA):
+      self.evaluation_scenes = task.evaluation_scenes(experiment)
     self.folder, self.experiment, self.config = folder, experiment, experiment.model
     self.params = weights.initial_params(experiment, finetune=False)
-    self.evaluation_scenes = task.evaluation_scenes(experiment)
     self.title = saved.get("title", str(folder))
     self._scenes: dict[tuple[int, float | None], ViewScene] = {}
 
