@@ -60,9 +60,8 @@ def time_conditioned_loss(
   view's time projected into all views (min over views, as official), averaged over the times.
 
   With `num_static_gaussians` set and `loss_config.lambda_dyn_aux > 0`, adds the official dynamic
-  auxiliary loss: the same loss (photometric + visibility) of a render of the Gaussians
-  `[num_static_gaussians:]` alone against the same views, weighted by
-  `losses.dynamic_aux_weight(step)`; it is not evaluated while that weight is 0.
+  auxiliary loss: the same loss of a render of the Gaussians `[num_static_gaussians:]` alone,
+  weighted by `losses.dynamic_aux_weight(step)`; not evaluated while that weight is 0.
 
   Args:
     gaussians_at: `(times [B, T], world_to_camera [B, T, 4, 4]) -> Gaussians [B, T]` to render
