@@ -4,11 +4,17 @@
 - A time-conditioned model and random views of it at given times, 16x16 (the dynamic objective,
   `model.decode_at_times`, dynamic training).
 - Colour ramps for the tiny preset, 32x32 (the static objective, training).
+- The model tests' configs (`MICRO`, `FULL`) with cached parameters, random posed views, and the
+  official model's fixture (`official_fixture`: config, weights and reference inputs / outputs).
 """
+
+import functools
+import json
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from conftest import reference_fixture
 
 from tokengs_jax import model
 
@@ -106,3 +112,80 @@ def synthetic_batch(batch_size=2, context_views=2, target_views=4, seed=0):
   for name, value in (("images", images), ("c2w", c2w), ("intrinsics", intrinsics)):
     batch[f"context_{name}"], batch[f"target_{name}"] = split(value)
   return batch
+
+
+# ----- the model tests' configs, parameters, views and the official fixture ----------------------
+
+# A config small enough that each test compiles in about a second.
+MICRO = model.ModelConfig(
+  patch_size=4,
+  dec_patch_size=2,
+  enc_depth=1,
+  dec_depth=2,
+  enc_embed_dim=32,
+  enc_num_heads=2,
+  num_gs_tokens=4,
+  image_size=(16, 16),
+)
+# Every optional part at once: multiscale readout, latent bottleneck, dynamic tokens, time.
+FULL = MICRO.replace(
+  enc_depth=3,
+  use_multiscale_encoder=True,
+  multiscale_encoder_layers=(0, 1, 2),
+  use_latent_bottleneck=True,
+  num_latents=6,
+  latent_cross_attn_depth=2,
+  num_dynamic_gs_tokens=3,
+  time_embedding=True,
+  dec_init_values=0.01,
+  clip_head_z_init=0.1,
+)
+
+
+@functools.cache
+def micro_params():
+  return model.init_params(jax.random.key(0), MICRO)
+
+
+@functools.cache
+def full_init():
+  return model.init_params(jax.random.key(1), FULL)
+
+
+@functools.cache
+def full_params():
+  """FULL params with non-zero time embeds (they start at zero) so that time really matters."""
+  params = jax.tree.map(lambda x: x, full_init())
+  keys = jax.random.split(jax.random.key(2), 2)
+  for key, name in zip(keys, ("patch_time_embed", "patch_time_embed_tgt")):
+    kernel = params[name]["proj"]["kernel"]
+    params[name]["proj"]["kernel"] = jax.random.normal(key, kernel.shape)
+  return params
+
+
+@functools.cache
+def official_fixture():
+  config = model.config_from_official(
+    json.loads((reference_fixture("official_tokengs_tiny", "options.json")).read_text())
+  )
+  params = model.load_official_checkpoint(
+    reference_fixture("official_tokengs_tiny", "weights.safetensors"), config
+  )
+  io = dict(np.load(reference_fixture("official_tokengs_tiny", "io.npz")))
+  # torch NCHW -> our NHWC
+  io["images_rgb"] = io["images_rgb"].transpose(0, 1, 3, 4, 2)
+  io["plucker"] = io["plucker"].transpose(0, 1, 3, 4, 2)
+  return config, params, io
+
+
+def random_inputs(key, batch, views, height, width):
+  k1, k2, k3 = jax.random.split(key, 3)
+  images = jax.random.uniform(k1, (batch, views, height, width, 3))
+  angles = jax.random.normal(k2, (batch, views, 3)) * 0.3
+  rot = jax.vmap(jax.vmap(lambda a: jax.scipy.linalg.expm(jnp.cross(jnp.eye(3), a))))(angles)
+  c2w = jnp.zeros((batch, views, 4, 4)).at[..., :3, :3].set(rot).at[..., 3, 3].set(1.0)
+  c2w = c2w.at[..., :3, 3].set(jax.random.normal(k3, (batch, views, 3)) * 0.2)
+  intrinsics = jnp.broadcast_to(
+    jnp.array([width * 1.1, height * 1.1, width / 2, height / 2]), (batch, views, 4)
+  )
+  return images, c2w, intrinsics

@@ -44,6 +44,20 @@ def _build(record, config, views=VIEWS):
   return make_example(record, config, np.random.default_rng(0), views=views)
 
 
+def _assert_kept_as_is(record, config, views=VIEWS):
+  """A scene the filters let through gives the example it gives with them off, and the record is
+  left as it was (the next epoch reads it again). Returns the example."""
+  before = {key: np.array(value, copy=True) for key, value in record.items() if key != "key"}
+  kept = _build(record, config, views)
+  for key, value in before.items():
+    np.testing.assert_array_equal(record[key], value, err_msg=f"record[{key!r}] changed")
+  plain = _build(record, OFF, views)
+  assert kept.keys() == plain.keys()
+  for key in plain:
+    np.testing.assert_array_equal(kept[key], plain[key], err_msg=key)
+  return kept
+
+
 def _focal_for_fov(fov_degrees, size):
   return (size / 2) / math.tan(math.radians(fov_degrees) / 2)
 
@@ -77,9 +91,9 @@ def test_wide_field_of_view_is_rejected_only_above_the_limit(axis):
   just_wider, just_narrower = record(1 - 1e-6), record(1 + 1e-6)
   with pytest.raises(BadExampleError, match=rf"scene 'scene'.*{axis} field of view 100\.000\d deg"):
     _build(just_wider, _on(max_fov_degrees=100.0))
-  _build(just_narrower, _on(max_fov_degrees=100.0))
-  _build(just_wider, OFF)  # off by default
-  _build(just_wider, _on(max_fov_degrees=101.0))
+  _assert_kept_as_is(just_narrower, _on(max_fov_degrees=100.0))
+  assert OFF.max_fov_degrees is None and _build(just_wider, OFF)  # off by default
+  _assert_kept_as_is(just_wider, _on(max_fov_degrees=101.0))
 
 
 def test_field_of_view_is_tested_on_every_frame_of_the_scene():
@@ -100,10 +114,14 @@ def test_nearly_coincident_context_cameras_are_rejected_only_below_epsilon():
   config = _on(min_context_baseline=1e-3)
   with pytest.raises(BadExampleError, match=r"scene 'scene': context baseline 0\.000999.*below"):
     _build(_coincident(1e-3 * (1 - 1e-6)), config)
-  _build(_coincident(1e-3 * (1 + 1e-6)), config)
-  _build(_coincident(0.0), OFF)
-  # measured in raw record units, before normalisation and the 0.25 translation scale
-  _build(_coincident(2e-3), config)
+  _assert_kept_as_is(_coincident(1e-3 * (1 + 1e-6)), config)
+  coincident = _build(_coincident(0.0), OFF)  # off: the two cameras stay where they are
+  np.testing.assert_allclose(coincident["context_c2w"][1, :3, 3], 0.0, atol=1e-9)
+  # measured in raw record units, before normalisation and the 0.25 translation scale: kept,
+  # although the example's context baseline is 0.25 x 2e-3, below the epsilon
+  example = _assert_kept_as_is(_coincident(2e-3), config)
+  centres = example["context_c2w"][:, :3, 3]
+  np.testing.assert_allclose(np.linalg.norm(centres[1] - centres[0]), 0.25 * 2e-3, rtol=1e-5)
 
 
 def test_baseline_is_not_checked_without_exactly_two_context_views():

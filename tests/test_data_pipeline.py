@@ -1,26 +1,27 @@
-"""View sampler, evaluation index, chunked source and the grain pipeline on generated chunks."""
+"""The input pipeline (`tokengs_jax.data.pipeline`) on generated chunks: batches, translation
+scale, resumable and sharded streams, bad scenes, evaluation views, times, the "pointmap" scale
+on Kubric and the synthetic dataset preset."""
 
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 
 from tokengs_jax.data import (
-  SAMPLER_PRESETS,
+  DATASET_PRESETS,
   BadExampleError,
   BoundedSamplerConfig,
   ChunkedSceneSource,
   ExampleConfig,
   InputPipeline,
   MissingIndexEntryError,
-  NotEnoughFramesError,
   chunks,
-  context_gap_bounds,
-  evaluation_views,
-  load_evaluation_index,
-  sample_bounded,
+  kubric,
+  make_example,
   write_chunk,
 )
+from tokengs_jax.data.synthetic import generate
 
 SMALL_SAMPLER = BoundedSamplerConfig(2, 3, 2, 6, 0, 0, 2, 6)
 SMALL = ExampleConfig((16, 24), SMALL_SAMPLER, 0.25)
@@ -52,54 +53,6 @@ def dataset(tmp_path_factory):
   return _write_dataset(
     root, [[_scene(f"k{c}{s}", seed=10 * c + s) for s in range(3)] for c in range(2)]
   )
-
-
-# ---- sampler
-
-
-def test_bounded_sampler_respects_bounds():
-  rng = np.random.default_rng(0)
-  config = BoundedSamplerConfig(3, 5, 4, 9, 1, 0, 4, 9)
-  for _ in range(200):
-    context, target = sample_bounded(config, 30, rng)
-    gap = context[-1] - context[0]
-    assert 4 <= gap <= 9 and len(set(context.tolist())) == 3 and np.all(np.diff(context) > 0)
-    assert (
-      target.shape == (5,) and context[0] + 1 <= target.min() and target.max() <= context[-1] - 1
-    )
-    assert 0 <= context[0] and context[-1] < 30
-
-
-def test_warm_up_schedule_and_presets():
-  config = SAMPLER_PRESETS["pixelsplat_re10k"]
-  assert context_gap_bounds(config, 0) == (25, 45)
-  assert context_gap_bounds(config, 75_000) == (35, 118)
-  assert context_gap_bounds(config, 10**6) == (45, 192)
-  assert context_gap_bounds(SAMPLER_PRESETS["tokengs_dl3dv"], 0) == (10, 40)
-  context, target = sample_bounded(config, 300, np.random.default_rng(0), deterministic=True)
-  np.testing.assert_array_equal(context, [0, 192])
-  np.testing.assert_array_equal(target, [0, 64, 128, 192])
-
-
-def test_too_few_frames():
-  with pytest.raises(NotEnoughFramesError, match="5 frames"):
-    sample_bounded(BoundedSamplerConfig(2, 1, 6, 9, 0, 0, 6, 9), 5, np.random.default_rng(0))
-  with pytest.raises(NotEnoughFramesError):
-    sample_bounded(BoundedSamplerConfig(4, 1, 1, 9, 0, 0, 1, 9), 3, np.random.default_rng(0))
-
-
-def test_evaluation_index(tmp_path):
-  path = tmp_path / "evaluation_index.json"
-  path.write_text(json.dumps({"a": {"context": [1, 9], "target": [3, 5, 7]}, "b": None}))
-  index = load_evaluation_index(path)
-  assert set(index) == {"a"}
-  context, target = evaluation_views(index, "a", 10)
-  np.testing.assert_array_equal(context, [1, 9])
-  np.testing.assert_array_equal(target, [3, 5, 7])
-  with pytest.raises(MissingIndexEntryError, match="'b'"):
-    evaluation_views(index, "b", 10)
-  with pytest.raises(NotEnoughFramesError, match="frame 9"):
-    evaluation_views(index, "a", 8)
 
 
 # ---- pipeline
@@ -253,3 +206,67 @@ def test_worker_processes_give_the_same_batches(dataset):
   for a, b in zip(inline, workers):
     for key in a:
       np.testing.assert_array_equal(a[key], b[key])
+
+
+# ---- Kubric through the generic pipeline with the official "pointmap" scale
+
+H, W, FRAMES, CAMERAS = 12, 16, 8, 3
+
+
+@pytest.fixture(scope="module")
+def kubric_root(tmp_path_factory):
+  root = tmp_path_factory.mktemp("kubric")
+  config = dataclasses.replace(generate.KubricLikeConfig(), supersample=1)
+  generate.generate_kubric_like(root, 1, H, W, FRAMES, CAMERAS, seed=3, config=config)
+  return root
+
+
+def test_pointmap_batches_and_a_record_without_depths(kubric_root):
+  config = dataclasses.replace(DATASET_PRESETS["kubric"], image_shape=(8, 8))
+  select = kubric.kubric_view_selector(3, 2, min_gap=2, max_gap=6)
+  pipeline = InputPipeline(
+    kubric.KubricSceneSource(kubric_root, ("v0",), num_cameras=CAMERAS),
+    config,
+    batch_size=2,
+    seed=0,
+    shard_index=0,
+    shard_count=1,
+    select_views=select,
+  )
+  batch = next(iter(pipeline))
+  assert batch["context_c2w"].shape == (2, 3, 4, 4) and batch["target_times"].shape == (2, 2)
+  record = {
+    k: v
+    for k, v in kubric.KubricSceneSource(kubric_root, ("v0",), num_cameras=CAMERAS)[0].items()
+    if k != "depths"
+  }
+  with pytest.raises(BadExampleError, match="scene_000000.*needs depth maps"):
+    make_example(
+      record, config, np.random.default_rng(0), views=select(record, np.random.default_rng(0), 0)
+    )
+
+
+# ---- the synthetic dataset preset (the generator's 32-frame walks)
+
+
+def test_synthetic_dataset_preset_batches_generated_walks(tmp_path):
+  config = dataclasses.replace(generate.Re10kLikeConfig(), supersample=1)
+  generate.generate_re10k_like(tmp_path, 2, 0, 16, 16, 32, seed=1, config=config)
+  preset = dataclasses.replace(DATASET_PRESETS["synthetic"], image_shape=(16, 16))
+  pipeline = InputPipeline(
+    ChunkedSceneSource(tmp_path / "train"),
+    preset,
+    batch_size=2,
+    seed=0,
+    shard_index=0,
+    shard_count=1,
+  )
+  batch = next(iter(pipeline))
+  assert batch["context_images"].shape == (2, 2, 16, 16, 3) and batch["target_images"].shape == (
+    2,
+    4,
+    16,
+    16,
+    3,
+  )
+  assert not pipeline.rejections

@@ -1,8 +1,11 @@
-"""Camera round trips: a 3D point lands on the same image content after every transform."""
+"""Camera transforms (`tokengs_jax.data.transforms`): a 3D point lands on the same image content
+after every transform, and the host-side rigid inverse equals the JAX one."""
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from tokengs_jax import camera
 from tokengs_jax.camera import project_points
 from tokengs_jax.data import transforms
 
@@ -169,3 +172,15 @@ def test_make_example_target_depths_are_scaled_and_flipped_with_the_cameras():
   assert "target_depths" not in make_example(
     record, dataclasses.replace(config, target_depths=False), rng, views=views
   )
+
+
+def test_rigid_inverse_matches_the_jax_camera_inverse():
+  rng = np.random.default_rng(0)
+  q, _ = np.linalg.qr(rng.normal(size=(5, 3, 3)))
+  pose = np.tile(np.eye(4), (5, 1, 1))
+  pose[:, :3, :3], pose[:, :3, 3] = q, rng.normal(size=(5, 3))
+  host = transforms.rigid_inverse(pose)
+  np.testing.assert_allclose(
+    host, np.asarray(camera.invert_rigid(jnp.asarray(pose, jnp.float32))), atol=1e-5
+  )
+  np.testing.assert_allclose(host @ pose, np.broadcast_to(np.eye(4), pose.shape), atol=1e-12)

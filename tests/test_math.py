@@ -76,3 +76,67 @@ def test_safe_norm_values_and_gradient_are_the_norms():
   np.testing.assert_array_equal(grads[2], 0.0)
   np.testing.assert_allclose(tmath.safe_normalize(x)[1], [1 / 3, -2 / 3, 2 / 3], rtol=1e-6)
   np.testing.assert_array_equal(tmath.safe_normalize(x)[2], 0.0)
+
+
+# ----- against the plain ops inside the safe range, in the manner of multinerf's math_test.py
+
+
+def _directions(count, seed):
+  """Random unit vectors [count, 3] scaled to norms from 1e-10 to 1e18 (inside the safe range:
+  above TINY, and squares that float32 still holds)."""
+  x = jax.random.normal(jax.random.key(seed), (count, 3))
+  return x / jnp.linalg.norm(x, axis=-1, keepdims=True) * jnp.logspace(-10, 18, count)[:, None]
+
+
+def test_safe_norm_is_the_plain_norm_and_its_gradient_above_tiny_and_zero_below():
+  x = _directions(57, seed=0)
+  np.testing.assert_allclose(tmath.safe_norm(x), jnp.linalg.norm(x, axis=-1), rtol=1e-6)
+  grads = jax.vmap(jax.grad(tmath.safe_norm))(x)
+  np.testing.assert_allclose(grads, jax.vmap(jax.grad(jnp.linalg.norm))(x), rtol=1e-5, atol=1e-7)
+  # below TINY the norm is clamped to 0, and so is its gradient (the clamp's, not a NaN)
+  tiny = jnp.array([[1e-13, 0.0, 0.0], [0.0, -5e-13, 5e-13]])
+  np.testing.assert_array_equal(tmath.safe_norm(tiny), 0.0)
+  np.testing.assert_array_equal(jax.vmap(jax.grad(tmath.safe_norm))(tiny), 0.0)
+  # monotone along a ray: |t x| never decreases with t >= 0, through the clamp and beyond it
+  t = jnp.concatenate([jnp.zeros(1), jnp.logspace(-14, 14, 300)])
+  assert bool(jnp.all(jnp.diff(tmath.safe_norm(t[:, None] * x[20])) >= 0))
+
+
+def test_safe_normalize_is_the_plain_normalize_and_its_jacobian_above_tiny():
+  x = _directions(57, seed=1)
+  plain = lambda v: v / jnp.linalg.norm(v)
+  np.testing.assert_allclose(tmath.safe_normalize(x), jax.vmap(plain)(x), rtol=1e-6, atol=1e-7)
+  np.testing.assert_allclose(jnp.linalg.norm(tmath.safe_normalize(x), axis=-1), 1.0, rtol=1e-6)
+  got = jax.vmap(jax.jacobian(tmath.safe_normalize))(x)
+  want = jax.vmap(jax.jacobian(plain))(x)
+  scale = jnp.linalg.norm(x, axis=-1)[:, None, None]  # the Jacobian falls as 1 / |x|
+  np.testing.assert_allclose(got * scale, want * scale, rtol=0, atol=1e-5)
+  # below TINY the norm is clamped at TINY: x / TINY (not a unit vector), Jacobian I / TINY
+  tiny = jnp.array([1e-13, 0.0, 0.0])
+  np.testing.assert_allclose(tmath.safe_normalize(tiny), tiny / tmath.TINY, rtol=1e-6)
+  np.testing.assert_allclose(
+    jax.jacobian(tmath.safe_normalize)(tiny) * tmath.TINY, np.eye(3), rtol=1e-6
+  )
+
+
+def test_safe_div_is_the_plain_division_and_its_gradients_above_tiny_and_monotone():
+  keys = jax.random.split(jax.random.key(2), 2)
+  num = jax.random.normal(keys[0], (64,)) * jnp.logspace(-6, 6, 64)
+  magnitude = jnp.logspace(-11, 11, 64)
+  den = jnp.where(jax.random.bernoulli(keys[1], 0.5, (64,)), magnitude, -magnitude)
+  np.testing.assert_allclose(tmath.safe_div(num, den), num / den, rtol=1e-6)
+  for argnum in (0, 1):
+    got = jax.vmap(jax.grad(tmath.safe_div, argnum))(num, den)
+    want = jax.vmap(jax.grad(jnp.divide, argnum))(num, den)
+    np.testing.assert_allclose(got, want, rtol=1e-5)
+  # monotone: increasing in the numerator; in the denominator decreasing on each side of 0 for
+  # a positive numerator (den = 0 counts as positive), and flat (zero gradient: the floor)
+  # inside (-TINY, TINY)
+  line = jnp.linspace(-5.0, 5.0, 101)
+  assert bool(jnp.all(jnp.diff(tmath.safe_div(line, 0.5)) > 0))
+  magnitudes = jnp.logspace(-14, 4, 200)
+  positive = tmath.safe_div(1.0, jnp.concatenate([jnp.zeros(1), magnitudes]))
+  assert bool(jnp.all(jnp.diff(positive) <= 0)) and positive[0] == 1 / np.float32(tmath.TINY)
+  assert bool(jnp.all(jnp.diff(tmath.safe_div(1.0, -magnitudes)) >= 0))
+  inside = jnp.array([-9e-13, -1e-20, 1e-20, 9e-13])
+  np.testing.assert_array_equal(jax.vmap(jax.grad(tmath.safe_div, 1))(jnp.ones(4), inside), 0.0)

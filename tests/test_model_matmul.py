@@ -1,22 +1,14 @@
 """The bf16-operand / float32-result matmul mode (`ModelConfig.matmul_dtype`, `model.matmul`)."""
 
-import functools
-import json
 import re
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import reference_fixture
+from scenes import official_fixture
 
-from tokengs_jax.model import (
-  config_from_official,
-  load_official_checkpoint,
-  param_shapes,
-  predict_gaussians,
-  preset,
-)
+from tokengs_jax.model import param_shapes, predict_gaussians, preset
 from tokengs_jax.model.layers import attend
 from tokengs_jax.model.matmul import dense_dot_general, matmul
 
@@ -80,17 +72,9 @@ def _dot_signatures(stablehlo: str) -> set:
   return set(re.findall(_DOT + rf" -> {_TENSOR}", stablehlo))
 
 
-@functools.cache
 def _official():
-  config = config_from_official(
-    json.loads((reference_fixture("official_tokengs_tiny", "options.json")).read_text())
-  )
-  params = load_official_checkpoint(
-    reference_fixture("official_tokengs_tiny", "weights.safetensors"), config
-  )
-  io = np.load(reference_fixture("official_tokengs_tiny", "io.npz"))
-  images, plucker = (io[k].transpose(0, 1, 3, 4, 2) for k in ("images_rgb", "plucker"))
-  return config, params, images, plucker, io["gaussians"]
+  config, params, io = official_fixture()
+  return config, params, io["images_rgb"], io["plucker"], io["gaussians"]
 
 
 def _loss_and_grads(params, images, plucker, config):
