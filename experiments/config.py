@@ -68,8 +68,6 @@ class TrainSettings:
       true depths, which the synthetic sets record); 0: off, as in the paper.
     lambda_lpips: weight of the LPIPS (VGG) term of the training loss (official LPIPS presets:
       0.5); 0: off, as the official base. Token tuning leaves it out.
-    lambda_motion: dynamic models (Kubric): extra weight of the target pixels that moved
-      (`losses.LossConfig.lambda_motion`); 0: off, as official. Static models have no motion.
   """
 
   steps: int = 1500
@@ -86,7 +84,6 @@ class TrainSettings:
   view_chunk_size: int | None = None
   lambda_depth: float = 0.0
   lambda_lpips: float = 0.0
-  lambda_motion: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)

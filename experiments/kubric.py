@@ -21,16 +21,9 @@ none) of a frozen dynamic family unlike the training scenes and never trained on
 objects tumbling along curved paths, held-out photographs, a low tinted sun, another camera rig;
 `tokengs_jax.data.synthetic.kubric_ood`), with the same protocol, baselines and `psnr_moving`.
 
-Besides the common results folder (metrics of the baselines / untrained / trained / trained +
-token tuning, grids, PLY, MP4), the evaluation writes `dynamic/`:
-- `in_between_times.png`: one target camera rendered at times between (and at) the input times;
-- `static_dynamic.png`: target | full render | static Gaussians only | dynamic Gaussians only;
-- `scene_flow.png`: trajectories of the most opaque dynamic Gaussians over time, projected into
-  the target camera, drawn over the first time's render (dark = early, bright = late);
-- `scene_flow_error.png`: per moving object, the median end-point error of the dynamic Gaussians
-  on it against its true displacement (`tokengs_jax.scene_flow`; where the data records object
-  poses and segmentations), whose numbers (relative EPE, dynamic coverage per object) are the
-  `scene_flow` entry of metrics.json.
+Besides the common results folder, the evaluation writes `dynamic/`: in-between times, the
+static/dynamic split, scene-flow trajectories and their error against the generator's object
+motion (`experiments.dynamic_pictures`; the numbers are metrics.json's `scene_flow`).
 
 Presets:
 - `synthetic-tiny` (default): writes Kubric-4D-layout tars of synthetic dynamic scenes to
@@ -126,12 +119,12 @@ class KubricExperiment(Experiment):
     rgb_loss: photometric term, "l1" (official release) or "l2" (MSE: PSNR's own criterion).
     lambda_dyn_aux: base weight of the dynamic-only auxiliary loss (official release 0.3).
     dyn_aux_hold_fraction / dyn_aux_decay_fraction: the auxiliary weight is held for this
-      fraction of `train.steps`, then decays linearly to 0 over the next fraction (official
-      5k / 10k of 50k steps).
-    background: what every render of training, token tuning and evaluation composites behind
-      the Gaussians: "grey" (official `bg_color`, 0.5) or "input_mean" (each example's mean
-      input colour: targets seen from other cameras show regions no input saw, which render
-      as background; `ObjectiveConfig.background`).
+      fraction of `train.steps`, then decays linearly to 0 over the next (official 5k / 10k of 50k).
+    lambda_motion / dyn_aux_on_motion: `losses.LossConfig`'s (0 / False: off, as official): the
+      target pixels that moved weigh 1 + lambda_motion; the auxiliary loss scores them only.
+    background: what every render of training, token tuning and evaluation composites behind the
+      Gaussians: "grey" (official `bg_color`, 0.5) or "input_mean" (each example's mean input
+      colour: targets from other cameras show regions no input saw; `ObjectiveConfig.background`).
     normalization: the frame the cameras are expressed in: "mean_cam" (official Kubric: the
       mean input camera) or "first_cam" (the first input camera, as RE10K: the frame of a static
       base trained on RE10K-like data).
@@ -146,6 +139,8 @@ class KubricExperiment(Experiment):
   lambda_dyn_aux: float = 0.3
   dyn_aux_hold_fraction: float = 0.1
   dyn_aux_decay_fraction: float = 0.2
+  lambda_motion: float = 0.0
+  dyn_aux_on_motion: bool = False
   background: Literal["grey", "input_mean"] = "grey"
   normalization: Literal["mean_cam", "first_cam"] = "mean_cam"
 
@@ -402,7 +397,8 @@ class KubricTask(Task):
       lambda_ssim=0.2,
       lambda_vis=1.0,
       lambda_dyn_aux=experiment.lambda_dyn_aux,
-      lambda_motion=experiment.train.lambda_motion,
+      lambda_motion=experiment.lambda_motion,
+      dyn_aux_on_motion=experiment.dyn_aux_on_motion,
       dyn_aux_hold_steps=round(experiment.dyn_aux_hold_fraction * steps),
       dyn_aux_decay_steps=max(round(experiment.dyn_aux_decay_fraction * steps), 1),
     )

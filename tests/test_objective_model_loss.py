@@ -143,6 +143,33 @@ def test_motion_term_weighs_the_moving_pixels_one_plus_lambda_times():
   np.testing.assert_allclose(loss, base_loss + 0.8 * 2.0 * terms["motion"], rtol=1e-5)
 
 
+def test_dynamic_aux_on_motion_scores_the_dynamic_gaussians_on_the_moving_pixels_only():
+  params = dynamic_params()
+  batch = dynamic_batch([[0.0, 1.0]], [[0.4, 0.4]])
+  motion = losses.LossConfig(rgb_loss="l1", lambda_rgb=0.8, lambda_motion=2.0)
+  objective = ObjectiveConfig(decode_times="first")
+
+  def loss_and_terms(config):
+    return jax.jit(tokengs_loss_fn(DYNAMIC_CONFIG, config, objective=objective))(
+      params, batch, None, 0
+    )
+
+  with_aux = dataclasses.replace(motion, lambda_dyn_aux=0.5)
+  base_loss, base_terms = loss_and_terms(with_aux)
+  loss, terms = loss_and_terms(dataclasses.replace(with_aux, dyn_aux_on_motion=True))
+  # the main loss is unchanged; only the auxiliary term is the dynamic render's motion term
+  np.testing.assert_allclose(
+    loss - 0.5 * terms["dyn_aux"], base_loss - 0.5 * base_terms["dyn_aux"], rtol=1e-5
+  )
+  assert 0 < float(terms["dyn_aux"]) < float(base_terms["dyn_aux"])
+  dynamic = dataclasses.replace(with_aux, dyn_aux_on_motion=True, motion_threshold=2.0)
+  _, nothing_moves = loss_and_terms(dynamic)
+  # no moving pixel: the auxiliary term is the dynamic Gaussians' visibility alone
+  assert 0 <= float(nothing_moves["dyn_aux"]) < float(terms["dyn_aux"])
+  with pytest.raises(ValueError, match="lambda_motion"):
+    losses.LossConfig(dyn_aux_on_motion=True)
+
+
 @pytest.mark.slow
 def test_chunked_objective_matches_one_shot(tiny):
   config, params = tiny

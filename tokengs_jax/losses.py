@@ -56,6 +56,9 @@ class LossConfig:
       moved (`moving_pixels`) counts `1 + lambda_motion` times (`motion_loss`). Not in the paper
       or the official code (0 there; docs/deviations.md): most of a target is static, and the
       input view from its own camera already explains that part.
+    dyn_aux_on_motion: the dynamic auxiliary loss scores the dynamic Gaussians' render on the
+      moving pixels only (RGB + visibility; needs `lambda_motion > 0`), so they answer for what
+      moved and leave the static scene to the static Gaussians. Not official (docs/deviations.md).
     motion_threshold: the colour change (max over channels, in [0, 1]) that marks a target pixel
       as moving.
   """
@@ -74,12 +77,15 @@ class LossConfig:
   lambda_depth: float = 0.0
   lambda_motion: float = 0.0
   motion_threshold: float = 0.1
+  dyn_aux_on_motion: bool = False
 
   def __post_init__(self):
     if self.rgb_loss not in ("l2", "l1"):
       raise ValueError(f"rgb_loss must be 'l2' or 'l1', got {self.rgb_loss!r}")
     if self.visibility_threshold <= 0:
       raise ValueError("visibility_threshold must be > 0: it is also the cost of a hidden centre")
+    if self.dyn_aux_on_motion and not self.lambda_motion > 0:
+      raise ValueError("dyn_aux_on_motion needs lambda_motion > 0 (the moving pixels' mask)")
 
 
 def rgb_loss(pred: jax.Array, target: jax.Array, kind: str = "l2") -> jax.Array:

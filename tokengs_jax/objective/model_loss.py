@@ -153,9 +153,10 @@ def _score_at_times(
   """Loss of Gaussians [B, Vc or 1, N] (one set per view time) rendered into a chunk's views.
 
   views: the chunk's "world_to_camera" [B, Vc, 4, 4], "intrinsics" [B, Vc, 4], "images"
-  [B, Vc, H, W, 3] and, for the motion term, "moving" [B, Vc, H, W]; world_to_camera [B, V, 4, 4] / intrinsics [B, V, 4]: all the views, which
-  the visibility term projects every time's Gaussians into; context_images: the input views
-  [B, Vi, H, W, 3] behind an "input_mean" background, or None.
+  [B, Vc, H, W, 3] and, for the motion term, "moving" [B, Vc, H, W]; world_to_camera
+  [B, V, 4, 4] / intrinsics [B, V, 4]: all the views, which the visibility term projects every
+  time's Gaussians into; context_images: the input views [B, Vi, H, W, 3] behind an
+  "input_mean" background, or None.
   Returns `(loss, terms, render stats [B, Vc, 1])`.
   """
   from tokengs_jax import losses
@@ -204,7 +205,8 @@ def _scored_with_dynamic_aux(
   """`scored(gaussians, views)` with `render_diagnostics`, plus the dynamic auxiliary loss.
 
   The auxiliary loss (`losses.add_dynamic_aux`, and "dyn_aux_psnr") scores the Gaussians
-  [B, Vc or 1, num_static_gaussians:] alone; it is on when `num_static_gaussians` is set and
+  [B, Vc or 1, num_static_gaussians:] alone (with `loss_config.dyn_aux_on_motion`, on the views'
+  moving pixels only); it is on when `num_static_gaussians` is set and
   `loss_config.lambda_dyn_aux > 0`. Its render only runs while `aux_weight` ([] float) is
   positive: once the schedule has decayed to 0 the second render is skipped, as official.
   """
@@ -218,6 +220,9 @@ def _scored_with_dynamic_aux(
 
   def dynamic_loss():
     loss, terms, _ = scored(dynamic, views)
+    if loss_config.dyn_aux_on_motion:
+      # the dynamic Gaussians answer for the moving pixels only; the rest is the static ones'
+      loss = loss_config.lambda_rgb * terms["motion"] + loss_config.lambda_vis * terms["visibility"]
     return loss, terms["psnr"]
 
   zero = jnp.zeros((), jnp.float32)
