@@ -120,8 +120,8 @@ class KubricExperiment(Experiment):
     lambda_dyn_aux: base weight of the dynamic-only auxiliary loss (official release 0.3).
     dyn_aux_hold_fraction / dyn_aux_decay_fraction: the auxiliary weight is held for this
       fraction of `train.steps`, then decays linearly to 0 over the next (official 5k / 10k of 50k).
-    lambda_motion / dyn_aux_on_motion: `losses.LossConfig`'s (0 / False: off, as official): the
-      target pixels that moved weigh 1 + lambda_motion; the auxiliary loss scores them only.
+    lambda_motion: the target pixels that moved weigh 1 + this (`losses.LossConfig`; 0: off).
+    dyn_aux_on_motion: the auxiliary loss scores the moving pixels only (False: all, official).
     background: what every render of training, token tuning and evaluation composites behind the
       Gaussians: "grey" (official `bg_color`, 0.5) or "input_mean" (each example's mean input
       colour: targets from other cameras show regions no input saw; `ObjectiveConfig.background`).
