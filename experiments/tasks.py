@@ -90,8 +90,11 @@ class Task:
 
   def tuning_loss_config(self, experiment: Experiment):
     """Token tuning's loss: the training loss without the LPIPS term (VGG's cost per tuning
-    step is not paid at test time)."""
-    return dataclasses.replace(self.loss_config(experiment), lambda_lpips=0.0)
+    step is not paid at test time), and with the official dynamic auxiliary term: the input
+    views it tunes on are their own nearest views, so no pixel of theirs moved."""
+    return dataclasses.replace(
+      self.loss_config(experiment), lambda_lpips=0.0, dyn_aux_on_motion=False
+    )
 
   def lpips_params(self, experiment: Experiment):
     """The VGG weights the training loss needs (None when `train.lambda_lpips` is 0)."""

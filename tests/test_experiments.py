@@ -541,10 +541,15 @@ def test_kubric_loss_is_the_official_release_scaled_to_the_run():
     config.dyn_aux_decay_steps,
     config.dyn_aux_min,
   ) == (0.3, 5_000, 10_000, 0.0)
+  assert (config.lambda_motion, config.dyn_aux_on_motion) == (0.0, False)
   tiny = kubric.PRESETS["pretrain"]  # what trained the default's shipped weights
   config = kubric.KubricTask().loss_config(tiny)
-  assert config.dyn_aux_hold_steps == round(0.1 * tiny.train.steps)
+  # the default's deviations: moving pixels x5, the auxiliary term on them, held all run
+  assert (config.lambda_motion, config.dyn_aux_on_motion) == (4.0, True)
+  assert config.dyn_aux_hold_steps == tiny.train.steps
   assert config.dyn_aux_decay_steps == round(0.2 * tiny.train.steps)
+  # token tuning's input views moved nowhere: the official auxiliary term
+  assert not kubric.KubricTask().tuning_loss_config(tiny).dyn_aux_on_motion
   assert kubric.KubricTask().objective(tiny).decode_times == "first"
   mse = dataclasses.replace(tiny, rgb_loss="l2")
   assert kubric.KubricTask().loss_config(mse).rgb_loss == "l2"

@@ -164,10 +164,30 @@ def test_dynamic_aux_on_motion_scores_the_dynamic_gaussians_on_the_moving_pixels
   assert 0 < float(terms["dyn_aux"]) < float(base_terms["dyn_aux"])
   dynamic = dataclasses.replace(with_aux, dyn_aux_on_motion=True, motion_threshold=2.0)
   _, nothing_moves = loss_and_terms(dynamic)
+  encoded = model.encode_views(
+    params,
+    batch["context_images"],
+    batch["context_c2w"],
+    batch["context_intrinsics"],
+    DYNAMIC_CONFIG,
+    times=batch["context_times"],
+  )
   # no moving pixel: the auxiliary term is the dynamic Gaussians' visibility alone
   assert 0 <= float(nothing_moves["dyn_aux"]) < float(terms["dyn_aux"])
   with pytest.raises(ValueError, match="lambda_motion"):
     losses.LossConfig(dyn_aux_on_motion=True)
+  # without the moving pixels (views that are their own inputs, as in token tuning): refused
+  views = (batch["target_images"], invert_rigid(batch["target_c2w"]), batch["target_intrinsics"])
+  with pytest.raises(ValueError, match="moving pixels"):
+    time_conditioned_loss(
+      lambda t, w2c: model.decode_at_times(params, encoded, DYNAMIC_CONFIG, t),
+      batch["target_times"],
+      *views,
+      dynamic,
+      splatting.RenderConfig(),
+      objective,
+      num_static_gaussians=DYNAMIC_CONFIG.num_static_gaussians,
+    )
 
 
 @pytest.mark.slow

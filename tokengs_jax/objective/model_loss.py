@@ -221,6 +221,8 @@ def _scored_with_dynamic_aux(
   def dynamic_loss():
     loss, terms, _ = scored(dynamic, views)
     if loss_config.dyn_aux_on_motion:
+      if "motion" not in terms:
+        raise ValueError("dyn_aux_on_motion needs the views' moving pixels (`moving`)")
       # the dynamic Gaussians answer for the moving pixels only; the rest is the static ones'
       loss = loss_config.lambda_rgb * terms["motion"] + loss_config.lambda_vis * terms["visibility"]
     return loss, terms["psnr"]
