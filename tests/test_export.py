@@ -138,3 +138,17 @@ def test_mp4_is_written(tmp_path):
   import imageio.v2 as imageio
 
   assert sum(1 for _ in imageio.get_reader(path)) == 5
+
+
+def test_mp4_encoder_starts_without_forking_a_threaded_process(tmp_path):
+  import warnings
+
+  import jax.numpy as jnp
+
+  float(jnp.ones(4).sum())  # JAX's threads are running
+  frames = [np.full((8, 8, 3), 0.5)] * 3
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")  # JAX's "os.fork() was called" warning raises here
+    export.write_mp4(tmp_path / "v.mp4", frames, fps=5)
+  with pytest.raises(ValueError, match="sizes"):
+    export.write_mp4(tmp_path / "w.mp4", [np.zeros((8, 8, 3)), np.zeros((6, 8, 3))])

@@ -169,22 +169,46 @@ def save_png(path, image) -> pathlib.Path:
 
 
 def write_mp4(path, frames: Sequence[np.ndarray], fps: int = 24) -> pathlib.Path:
-  """Encodes frames ([H, W, 3] floats in [0, 1] or uint8) as H.264 MP4 with imageio's ffmpeg.
+  """Encodes frames ([H, W, 3] floats in [0, 1] or uint8, all one size) as H.264 MP4 with the
+  ffmpeg binary of the `imageio-ffmpeg` wheel.
 
-  Sizes are padded to even numbers, which yuv420p requires.
+  Sizes are padded to even numbers, which yuv420p requires. The encoder is started with
+  `posix_spawn`, not a fork: a fork of a process running JAX's threads can deadlock (and JAX warns
+  that it may). Raises RuntimeError with ffmpeg's message if it fails.
   """
-  import imageio.v2 as imageio  # heavy import, only when a video is asked for
+  import subprocess
+  import tempfile
+
+  import imageio_ffmpeg
 
   path = pathlib.Path(path)
   path.parent.mkdir(parents=True, exist_ok=True)
-  with imageio.get_writer(
-    path, fps=fps, codec="libx264", macro_block_size=1, pixelformat="yuv420p"
-  ) as writer:
-    for frame in frames:
-      frame = np.asarray(frame)
-      frame = frame if frame.dtype == np.uint8 else to_uint8(frame)
-      h, w = frame.shape[:2]
-      writer.append_data(np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge"))
+  frames = [np.asarray(f) if np.asarray(f).dtype == np.uint8 else to_uint8(f) for f in frames]
+  if not frames:
+    raise ValueError(f"{path}: no frames to encode")
+  h, w = frames[0].shape[:2]
+  command = [
+    imageio_ffmpeg.get_ffmpeg_exe(),  # an absolute path, which posix_spawn needs
+    "-loglevel", "error", "-y", "-f", "rawvideo", "-pix_fmt", "rgb24",
+    "-s", f"{w + w % 2}x{h + h % 2}", "-r", str(fps), "-i", "-",
+    "-an", "-vcodec", "libx264", "-pix_fmt", "yuv420p", str(path),
+  ]  # fmt: skip
+  with tempfile.TemporaryFile() as log:
+    # close_fds=False and no cwd / preexec_fn: the conditions under which subprocess spawns
+    encoder = subprocess.Popen(
+      command, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=log, close_fds=False
+    )
+    with encoder.stdin:
+      for frame in frames:
+        if frame.shape[:2] != (h, w):
+          encoder.kill()
+          raise ValueError(f"{path}: frames of sizes {(h, w)} and {frame.shape[:2]}")
+        even = np.pad(frame[..., :3], ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+        encoder.stdin.write(np.ascontiguousarray(even).tobytes())
+    if encoder.wait() != 0:
+      log.seek(0)
+      message = log.read().decode(errors="replace").strip()
+      raise RuntimeError(f"ffmpeg could not write {path}: {message}")
   return path
 
 
