@@ -152,3 +152,56 @@ def test_mp4_encoder_starts_without_forking_a_threaded_process(tmp_path):
     export.write_mp4(tmp_path / "v.mp4", frames, fps=5)
   with pytest.raises(ValueError, match="sizes"):
     export.write_mp4(tmp_path / "w.mp4", [np.zeros((8, 8, 3)), np.zeros((6, 8, 3))])
+
+
+def _plyfile_variant(tmp_path, name, g, *, kind="f4", byte_order="<", text=False, drop=()):
+  """The Gaussians `g` written by plyfile with another type, endianness, encoding, property
+  order (reversed) or without some properties."""
+  import plyfile
+
+  ours = export.read_ply(export.write_ply(tmp_path / "ours.ply", **g))
+  raw = {
+    **{k: ours["means"][:, i] for i, k in enumerate("xyz")},
+    **{f"f_dc_{i}": (ours["colors"][:, i] - 0.5) / export.SH_C0 for i in range(3)},
+    "opacity": np.log(ours["opacities"] / (1 - ours["opacities"])),
+    **{f"scale_{i}": np.log(ours["scales"][:, i]) for i in range(3)},
+    **{f"rot_{i}": ours["quats"][:, i] for i in range(4)},
+  }
+  names = [k for k in reversed(list(raw)) if k not in drop]
+  table = np.empty(len(ours["means"]), [(k, kind) for k in names])
+  for k in names:
+    table[k] = raw[k]
+  element = plyfile.PlyElement.describe(table, "vertex")
+  path = tmp_path / name
+  plyfile.PlyData([element], text=text, byte_order=byte_order).write(str(path))
+  return path, ours
+
+
+@pytest.mark.parametrize(
+  "variant",
+  [{"kind": "f8"}, {"byte_order": ">"}, {"text": True}, {"kind": "f8", "byte_order": ">"}],
+)
+def test_ply_reader_honours_the_header(tmp_path, variant):
+  path, expected = _plyfile_variant(tmp_path, "v.ply", _gaussians(), **variant)
+  back = export.read_ply(path)
+  for k in expected:
+    np.testing.assert_allclose(back[k], expected[k], rtol=1e-5, atol=1e-5)
+
+
+def test_ply_reader_refuses_what_it_cannot_honour_naming_the_file(tmp_path):
+  path, _ = _plyfile_variant(tmp_path, "missing.ply", _gaussians(), drop=("rot_2",))
+  with pytest.raises(ValueError, match=r"missing\.ply.*rot_2"):
+    export.read_ply(path)
+  good = export.write_ply(tmp_path / "good.ply", **_gaussians()).read_bytes()
+  cases = {
+    "no_end.ply": good.replace(b"end_header", b"end_headr"),
+    "not_ascii.ply": good.replace(b"element vertex", "élément vertex".encode()),
+    "short.ply": good[:-3],
+    "list.ply": good.replace(b"end_header", b"property list uchar int idx\nend_header"),
+  }
+  for name, content in cases.items():
+    (tmp_path / name).write_bytes(content)
+    with pytest.raises(ValueError, match=name.replace(".", r"\.")):
+      export.read_ply(tmp_path / name)
+  empty = export.read_ply(export.write_ply(tmp_path / "empty.ply", **_gaussians(0)))
+  assert empty["means"].shape == (0, 3) and empty["quats"].shape == (0, 4)

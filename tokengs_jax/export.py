@@ -66,24 +66,80 @@ def write_ply(path, means, opacities, scales, quats, colors) -> pathlib.Path:
   return path
 
 
+# PLY scalar types -> numpy (both the spec's names and the sized aliases).
+_PLY_TYPES = {
+  "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+  "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+  "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}  # fmt: skip
+_PLY_FORMATS = {"binary_little_endian": "<", "binary_big_endian": ">", "ascii": None}
+
+
+def _ply_header(path: pathlib.Path, data: bytes) -> tuple[str, int, list[tuple[str, str]], int]:
+  """(format, vertex count, vertex properties as (name, numpy type), where the body starts) of a
+  PLY whose only element is "vertex" with scalar properties; ValueError naming the file if not."""
+  end = data.find(b"end_header")
+  if not data.startswith(b"ply") or end < 0:
+    raise ValueError(f"{path}: not a PLY file (no 'ply' magic or no 'end_header')")
+  try:
+    lines = data[:end].decode("ascii").splitlines()
+  except UnicodeDecodeError:
+    raise ValueError(f"{path}: PLY header is not ASCII") from None
+  fmt, count, properties, elements = None, None, [], []
+  for line in lines[1:]:
+    words = line.split()
+    if not words or words[0] in ("comment", "obj_info"):
+      continue
+    if words[0] == "format" and len(words) == 3 and words[1] in _PLY_FORMATS:
+      fmt = words[1]
+    elif words[0] == "element" and len(words) == 3 and words[2].isdigit():
+      elements.append(words[1])
+      count = int(words[2]) if words[1] == "vertex" else count
+    elif words[0] == "property" and len(words) == 3 and words[1] in _PLY_TYPES:
+      if elements == ["vertex"]:
+        properties.append((words[2], _PLY_TYPES[words[1]]))
+    else:
+      raise ValueError(f"{path}: unsupported PLY header line {line!r}")
+  if fmt is None or elements != ["vertex"] or count is None:
+    raise ValueError(f"{path}: needs a format line and exactly one element, 'vertex'")
+  newline = data.find(b"\n", end)
+  return fmt, count, properties, (len(data) if newline < 0 else newline + 1)
+
+
 def read_ply(path) -> dict[str, np.ndarray]:
-  """Reads a PLY written by `write_ply` back into activated values (for tests and tools).
+  """Reads a 3DGS PLY (as `write_ply` writes, or another writer's: any property order, types,
+  endianness or ASCII) back into activated values, as float32.
 
   Returns dict with means [N,3], opacities [N], scales [N,3], quats [N,4], colors [N,3].
+  Raises ValueError naming the file for a header it cannot honour, missing properties, or a body
+  of the wrong length.
   """
-  data = pathlib.Path(path).read_bytes()
-  end = data.index(b"end_header\n") + len(b"end_header\n")
-  names = [
-    line.split()[-1]
-    for line in data[:end].decode("ascii").splitlines()
-    if line.startswith("property")
-  ]
-  table = np.frombuffer(data[end:], dtype="<f4").reshape(-1, len(names))
-  col = {name: table[:, i] for i, name in enumerate(names)}
-  stack = lambda keys: np.stack([col[k] for k in keys], axis=-1)
+  path = pathlib.Path(path)
+  data = path.read_bytes()
+  fmt, count, properties, start = _ply_header(path, data)
+  missing = [name for name in _PLY_FIELDS if name not in dict(properties) and name[0] != "n"]
+  if missing:
+    raise ValueError(f"{path}: PLY lacks the Gaussian properties {missing}")
+  order = _PLY_FORMATS[fmt]
+  if order is None:
+    rows = data[start:].decode("ascii", errors="replace").split("\n")[:count]
+    try:
+      table = np.array([[float(v) for v in row.split()] for row in rows], np.float64)
+    except ValueError:
+      raise ValueError(f"{path}: unreadable ASCII PLY body") from None
+    if table.shape != (count, len(properties)):
+      raise ValueError(f"{path}: ASCII body is not {count} rows of {len(properties)} values")
+    col = {name: table[:, i] for i, (name, _) in enumerate(properties)}
+  else:
+    record = np.dtype([(name, order + kind) for name, kind in properties])
+    if len(data) - start != count * record.itemsize:
+      raise ValueError(f"{path}: body holds {len(data) - start} bytes, not {count} vertices")
+    table = np.frombuffer(data, record, count, start)
+    col = {name: table[name] for name, _ in properties}
+  stack = lambda keys: np.stack([np.asarray(col[k], np.float32) for k in keys], axis=-1)
   return {
     "means": stack(["x", "y", "z"]),
-    "opacities": 1.0 / (1.0 + np.exp(-col["opacity"])),
+    "opacities": 1.0 / (1.0 + np.exp(-np.asarray(col["opacity"], np.float32))),
     "scales": np.exp(stack([f"scale_{i}" for i in range(3)])),
     "quats": stack([f"rot_{i}" for i in range(4)]),
     "colors": 0.5 + SH_C0 * stack(["f_dc_0", "f_dc_1", "f_dc_2"]),
