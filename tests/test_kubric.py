@@ -47,6 +47,18 @@ def _example(root, index, seed, num_context=2, num_targets=2, config=CONFIG):
   return make_example(record, config, rng, views=views)
 
 
+def test_stored_quaternions_are_normalised_and_degenerate_ones_refused():
+  quarter_turn_z = np.array([np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)])
+  rotation = kubric.quat_wxyz_to_rotation(quarter_turn_z)
+  # a stored length off 1 gives the same rotation (the official loader's would scale it by 1.21)
+  np.testing.assert_allclose(
+    kubric.quat_wxyz_to_rotation(1.1 * quarter_turn_z), rotation, atol=1e-12
+  )
+  for bad in (np.zeros(4), np.array([np.nan, 0, 0, 1.0])):
+    with pytest.raises(ValueError, match="quaternion"):
+      kubric.quat_wxyz_to_rotation(np.stack([quarter_turn_z, bad]))
+
+
 def test_quaternion_conversions_invert_each_other_and_follow_hamilton():
   rng = np.random.default_rng(0)
   rotations = np.stack([random_rotation(rng) for _ in range(50)])

@@ -40,11 +40,17 @@ class KubricError(ValueError):
 
 
 def quat_wxyz_to_rotation(quats: np.ndarray) -> np.ndarray:
-  """Unit quaternions (w, x, y, z), Hamilton convention -> rotation matrices.
+  """Quaternions (w, x, y, z), Hamilton convention -> rotation matrices.
 
-  quats: [..., 4] -> [..., 3, 3] float64.
+  Each quaternion is normalised first (the official loader uses them as stored, so a stored
+  length off 1 scales and shears its rotation; docs/deviations.md); one of length ~0 or not
+  finite is refused (ValueError). quats: [..., 4] -> [..., 3, 3] float64.
   """
-  w, x, y, z = np.moveaxis(np.asarray(quats, np.float64), -1, 0)
+  quats = np.asarray(quats, np.float64)
+  length = np.linalg.norm(quats, axis=-1, keepdims=True)
+  if not np.all(np.isfinite(length) & (length > 1e-8)):
+    raise ValueError("quaternion of zero or non-finite length")
+  w, x, y, z = np.moveaxis(quats / length, -1, 0)
   return np.stack(
     [
       np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
