@@ -18,6 +18,7 @@ import json
 import os
 import pathlib
 import shutil
+import signal
 import subprocess
 import tempfile
 import time
@@ -111,9 +112,10 @@ def _devtools_port(profile: pathlib.Path, process: subprocess.Popen, log, deadli
 @contextlib.contextmanager
 def _chromium_page(chromium: str, width: int, height: int, deadline: float):
   """A DevTools session with the blank page of a fresh headless Chromium (own temporary
-  profile); the browser is shut down on exit."""
+  profile); the browser and its helper processes (its own process group) are shut down on exit.
+  A helper still writing to the profile as it is removed cannot fail the caller."""
   with (
-    tempfile.TemporaryDirectory(prefix="chromium-profile-") as profile,
+    tempfile.TemporaryDirectory(prefix="chromium-profile-", ignore_cleanup_errors=True) as profile,
     tempfile.TemporaryFile("w+") as log,
   ):
     process = subprocess.Popen(
@@ -127,6 +129,7 @@ def _chromium_page(chromium: str, width: int, height: int, deadline: float):
       stdout=subprocess.DEVNULL,
       stderr=log,
       text=True,
+      start_new_session=True,
     )
     try:
       port = _devtools_port(pathlib.Path(profile), process, log, deadline)
@@ -138,12 +141,19 @@ def _chromium_page(chromium: str, width: int, height: int, deadline: float):
       finally:
         devtools.close()
     finally:
-      process.terminate()
-      try:
-        process.wait(timeout=10)
-      except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait()
+      _stop_group(process)
+
+
+def _stop_group(process: subprocess.Popen) -> None:
+  """SIGTERM to the process group the browser leads, then SIGKILL to the group once the browser
+  has exited or after 10 s: its helper processes must not outlive it."""
+  with contextlib.suppress(ProcessLookupError):
+    os.killpg(process.pid, signal.SIGTERM)
+  with contextlib.suppress(subprocess.TimeoutExpired):
+    process.wait(timeout=10)
+  with contextlib.suppress(ProcessLookupError):
+    os.killpg(process.pid, signal.SIGKILL)
+  process.wait()
 
 
 def _wait_for_text(devtools: _DevTools, text: str, deadline: float) -> bool:
