@@ -131,6 +131,9 @@ def test_fly_through_passes_through_keyframes():
   np.testing.assert_allclose(np.arctan2(mid[0, 2], mid[0, 0]), 0.15, atol=1e-6)
 
 
+# imageio's reader, the independent check of the file, starts its ffmpeg by a fork (the writer
+# does not: next test)
+@pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")
 def test_mp4_is_written(tmp_path):
   frames = [np.full((15, 17, 3), i / 5.0) for i in range(5)]
   path = export.write_mp4(tmp_path / "v.mp4", frames, fps=5)
