@@ -75,8 +75,19 @@ def flip_one_bit(step_dir):
   path.write_bytes(bytes(data))
 
 
+def change_a_digit_in_the_json(step_dir):
+  path = step_dir / "data" / "process_0-of-1.json"
+  text = path.read_text()
+  assert '"position": 4' in text or '"position":4' in text
+  path.write_text(text.replace("4", "5"))
+
+
 # (damage, a fragment of the logged reason)
 DAMAGE = {
+  "json_digit_changed": (
+    change_a_digit_in_the_json,
+    "checksum mismatch in data/process_0-of-1.json",
+  ),
   "emptied": (empty_directory, "FileNotFoundError"),
   "array_metadata_removed": (remove_array_metadata, "pytree structure"),
   "json_truncated": (truncate_json, "JSONDecodeError"),

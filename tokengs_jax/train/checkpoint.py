@@ -9,7 +9,8 @@ once every process has written its part) holds three items:
   data, so its iterator position is its own; a resume on the same number of processes is exact,
   another process count is refused (the shards would differ);
 - "checksums": one JSON file per process, `checksums/process_{i}-of-{n}.json`: the crc32 of
-  every array shard the process held at save time.
+  every array shard the process held at save time, and of its "data" JSON (under `HOST_STATE`:
+  a changed digit in the iterator position or the log is damage too).
 
 Restore walks back from the newest step to the newest one that restores *and* whose arrays match
 their checksums (a bit flip inside a compressed chunk can decode to wrong numbers without any
@@ -90,6 +91,16 @@ def array_checksums(tree) -> dict[str, dict[str, int]]:
         shards[key] = zlib.crc32(np.ascontiguousarray(jax.device_get(data)).view(np.uint8))
     sums[jax.tree_util.keystr(path)] = shards
   return sums
+
+
+HOST_STATE = "host_state"  # the checksum manifest's entry of the "data" item
+
+
+def host_state_checksum(host) -> dict[str, int]:
+  """The crc32 of a JSON-able host state in canonical form (sorted keys, no spaces), as saved
+  and as parsed back alike."""
+  text = json.dumps(host, sort_keys=True, separators=(",", ":"))
+  return {"json": zlib.crc32(text.encode())}
 
 
 def verify_checksums(tree, expected: dict[str, dict[str, int]]) -> int:
@@ -181,7 +192,9 @@ class Checkpointer:
       args=ocp.args.Composite(
         state=ocp.args.StandardSave(state),
         data=ocp.args.JsonSave({"iterator": data_state}),
-        checksums=ocp.args.JsonSave(array_checksums(state)),
+        checksums=ocp.args.JsonSave(
+          {**array_checksums(state), HOST_STATE: host_state_checksum({"iterator": data_state})}
+        ),
       ),
       force=True,
     )
@@ -259,7 +272,10 @@ class Checkpointer:
     # process simulated in tests) still restores, unverified and said so.
     checksums = self.directory / str(step) / "checksums" / name
     if checksums.is_file():
-      verify_checksums(state, json.loads(checksums.read_text()))
+      manifest = json.loads(checksums.read_text())
+      verify_checksums(state, manifest)
+      if HOST_STATE in manifest and manifest[HOST_STATE] != host_state_checksum(host):
+        raise ChecksumError(f"checksum mismatch in data/{name} (the iterator state)")
     else:
       log.warning(
         "checkpoint step %d in %s has no checksums/%s: restored unverified",
