@@ -95,7 +95,7 @@ class EvalSettings:
     num_target_views: target views per scene when there is no evaluation index.
     context_gap: context gap (frames) of the deterministic synthetic evaluation views.
     tuning_steps: token-tuning steps (paper: 50); 0 skips the tuned rows.
-    tuning_learning_rate: token-tuning Adam rate (paper: 1e-4).
+    tuning_learning_rate: Adam rate of the tuned tokens or latents (paper: 1e-4).
     tuning_target: what test-time tuning optimises (`tokengs_jax.tuning.TuningConfig.target`):
       "tokens" (the paper's, method `trained+token_tuning`), "gaussians" (the paper's baseline,
       `trained+gaussian_tuning`), "tokens+gaussians" (`trained+joint_tuning`) or "latents"
