@@ -69,10 +69,7 @@ def labelled_grid(
   """
   font = _font()
   rows = [
-    (
-      label,
-      [upscale(export.to_uint8(img) if img.dtype != np.uint8 else img, min_cell) for img in images],
-    )
+    (label, [upscale(export.to_uint8(img), min_cell) for img in images])
     for label, images in rows
     if len(images)
   ]

@@ -208,3 +208,10 @@ def test_ply_reader_refuses_what_it_cannot_honour_naming_the_file(tmp_path):
       export.read_ply(tmp_path / name)
   empty = export.read_ply(export.write_ply(tmp_path / "empty.ply", **_gaussians(0)))
   assert empty["means"].shape == (0, 3) and empty["quats"].shape == (0, 4)
+
+
+def test_to_uint8_scales_floats_and_keeps_uint8():
+  floats = np.array([[[0.0, 0.5, 1.0], [np.nan, 2.0, -1.0]]])
+  np.testing.assert_array_equal(export.to_uint8(floats), [[[0, 128, 255], [0, 255, 0]]])
+  already = np.array([[[3, 128, 250]]], np.uint8)
+  np.testing.assert_array_equal(export.to_uint8(already), already)

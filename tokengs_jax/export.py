@@ -147,8 +147,11 @@ def read_ply(path) -> dict[str, np.ndarray]:
 
 
 def to_uint8(image) -> np.ndarray:
-  """[..., 3] floats in [0, 1] -> uint8 (non-finite values become 0)."""
-  image = np.nan_to_num(np.asarray(image, np.float32), nan=0.0, posinf=1.0, neginf=0.0)
+  """[..., 3] floats in [0, 1] -> uint8 (non-finite values become 0); uint8 as it is."""
+  image = np.asarray(image)
+  if image.dtype == np.uint8:
+    return image
+  image = np.nan_to_num(image.astype(np.float32), nan=0.0, posinf=1.0, neginf=0.0)
   return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
@@ -219,8 +222,7 @@ def save_png(path, image) -> pathlib.Path:
   """Writes a uint8 [H, W, 3] array (or floats in [0, 1]) as PNG."""
   path = pathlib.Path(path)
   path.parent.mkdir(parents=True, exist_ok=True)
-  image = np.asarray(image)
-  Image.fromarray(image if image.dtype == np.uint8 else to_uint8(image)).save(path)
+  Image.fromarray(to_uint8(image)).save(path)
   return path
 
 
@@ -239,7 +241,7 @@ def write_mp4(path, frames: Sequence[np.ndarray], fps: int = 24) -> pathlib.Path
 
   path = pathlib.Path(path)
   path.parent.mkdir(parents=True, exist_ok=True)
-  frames = [np.asarray(f) if np.asarray(f).dtype == np.uint8 else to_uint8(f) for f in frames]
+  frames = [to_uint8(frame) for frame in frames]
   if not frames:
     raise ValueError(f"{path}: no frames to encode")
   h, w = frames[0].shape[:2]
