@@ -117,7 +117,9 @@ def read_ply(path) -> dict[str, np.ndarray]:
   path = pathlib.Path(path)
   data = path.read_bytes()
   fmt, count, properties, start = _ply_header(path, data)
-  missing = [name for name in _PLY_FIELDS if name not in dict(properties) and name[0] != "n"]
+  # normals (nx, ny, nz) are written as zeros by 3DGS tools and not read
+  needed = [name for name in _PLY_FIELDS if name not in ("nx", "ny", "nz")]
+  missing = [name for name in needed if name not in dict(properties)]
   if missing:
     raise ValueError(f"{path}: PLY lacks the Gaussian properties {missing}")
   order = _PLY_FORMATS[fmt]
