@@ -68,6 +68,8 @@ class TrainSettings:
       true depths, which the synthetic sets record); 0: off, as in the paper.
     lambda_lpips: weight of the LPIPS (VGG) term of the training loss (official LPIPS presets:
       0.5); 0: off, as the official base. Token tuning leaves it out.
+    lambda_coverage: weight of the coverage term (`losses.coverage_loss`: the share of each
+      render left uncovered); 0: off, as the paper.
   """
 
   steps: int = 1500
@@ -84,6 +86,7 @@ class TrainSettings:
   view_chunk_size: int | None = None
   lambda_depth: float = 0.0
   lambda_lpips: float = 0.0
+  lambda_coverage: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)

@@ -401,6 +401,7 @@ class KubricTask(Task):
       lambda_dyn_aux=experiment.lambda_dyn_aux,
       lambda_motion=experiment.lambda_motion,
       dyn_aux_on_motion=experiment.dyn_aux_on_motion,
+      lambda_coverage=experiment.train.lambda_coverage,
       dyn_aux_hold_steps=round(experiment.dyn_aux_hold_fraction * steps),
       dyn_aux_decay_steps=max(round(experiment.dyn_aux_decay_fraction * steps), 1),
     )

@@ -81,11 +81,13 @@ class Task:
   def loss_config(self, experiment: Experiment):
     """The training loss weights: the library's defaults (official base), plus the depth term's
     `train.lambda_depth` (tuning supervises input views, which carry no depth, so it never
-    applies there) and the LPIPS term's `train.lambda_lpips`."""
+    applies there), the LPIPS term's `train.lambda_lpips` and `train.lambda_coverage`."""
     from tokengs_jax.losses import LossConfig
 
     return LossConfig(
-      lambda_depth=experiment.train.lambda_depth, lambda_lpips=experiment.train.lambda_lpips
+      lambda_depth=experiment.train.lambda_depth,
+      lambda_lpips=experiment.train.lambda_lpips,
+      lambda_coverage=experiment.train.lambda_coverage,
     )
 
   def tuning_loss_config(self, experiment: Experiment):

@@ -143,6 +143,25 @@ def test_motion_term_weighs_the_moving_pixels_one_plus_lambda_times():
   np.testing.assert_allclose(loss, base_loss + 0.8 * 2.0 * terms["motion"], rtol=1e-5)
 
 
+def test_coverage_term_scores_the_whole_render_and_not_the_dynamic_auxiliary_one():
+  params = dynamic_params()
+  batch = dynamic_batch([[0.0, 1.0]], [[0.4, 0.4]])
+  with_aux = losses.LossConfig(rgb_loss="l1", lambda_rgb=0.8, lambda_dyn_aux=0.5)
+  objective = ObjectiveConfig(decode_times="first")
+
+  def loss_and_terms(config):
+    return jax.jit(tokengs_loss_fn(DYNAMIC_CONFIG, config, objective=objective))(
+      params, batch, None, 0
+    )
+
+  base_loss, base_terms = loss_and_terms(with_aux)
+  loss, terms = loss_and_terms(dataclasses.replace(with_aux, lambda_coverage=3.0))
+  assert 0 < float(terms["coverage"]) <= 1
+  # the auxiliary render of the dynamic Gaussians alone is not charged for what it leaves bare
+  np.testing.assert_allclose(terms["dyn_aux"], base_terms["dyn_aux"], rtol=1e-6)
+  np.testing.assert_allclose(loss, base_loss + 3.0 * terms["coverage"], rtol=1e-5)
+
+
 def test_dynamic_aux_on_motion_scores_the_dynamic_gaussians_on_the_moving_pixels_only():
   params = dynamic_params()
   batch = dynamic_batch([[0.0, 1.0]], [[0.4, 0.4]])

@@ -39,6 +39,33 @@ def test_supervision_adds_the_depth_term_only_with_depths_and_a_weight():
   assert float(jax.grad(depth_of)(means)[..., 2].sum()) < 0
 
 
+def test_coverage_term_charges_the_uncovered_share_and_grows_opacity():
+  key = jax.random.split(jax.random.key(1), 2)
+  gaussians = gaussians_in_front(*key, (1, 16), spread=0.5, opacity=0.3, scale=0.05)
+  images = jnp.full((1, 1, 16, 16, 3), 0.5)
+  w2c = jnp.eye(4)[None, None]
+  intrinsics = jnp.array([[[16.0, 16.0, 8.0, 8.0]]])
+  render = splatting.RenderConfig()
+  weighted = losses.LossConfig(lambda_coverage=2.0)
+  plain, plain_terms = supervision_loss(
+    gaussians, images, w2c, intrinsics, losses.LossConfig(), render
+  )
+  assert "coverage" not in plain_terms
+  loss, terms = supervision_loss(gaussians, images, w2c, intrinsics, weighted, render)
+  alpha = splatting.render(gaussians, w2c, intrinsics, height=16, width=16).alpha
+  np.testing.assert_allclose(terms["coverage"], 1.0 - jnp.mean(alpha), rtol=1e-5)
+  assert 0.3 < float(terms["coverage"]) < 1.0  # 16 small faint Gaussians leave most of it bare
+  np.testing.assert_allclose(loss, plain + 2.0 * terms["coverage"], rtol=1e-5)
+
+  def coverage_of(opacities):
+    g = Gaussians(gaussians.means, opacities, gaussians.scales, gaussians.quats, gaussians.colors)
+    return supervision_loss(g, images, w2c, intrinsics, weighted, render)[1]["coverage"]
+
+  # more opaque Gaussians leave less uncovered: every visible one's gradient is negative
+  grad = jax.grad(coverage_of)(gaussians.opacities)
+  assert float(jnp.max(grad)) <= 0 and float(jnp.min(grad)) < 0
+
+
 def toy_render_loss(params, views):
   """A per-view nonlinear 'render' [B, C, 64] of params and a camera vector, MSE to targets."""
   rendered = jnp.tanh(

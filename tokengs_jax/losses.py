@@ -61,6 +61,12 @@ class LossConfig:
       moved and leave the static scene to the static Gaussians. Not official (docs/deviations.md).
     motion_threshold: the colour change (max over channels, in [0, 1]) that marks a target pixel
       as moving.
+    lambda_coverage: weight of `coverage_loss`, the share of each supervision render left
+      uncovered (1 - alpha). Not in the paper or the official code (0 there;
+      docs/deviations.md): in scenes where every pixel is a surface (Kubric's opaque dome, closed
+      rooms) a hole shows the background, and the photometric gradient cannot pull a Gaussian
+      that does not overlap the hole into it; this term gives the Gaussians at its rim a reason
+      to grow and move over it.
   """
 
   rgb_loss: Literal["l2", "l1"] = "l2"
@@ -78,6 +84,7 @@ class LossConfig:
   lambda_motion: float = 0.0
   motion_threshold: float = 0.1
   dyn_aux_on_motion: bool = False
+  lambda_coverage: float = 0.0
 
   def __post_init__(self):
     if self.rgb_loss not in ("l2", "l1"):
@@ -187,6 +194,11 @@ def dynamic_aux_weight(step: jax.Array | int, config: LossConfig) -> jax.Array:
   past_hold = jnp.asarray(step, jnp.float32) - config.dyn_aux_hold_steps
   fraction = jnp.clip(past_hold / config.dyn_aux_decay_steps, 0.0, 1.0)
   return base + fraction * (config.dyn_aux_min - base)
+
+
+def coverage_loss(alpha: jax.Array) -> jax.Array:
+  """Mean uncovered share of the renders: mean(1 - alpha).  alpha: [..., H, W, 1] -> []."""
+  return jnp.mean(1.0 - alpha)
 
 
 def depth_loss(depth: jax.Array, alpha: jax.Array, true_depth: jax.Array) -> jax.Array:

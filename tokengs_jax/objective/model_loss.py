@@ -25,6 +25,7 @@ import jax.numpy as jnp
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.objective.settings import ObjectiveConfig
 from tokengs_jax.objective.supervision import (
+  add_coverage,
   add_visibility,
   gaussians_in_float32,
   mean_over_view_chunks,
@@ -149,6 +150,7 @@ def _score_at_times(
   objective: ObjectiveConfig,
   lpips_params,
   context_images,
+  coverage: bool = True,
 ):
   """Loss of Gaussians [B, Vc or 1, N] (one set per view time) rendered into a chunk's views.
 
@@ -156,7 +158,8 @@ def _score_at_times(
   [B, Vc, H, W, 3] and, for the motion term, "moving" [B, Vc, H, W]; world_to_camera
   [B, V, 4, 4] / intrinsics [B, V, 4]: all the views, which the visibility term projects every
   time's Gaussians into; context_images: the input views [B, Vi, H, W, 3] behind an
-  "input_mean" background, or None.
+  "input_mean" background, or None; coverage: add the coverage term (`add_coverage`), which a
+  render of part of the Gaussians (the dynamic auxiliary one) leaves out.
   Returns `(loss, terms, render stats [B, Vc, 1])`.
   """
   from tokengs_jax import losses
@@ -179,6 +182,8 @@ def _score_at_times(
     )
     loss = loss + loss_config.lambda_rgb * loss_config.lambda_motion * terms["motion"]
     terms["loss"] = loss
+  if coverage:
+    loss, terms = add_coverage(loss, terms, rendered.alpha[:, :, 0], loss_config)
   # the Gaussians of each time against every view: [B, Vc or 1]
   loss, terms = add_visibility(
     loss,
@@ -219,7 +224,7 @@ def _scored_with_dynamic_aux(
   _, dynamic = gaussians.static_and_dynamic(num_static_gaussians)
 
   def dynamic_loss():
-    loss, terms, _ = scored(dynamic, views)
+    loss, terms, _ = scored(dynamic, views, coverage=False)
     if loss_config.dyn_aux_on_motion:
       if "motion" not in terms:
         raise ValueError("dyn_aux_on_motion needs the views' moving pixels (`moving`)")

@@ -125,6 +125,18 @@ def add_visibility(
   return loss, {**terms, "visibility": visibility, "loss": loss}
 
 
+def add_coverage(loss: jax.Array, terms: dict, alpha: jax.Array, loss_config):
+  """`loss + lambda_coverage * coverage` (terms gain "coverage" and the new "loss") where
+  `loss_config.lambda_coverage > 0`; alpha: [..., H, W, 1] the renders' opacity."""
+  from tokengs_jax import losses
+
+  if loss_config.lambda_coverage <= 0:
+    return loss, terms
+  coverage = losses.coverage_loss(alpha)
+  loss = loss + loss_config.lambda_coverage * coverage
+  return loss, {**terms, "coverage": coverage, "loss": loss}
+
+
 def photometric_loss(rgb: jax.Array, images: jax.Array, loss_config, lpips_params=None):
   """RGB, SSIM and LPIPS terms of renders against images (`losses.render_loss` without the
   visibility term, which `add_visibility` adds over all views)."""
@@ -201,6 +213,7 @@ def supervision_loss(
     if per_view:
       rendered = jax.tree.map(lambda x: x[:, :, 0], rendered)
     loss, terms = photometric_loss(rendered.rgb, views["images"], loss_config, lpips_params)
+    loss, terms = add_coverage(loss, terms, rendered.alpha, loss_config)
     if with_depth:
       terms["depth"] = losses.depth_loss(rendered.depth, rendered.alpha, views["depths"])
       loss = loss + loss_config.lambda_depth * terms["depth"]
