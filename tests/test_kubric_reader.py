@@ -92,6 +92,13 @@ def test_pointmap_scale_reads_the_stored_depth_as_the_official_provider():
     distances.append(np.linalg.norm(points.reshape(-1, 3) + pose[:3, 3], axis=-1))
   expected = np.concatenate(distances).mean()
   assert kubric.pointmap_scale(depths, c2w, intrinsics) == pytest.approx(expected, rel=1e-6)
+  # a NaN or inf depth value would make the scale, and so every camera position, NaN (or, NaN
+  # being no "depth > 1e-8" pixel, a NaN-only map would silently give the scale 1.0): refused
+  for bad in (np.inf, np.nan):
+    poisoned = depths.copy()
+    poisoned[1, 2, 3] = bad
+    with pytest.raises(kubric.KubricError, match="1 of 30 depth values are NaN or inf"):
+      kubric.pointmap_scale(poisoned, c2w, intrinsics)
 
 
 # ---- scenes the reader refuses
@@ -193,10 +200,18 @@ def _views(camera: int, frame: int):
   return np.array([camera * FRAMES + frame, other * FRAMES]), np.array([other * FRAMES + 1])
 
 
-def _small_tiff(shape):
+def _tiff(depth):
   buffer = io.BytesIO()
-  tifffile.imwrite(buffer, np.ones(shape, np.float32))
+  tifffile.imwrite(buffer, np.asarray(depth, np.float32))
   return buffer.getvalue()
+
+
+def _depth_with(values: dict):
+  """A depth map of the scene's size at 5.0, but `values` at the given (row, col) pixels."""
+  depth = np.full((H, W), 5.0, np.float32)
+  for pixel, value in values.items():
+    depth[pixel] = value
+  return _tiff(depth)
 
 
 def _small_png(shape):
@@ -211,7 +226,17 @@ def _small_png(shape):
     ({"./rgba_00001.png": b"\0" * 64}, r"member \./rgba_00001\.png: corrupt image"),
     ({"./rgba_00001.png": _small_png((4, 6))}, r"member \./rgba_00001\.png is \[4, 6\]"),
     ({"./depth_00001.tiff": b"\0" * 64}, r"member \./depth_00001\.tiff: corrupt image"),
-    ({"./depth_00001.tiff": _small_tiff((4, 4))}, r"member \./depth_00001\.tiff is \[4, 4\]"),
+    ({"./depth_00001.tiff": _tiff(np.ones((4, 4)))}, r"member \./depth_00001\.tiff is \[4, 4\]"),
+    # one inf pixel would make the pointmap scale and every camera position NaN; a NaN-only map
+    # has no pixel with depth > 1e-8 and would silently give the scale 1.0
+    (
+      {"./depth_00001.tiff": _depth_with({(3, 5): np.inf})},
+      r"member \./depth_00001\.tiff: 1 of 64 depth values are NaN or inf",
+    ),
+    (
+      {"./depth_00001.tiff": _tiff(np.full((H, W), np.nan))},
+      r"member \./depth_00001\.tiff: 64 of 64 depth values are NaN or inf",
+    ),
     # depth is optional in a tar; the pointmap scale then names the member it lacks
     (
       {f"./depth_{f:05d}.tiff": None for f in range(FRAMES)},

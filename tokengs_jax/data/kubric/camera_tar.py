@@ -39,6 +39,19 @@ class KubricError(ValueError):
   """A Kubric scene is malformed; the message names the file."""
 
 
+def check_finite_depth(depth: np.ndarray, where: str) -> None:
+  """`KubricError` naming `where` unless every depth value is finite.
+
+  Refused rather than masked: the official "pointmap" scale keeps an inf value (depth > 1e-8),
+  which makes the scale and so every camera position NaN, and drops a NaN one, so that a NaN-only
+  map silently gives the scale 1.0. The depth maps this reads (Kubric's renders, the synthetic
+  writers') hold finite distances, so a non-finite one marks a damaged file.
+  """
+  non_finite = np.count_nonzero(~np.isfinite(depth))
+  if non_finite:
+    raise KubricError(f"{where}: {non_finite} of {np.size(depth)} depth values are NaN or inf")
+
+
 def quat_wxyz_to_rotation(quats: np.ndarray) -> np.ndarray:
   """Quaternions (w, x, y, z), Hamilton convention -> rotation matrices.
 
@@ -357,6 +370,8 @@ def decode_member(view: KubricView, name: str, shape: tuple[int, int]) -> np.nda
       f"{view.where(name)} is {list(pixels.shape[:2])}, metadata.json resolution "
       f"is {list(shape)} (the intrinsics would be wrong)"
     )
+  if name.endswith(".tiff"):
+    check_finite_depth(pixels, view.where(name))
   return pixels
 
 

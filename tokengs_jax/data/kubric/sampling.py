@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from tokengs_jax.data.kubric.camera_tar import check_finite_depth
 from tokengs_jax.data.sampler import NotEnoughFramesError
 
 
@@ -64,7 +65,11 @@ def pointmap_scale(
 
   depths: [V, H, W] as stored (Kubric: ray distance), c2w: [V, 4, 4] (already normalised),
   intrinsics: [V, 4] pixels (of the stored resolution).
+
+  Raises `KubricError` for a NaN or inf depth value (`check_finite_depth`: the official scale
+  would be NaN, or 1.0 for NaN-only maps).
   """
+  check_finite_depth(depths, "the context views' depth maps")
   distances = []
   for depth, pose, (fx, fy, cx, cy) in zip(depths, np.asarray(c2w, np.float64), intrinsics):
     rows, cols = np.nonzero(depth > 1e-8)
