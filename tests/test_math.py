@@ -1,3 +1,5 @@
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -140,3 +142,28 @@ def test_safe_div_is_the_plain_division_and_its_gradients_above_tiny_and_monoton
   assert bool(jnp.all(jnp.diff(tmath.safe_div(1.0, -magnitudes)) >= 0))
   inside = jnp.array([-9e-13, -1e-20, 1e-20, 9e-13])
   np.testing.assert_array_equal(jax.vmap(jax.grad(tmath.safe_div, 1))(jnp.ones(4), inside), 0.0)
+
+
+def test_safe_norm_neither_overflows_nor_underflows_the_squares():
+  # float32 squares overflow above ~1.8e19 and fall below the smallest normal under ~1e-19
+  large = jnp.array([[3e19, 4e19, 0.0], [3e37, -4e37, 0.0], [1e38, 1e38, 1e38]])
+  np.testing.assert_allclose(tmath.safe_norm(large), [5e19, 5e37, np.sqrt(3) * 1e38], rtol=1e-6)
+  grads = jax.vmap(jax.grad(tmath.safe_norm))(large)
+  np.testing.assert_allclose(grads[:2], [[0.6, 0.8, 0.0], [0.6, -0.8, 0.0]], rtol=1e-6)
+  np.testing.assert_allclose(tmath.safe_normalize(large)[0], [0.6, 0.8, 0.0], rtol=1e-6)
+  np.testing.assert_allclose(tmath.safe_norm(large, keepdims=True)[:1], [[5e19]], rtol=1e-6)
+  long = jnp.arange(8.0) * 1e19  # an axis too long to be written out: a jnp reduction
+  np.testing.assert_allclose(
+    tmath.safe_norm(long), np.linalg.norm(np.arange(8.0)) * 1e19, rtol=1e-6
+  )
+  # tiny: with a smaller eps, components whose squares float32 cannot hold (below 1e-45)
+  tiny = jnp.array([3e-25, -4e-25, 0.0])
+  np.testing.assert_allclose(tmath.safe_norm(tiny, eps=1e-30), 5e-25, rtol=1e-6)
+  tiny_grad = jax.grad(functools.partial(tmath.safe_norm, eps=1e-30))(tiny)
+  np.testing.assert_allclose(tiny_grad, [0.6, -0.8, 0.0], rtol=1e-6)
+  assert float(tmath.safe_norm(jnp.array([jnp.inf, 1.0]))) == np.inf
+  # zero: 0 with gradient 0, first and second order
+  zero = jnp.zeros(3)
+  assert float(tmath.safe_norm(zero)) == 0.0
+  np.testing.assert_array_equal(jax.grad(tmath.safe_norm)(zero), 0.0)
+  np.testing.assert_array_equal(jax.hessian(tmath.safe_norm)(zero), 0.0)
