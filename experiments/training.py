@@ -43,11 +43,14 @@ def train_model(
 ) -> tuple[dict, list[dict], float]:
   """Trains with the library loop (sharded over every device); returns (params, history, seconds).
   With `train.steps == 0` the starting weights come back unchanged (`run` then evaluates them).
+  SIGTERM/SIGINT: the loop saves the step it finished and says so; the process then exits with
+  128 + the signal's number (`SystemExit`), and the same command resumes.
 
   loss_fn: `(params, batch, key, step) -> (loss, aux)`.
   batches: iterator of this process's batches.
   """
   from tokengs_jax.train import LoopConfig, train
+  from tokengs_jax.train.loop import TrainingStopped
 
   if experiment.train.steps == 0:
     print("[train] 0 steps: the starting weights are the trained ones", flush=True)
@@ -66,6 +69,8 @@ def train_model(
   start = time.perf_counter()
   try:
     state, history = train(loss_fn, params, batches, optim_config(experiment), loop, log_fn=logger)
+  except TrainingStopped as stopped:  # the loop has said where and how to resume
+    raise SystemExit(stopped.exit_status) from None
   finally:
     logger.close()
   seconds = time.perf_counter() - start

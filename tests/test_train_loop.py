@@ -1,8 +1,9 @@
 """The training loop: exact resume from a checkpoint (past a damaged one), the training log kept
-across resumes, loud stop on non-finite values."""
+across resumes, loud stop on non-finite values, a clean stop on SIGTERM/SIGINT."""
 
 import dataclasses
 import logging
+import signal
 
 import jax
 import numpy as np
@@ -19,6 +20,7 @@ from tokengs_jax.train import (
   make_optimizer,
   train,
 )
+from tokengs_jax.train.loop import TrainingStopped
 
 OPTIM = OptimConfig(
   learning_rate=1e-2, schedule="one_cycle", total_steps=6, warmup_steps=2, accumulation_steps=2
@@ -141,3 +143,89 @@ def test_resume_past_a_damaged_checkpoint_is_exact_and_keeps_the_log(tmp_path, c
   jax.tree.map(np.testing.assert_array_equal, jax.device_get(full), jax.device_get(resumed))
   assert [entry["step"] for entry in history] == [3, 6, 9]
   assert [entry["loss"] for entry in history] == [entry["loss"] for entry in full_history]
+
+
+class GuardSignal(Exception):
+  """Raised by the handler a test sets before `train`: the signal reached it, not the loop's."""
+
+
+@pytest.fixture
+def guarded(request):
+  """Sets a raising handler for SIGTERM and SIGINT (so a signal the loop does not catch fails the
+  test instead of ending pytest) and puts the previous ones back afterwards."""
+
+  def guard(signum, frame):
+    raise GuardSignal(signal.Signals(signum).name)
+
+  previous = {signum: signal.signal(signum, guard) for signum in (signal.SIGTERM, signal.SIGINT)}
+  yield guard
+  for signum, handler in previous.items():
+    signal.signal(signum, handler)
+
+
+def signal_at(step_to_signal, *signums):
+  """A `log_fn` that sends itself `signums` once `step_to_signal` is logged."""
+
+  def log_fn(step, metrics):
+    del metrics
+    if step == step_to_signal:
+      for signum in signums:
+        signal.raise_signal(signum)
+
+  return log_fn
+
+
+def test_sigterm_finishes_the_step_saves_it_and_stops_then_the_rerun_resumes_exactly(
+  tmp_path, capsys, guarded
+):
+  """SIGTERM while step 3 runs (checkpoints every 1000 steps): training stops after step 3 with
+  step 3 saved, says how to resume, hands SIGTERM back; the rerun ends as an uninterrupted run."""
+  config = LoopConfig(total_steps=8, log_every=1, checkpoint_every=1000)
+  full, _ = train(toy_loss, toy_params(), ToyBatches(), OPTIM, config, log_fn=quiet)
+
+  directory = tmp_path / "run"
+  config = dataclasses.replace(config, checkpoint_dir=str(directory))
+  with pytest.raises(TrainingStopped) as stopped:
+    train(toy_loss, toy_params(), ToyBatches(), OPTIM, config, log_fn=signal_at(3, signal.SIGTERM))
+  assert (stopped.value.signal, stopped.value.step, stopped.value.exit_status) == (
+    signal.SIGTERM,
+    3,
+    143,
+  )
+  assert (
+    "[train] SIGTERM: stopped at step 3, resume with the same command" in capsys.readouterr().out
+  )
+  assert signal.getsignal(signal.SIGTERM) is guarded and signal.getsignal(signal.SIGINT) is guarded
+  assert Checkpointer(str(directory)).all_steps() == [3]
+
+  resumed_batches = ToyBatches()
+  resumed, history = train(toy_loss, toy_params(), resumed_batches, OPTIM, config, log_fn=quiet)
+  assert resumed_batches.position == 8 and [entry["step"] for entry in history] == list(range(1, 9))
+  jax.tree.map(np.testing.assert_array_equal, jax.device_get(full), jax.device_get(resumed))
+
+
+def test_a_second_signal_reaches_the_previous_handler_at_once(tmp_path, guarded):
+  with pytest.raises(GuardSignal, match="SIGINT"):
+    train(
+      toy_loss,
+      toy_params(),
+      ToyBatches(),
+      OPTIM,
+      LoopConfig(total_steps=8, log_every=1, checkpoint_dir=str(tmp_path / "run")),
+      log_fn=signal_at(2, signal.SIGINT, signal.SIGINT),
+    )
+  assert signal.getsignal(signal.SIGINT) is guarded
+
+
+def test_a_signal_during_the_last_step_is_delivered_after_the_final_save(tmp_path, guarded):
+  directory = str(tmp_path / "run")
+  with pytest.raises(GuardSignal, match="SIGTERM"):
+    train(
+      toy_loss,
+      toy_params(),
+      ToyBatches(),
+      OPTIM,
+      LoopConfig(total_steps=4, log_every=1, checkpoint_every=1000, checkpoint_dir=directory),
+      log_fn=signal_at(4, signal.SIGTERM),
+    )
+  assert Checkpointer(directory).all_steps() == [4]

@@ -9,6 +9,9 @@ launched it:
 - the host memory policy below (`retain_freed_memory`);
 - optionally, the number of virtual CPU devices (the tests' sharding cases use 4).
 
+`exit_with_parent` is for the helper processes a run starts (the data pipeline's workers): they
+end with the process that started them, however it ended.
+
 Host memory: XLA:CPU allocates an executable's temporaries as one buffer per run (the `tiny`
 preset's train step: 59 MB) and frees it at the end. glibc serves a block that large with fresh
 `mmap` pages and unmaps them on free, so every step first-touches its whole temporary buffer
@@ -36,6 +39,8 @@ import argparse
 import ctypes
 import os
 import sys
+import threading
+import time
 import warnings
 
 import jax
@@ -132,3 +137,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     help="retain: tokengs_jax.process.retain_freed_memory() first, as the experiments do; "
     "default: glibc's and JAX's own settings",
   )
+
+
+def exit_with_parent(poll_seconds: float = 0.5) -> None:
+  """Ends this process within `poll_seconds` of its parent's end, however the parent ended.
+
+  For worker processes: a parent that exits normally stops its workers itself, but one killed
+  (SIGKILL, or SIGTERM without a handler) cannot, and its workers would live on as orphans
+  holding their memory (a grain worker of the `smoke` preset: 260 MB) until someone kills them.
+  A daemon thread polls the parent's pid (not `PR_SET_PDEATHSIG`, which fires when the thread that
+  started the process ends: grain starts its workers from a thread pool).
+  """
+  parent = os.getppid()
+
+  def watch() -> None:
+    while os.getppid() == parent:
+      time.sleep(poll_seconds)
+    os._exit(1)  # no cleanup to wait for: the resource tracker frees the shared memory left
+
+  threading.Thread(target=watch, name="exit_with_parent", daemon=True).start()

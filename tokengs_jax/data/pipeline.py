@@ -18,12 +18,14 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import signal
 from typing import Callable, Literal, Sequence
 
 import grain
 import numpy as np
 from PIL import Image
 
+from tokengs_jax import process
 from tokengs_jax.data.chunks import ChunkError, LazyTensor, decode_jpeg
 from tokengs_jax.data.dl3dv import DL3DVError
 from tokengs_jax.data.kubric import KubricError, pointmap_scale
@@ -426,7 +428,9 @@ class InputPipeline:
 
       if not flags.FLAGS.is_parsed():
         flags.FLAGS.mark_as_parsed()
-      examples = examples.mp_prefetch(grain.MultiprocessingOptions(num_workers=num_workers))
+      examples = examples.mp_prefetch(
+        grain.MultiprocessingOptions(num_workers=num_workers), worker_init_fn=_start_worker
+      )
     self.dataset = examples.filter(self._keep).batch(batch_size, drop_remainder=drop_remainder)
 
   def _keep(self, example) -> bool:
@@ -455,6 +459,16 @@ class InputPipeline:
 
   def __iter__(self):
     return self.iterator()
+
+
+def _start_worker(worker_index: int, worker_count: int) -> None:
+  """Runs first in each decoding process. Ctrl-C reaches the whole foreground process group: the
+  main process handles SIGINT (the training loop stops between steps) and then ends its workers,
+  so a worker ignores it instead of dying under a batch the main process still waits for. A
+  worker also ends with its main process when that one is killed."""
+  del worker_index, worker_count
+  signal.signal(signal.SIGINT, signal.SIG_IGN)
+  process.exit_with_parent()
 
 
 def _source_rejections(source) -> Rejections | None:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import signal
+import threading
 import time
 from collections.abc import Callable, Iterator
 
@@ -50,6 +52,34 @@ class NonFiniteError(RuntimeError):
   """A loss or gradient became NaN/inf; raised after the last good checkpoint is on disk."""
 
 
+class TrainingStopped(Exception):
+  """SIGTERM or SIGINT stopped training between two steps; with checkpointing on, that step's
+  checkpoint is on disk, so rerunning the same command resumes there.
+
+  Attributes:
+    signal: the signal that stopped it.
+    step: the last step trained (and saved).
+    checkpoint_dir: where it was saved; None when checkpointing is off.
+  """
+
+  def __init__(self, signum: int, step: int, checkpoint_dir: str | None):
+    self.signal, self.step, self.checkpoint_dir = signal.Signals(signum), step, checkpoint_dir
+    where = (
+      f"checkpoint step {step} in {checkpoint_dir}"
+      if checkpoint_dir
+      else "checkpointing is off: a rerun starts over"
+    )
+    super().__init__(
+      f"{self.signal.name}: stopped at step {step}, resume with the same command ({where})"
+    )
+
+  @property
+  def exit_status(self) -> int:
+    """The shell's status of a process the signal killed (128 + signal number), for entry points
+    that exit on it: schedulers and `experiments.launch` read it as "stopped by that signal"."""
+    return 128 + self.signal
+
+
 def _print_log(step: int, metrics: dict) -> None:
   print(
     f"[train] step {step} " + " ".join(f"{k} {v:.6g}" for k, v in sorted(metrics.items())),
@@ -91,6 +121,8 @@ def train(
 
   Raises:
     NonFiniteError: a loss/gradient went non-finite; no later checkpoint was written.
+    TrainingStopped: SIGTERM or SIGINT arrived (handled while this runs, see `_StopRequest`): the
+      step in flight finished and, with checkpointing on, was saved.
   """
   mesh = make_mesh() if mesh is None else mesh
   optimizer = make_optimizer(optim_config)
@@ -101,8 +133,9 @@ def train(
   state = init_state(replicate(jax.device_get(params), mesh))
 
   checkpointer = _checkpointer(loop_config)
-  # Leaving the block waits for a pending save and closes the manager, also on an error.
-  with checkpointer or contextlib.nullcontext():
+  # Leaving the blocks waits for a pending save and closes the manager, also on an error, and then
+  # gives SIGTERM/SIGINT back to their previous handlers.
+  with _StopRequest(mesh) as stop_request, checkpointer or contextlib.nullcontext():
     state, history = _resume(checkpointer, state, batches)
     train_step = make_train_step(
       loss_fn, optimizer, mesh, precision=Precision() if precision is None else precision
@@ -130,9 +163,90 @@ def train(
       if eval_fn is not None and _every(loop_config.eval_every, step):
         log.evaluation(step, eval_fn(state))
       if save_now:
-        checkpointer.save(state, {"iterator": iterator_state(batches), "history": history})
-        log.last_saved = step
+        _save(checkpointer, state, batches, log, step)
+      if not is_last and (signum := stop_request.agreed()):
+        _stop(signum, step, state, batches, log, checkpointer)
     return state, history
+
+
+def _save(checkpointer: Checkpointer, state: TrainState, batches, log: _MetricsLog, step: int):
+  """Saves `state` with the iterator's position and the log so far as step `step`."""
+  checkpointer.save(state, {"iterator": iterator_state(batches), "history": log.history})
+  log.last_saved = step
+
+
+def _stop(signum: int, step: int, state: TrainState, batches, log, checkpointer) -> None:
+  """Logs and saves step `step` (unless saved already), says so, raises `TrainingStopped`."""
+  log.drain(step)
+  if checkpointer is not None:
+    if log.last_saved != step:
+      _save(checkpointer, state, batches, log, step)
+    checkpointer.wait()
+  stopped = TrainingStopped(signum, step, str(checkpointer.directory) if checkpointer else None)
+  print(f"[train] {stopped}", flush=True)
+  raise stopped
+
+
+class _StopRequest:
+  """SIGTERM and SIGINT while `train` runs: stop between two steps instead of at once.
+
+  The handler only notes the signal (Python runs it between bytecodes, so a compiled step in
+  flight finishes first); the loop then saves and raises `TrainingStopped`. A second signal acts
+  at once, as the handler it replaced would (SIGTERM's default: exit; SIGINT's:
+  KeyboardInterrupt). A signal noted during the last step is delivered to that previous handler
+  once the final checkpoint is on disk. Handlers can only be set from the main thread: elsewhere
+  signals keep theirs.
+
+  In a multi-process job every process must stop at the same step (a process that stopped alone
+  would leave the others waiting in the next step's collectives), wherever the signal arrived:
+  each step ends with a small all-process max of the noted signals, read one step later so the
+  host never waits for the step it just dispatched. A job stops one step after the signal.
+  """
+
+  SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+  def __init__(self, mesh: Mesh):
+    self.received = 0  # the noted signal's number; 0: none
+    self.previous = {}
+    self.in_flight = None  # multi-process: the last all-process max, not fetched yet
+    if jax.process_count() > 1:
+      flags = NamedSharding(mesh, P(tuple(mesh.axis_names)))
+      local_devices = len(mesh.local_devices)
+      largest = jax.jit(jnp.max, out_shardings=NamedSharding(mesh, P()))
+      self.max_over_processes = lambda signum: largest(
+        jax.make_array_from_process_local_data(
+          flags, np.full(local_devices, signum, np.int32), (mesh.size,)
+        )
+      )
+
+  def __enter__(self) -> _StopRequest:
+    if threading.current_thread() is threading.main_thread():
+      for signum in self.SIGNALS:
+        previous = signal.signal(signum, self._note)
+        # None: a handler not set from Python, which cannot be set back; the default instead.
+        self.previous[signum] = signal.SIG_DFL if previous is None else previous
+    return self
+
+  def __exit__(self, exc_type, *exc_info) -> None:
+    for signum, previous in self.previous.items():
+      signal.signal(signum, previous)
+    if self.received and exc_type is None:
+      signal.raise_signal(self.received)
+
+  def _note(self, signum: int, frame) -> None:
+    del frame
+    if self.received:
+      signal.signal(signum, self.previous[signum])
+      signal.raise_signal(signum)
+      return
+    self.received = signum
+
+  def agreed(self) -> int:
+    """The signal to stop on now, the same on every process (0: go on)."""
+    if jax.process_count() == 1:
+      return self.received
+    seen, self.in_flight = self.in_flight, self.max_over_processes(self.received)
+    return 0 if seen is None else int(seen)
 
 
 def _checkpointer(loop_config: LoopConfig) -> Checkpointer | None:
