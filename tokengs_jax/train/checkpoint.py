@@ -18,14 +18,20 @@ read error); each skipped step is logged with the reason and renamed `<step>.unu
 saves of that step number and `max_to_keep` only see good checkpoints. All processes agree on
 the step they resume from. Saves are asynchronous: `save` returns once the arrays are copied off
 the device; `wait()` blocks until the write is on disk (call it before exiting).
+
+What orbax would follow out of the directory or block on (a step that is a symbolic link, a FIFO
+in a step) is set aside when the checkpointer opens the directory, and a full or unwritable disk
+is one `CheckpointWriteError` line naming the step and the directory (`checkpoint_files`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import pathlib
 import re
+import shutil
 import zlib
 from typing import Any
 
@@ -33,6 +39,15 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 from jax.experimental import multihost_utils
+
+from tokengs_jax.train.checkpoint_files import (
+  STEP_NAME,
+  foreign_step_reason,
+  missing_space,
+  set_aside,
+  step_bytes,
+  write_error,
+)
 
 log = logging.getLogger(__name__)
 
@@ -164,6 +179,12 @@ class Checkpointer:
     self.directory = pathlib.Path(directory).resolve()
     self.process_index = jax.process_index() if process_index is None else process_index
     self.process_count = jax.process_count() if process_count is None else process_count
+    self._pending_step = None  # the step of a save that may still be writing
+    with self._naming_refused_writes(None):
+      self._set_aside_foreign_steps()
+      self._manager = self._open_manager(max_to_keep, async_save)
+
+  def _open_manager(self, max_to_keep: int | None, async_save: bool) -> ocp.CheckpointManager:
     registry = ocp.handlers.DefaultCheckpointHandlerRegistry()
     for item in ("data", "checksums"):
       handler = data_state_handler(self.process_index, self.process_count)
@@ -172,7 +193,7 @@ class Checkpointer:
     state_handler = ocp.StandardCheckpointHandler()
     for args in (ocp.args.StandardSave, ocp.args.StandardRestore):
       registry.add("state", args, state_handler)
-    self._manager = ocp.CheckpointManager(
+    return ocp.CheckpointManager(
       self.directory,
       handler_registry=registry,
       options=ocp.CheckpointManagerOptions(
@@ -187,17 +208,33 @@ class Checkpointer:
     checksums are taken here, from the arrays being saved, before the asynchronous write.
     """
     step = int(jax.device_get(state.step))
-    self._manager.save(
-      step,
-      args=ocp.args.Composite(
-        state=ocp.args.StandardSave(state),
-        data=ocp.args.JsonSave({"iterator": data_state}),
-        checksums=ocp.args.JsonSave(
-          {**array_checksums(state), HOST_STATE: host_state_checksum({"iterator": data_state})}
+    self.wait()  # orbax waits too: a failure of the previous save is reported as that step's
+    self._check_free_space(step)
+    self._pending_step = step
+    with self._naming_refused_writes(step):
+      self._manager.save(
+        step,
+        args=ocp.args.Composite(
+          state=ocp.args.StandardSave(state),
+          data=ocp.args.JsonSave({"iterator": data_state}),
+          checksums=ocp.args.JsonSave(
+            {**array_checksums(state), HOST_STATE: host_state_checksum({"iterator": data_state})}
+          ),
         ),
-      ),
-      force=True,
-    )
+        force=True,
+      )
+
+  def _check_free_space(self, step: int) -> None:
+    """Refuses a save that cannot fit before orbax writes a byte (a write failing on a full disk
+    logs a traceback per writer thread). A step takes about what the latest one took on disk;
+    the first is not checked (the arrays' bytes overstate it: orbax compresses, e.g. zeros)."""
+    latest = self.latest_step()
+    if latest is None:
+      return
+    needed = step_bytes(self.directory / str(latest))
+    free = shutil.disk_usage(self.directory).free
+    if not _all_agree(free >= needed):
+      raise missing_space(self.directory, step, needed, free)
 
   def latest_step(self) -> int | None:
     return self._manager.latest_step()
@@ -244,7 +281,9 @@ class Checkpointer:
         except Exception as failure:  # orbax/tensorstore/json raise many types for damaged files
           error = failure
         if _all_agree(error is None):
-          self._set_aside(skipped)
+          if skipped:
+            self._set_aside(skipped, f"tokengs_checkpoint_set_aside_{skipped[-1][0]}")
+            self._manager.reload()
           return restored
       reason = _short(error) if error is not None else "another process could not restore it"
       log.warning(
@@ -307,25 +346,44 @@ class Checkpointer:
         f"{written}): resume with the process count it was written with"
       )
 
-  def _set_aside(self, skipped: list[tuple[int, str]]) -> None:
-    """Renames skipped steps to `<step>.unusable[.k]` (kept for inspection, invisible to orbax)."""
-    if not skipped:
-      return
+  def _set_aside_foreign_steps(self) -> None:
+    """Sets aside the steps orbax would follow a link out of the directory in, or block on (a
+    FIFO), before orbax lists them. Every process must call it."""
+    foreign = []
+    if jax.process_index() == 0 and self.directory.is_dir():
+      for entry in sorted(self.directory.iterdir()):
+        if STEP_NAME.fullmatch(entry.name) and (reason := foreign_step_reason(entry)):
+          foreign.append((int(entry.name), reason))
+    self._set_aside(foreign, "tokengs_checkpoint_foreign_steps_set_aside")
+
+  def _set_aside(self, skipped: list[tuple[int, str]], barrier: str) -> None:
+    """Renames the (step, reason) steps to `<step>.unusable[.k]` (kept for inspection, invisible
+    to orbax). Every process must call it; process 0 renames."""
     if jax.process_index() == 0:
-      for step, reason in skipped:
-        target = self.directory / f"{step}.unusable"
-        k = 1
-        while target.exists():
-          target, k = self.directory / f"{step}.unusable.{k}", k + 1
-        (self.directory / str(step)).rename(target)
-        (target / "UNUSABLE.txt").write_text(reason + "\n")
-        log.warning("moved unusable checkpoint step %d to %s", step, target)
-    multihost_utils.sync_global_devices(f"tokengs_checkpoint_set_aside_{skipped[-1][0]}")
-    self._manager.reload()
+      with self._naming_refused_writes(None):
+        for step, reason in skipped:
+          target = set_aside(self.directory / str(step), reason)
+          log.warning("moved unusable checkpoint step %d to %s (%s)", step, target, reason)
+    if jax.process_count() > 1:
+      multihost_utils.sync_global_devices(barrier)
+
+  @contextlib.contextmanager
+  def _naming_refused_writes(self, step: int | None):
+    """Re-raises a full or unwritable disk as one `CheckpointWriteError` line (orbax has logged
+    the details); other errors as they are."""
+    try:
+      yield
+    except Exception as error:
+      refused = write_error(error, self.directory, step)
+      if refused is None:
+        raise
+      raise refused from None
 
   def wait(self) -> None:
     """Blocks until every pending asynchronous save is on disk."""
-    self._manager.wait_until_finished()
+    with self._naming_refused_writes(self._pending_step):
+      self._manager.wait_until_finished()
+    self._pending_step = None
 
   def close(self) -> None:
     self._manager.close()
