@@ -4,13 +4,20 @@ import concurrent.futures
 import json
 import os
 import pickle
+import re
 import zipfile
 
 import numpy as np
 import pytest
 from conftest import reference_fixture
 
-from tokengs_jax.data import chunks
+from tokengs_jax.data import (
+  BoundedSamplerConfig,
+  ChunkedSceneSource,
+  ExampleConfig,
+  InputPipeline,
+  chunks,
+)
 from tokengs_jax.data.chunks import ChunkError, UnsafeChunkError, read_chunk, write_chunk
 
 
@@ -178,7 +185,10 @@ def _rewrite_record(tmp_path, mutate):
 
 def test_wrong_camera_row_length_names_file_and_scene(tmp_path):
   path = _rewrite_record(tmp_path, lambda r: r.update(cameras=r["cameras"][:, :17].copy()))
-  with pytest.raises(ChunkError, match=r"000001\.torch scene 'sceneX'.*\[F, 18\]"):
+  with pytest.raises(
+    ChunkError,
+    match=r"000001\.torch scene 'sceneX': 'cameras' must be a tensor \[3, 18\], got \[3, 17\]",
+  ):
     read_chunk(path)
 
 
@@ -201,3 +211,30 @@ def test_corrupt_jpeg_names_file_scene_and_frame(tmp_path):
   (lazy,) = read_chunk(path, images="lazy")  # lazy reading defers the failure to the decode
   with pytest.raises(ChunkError, match="frame 2"):
     chunks.decode_jpeg(lazy["images"][2].load(), where=f"{path} scene 'sceneX' frame 2")
+
+
+def test_a_frame_of_another_size_is_a_rejection_naming_scene_and_frame(tmp_path):
+  frames = [chunks.encode_jpeg(image) for image in _scene(height=12, width=20)["images"]]
+  frames[2] = chunks.encode_jpeg(_scene(height=16, width=16)["images"][2])
+  write_chunk(tmp_path / "000000.torch", [_scene("good"), {**_scene("odd"), "images": frames}])
+  message = r"000000\.torch scene 'odd' frame 2: 16x16 pixels, frame 0 is 12x20"
+  for images in ("bytes", "decode"):  # every frame's bytes are read: refused when scanned
+    with pytest.raises(ChunkError, match=message):
+      read_chunk(tmp_path / "000000.torch", images=images)
+  source = ChunkedSceneSource(tmp_path, skip_bad=True)  # lazy: refused when the frame is read
+  with pytest.raises(ChunkError, match=message):
+    source[source.keys.index("odd")]["images"][2].load()
+  pipeline = InputPipeline(
+    source,
+    ExampleConfig((8, 8), BoundedSamplerConfig(2, 1, 2, 2, 0, 0, 2, 2), 0.25),
+    batch_size=1,
+    shard_index=0,
+    shard_count=1,
+    num_epochs=1,
+    shuffle=False,
+    skip_bad=True,
+    select_views=lambda record, rng, step: (np.array([0, 2]), np.array([1])),
+  )
+  assert [int(b["scene_index"][0]) for b in pipeline] == [source.keys.index("good")]
+  assert dict(pipeline.rejections.counts) == {"ChunkError": 1}
+  assert re.search(message, pipeline.rejections.messages[-1])

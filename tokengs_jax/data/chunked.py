@@ -166,13 +166,12 @@ class ChunkedSceneSource:
     entry = self.entries[index]
     scenes = self._chunk(entry.chunk)
     scene = scenes[entry.position] if entry.position < len(scenes) else None
-    if not isinstance(scene, dict) or scene["key"] != entry.key:  # the file changed since the scan
-      raise (
-        scene
-        if isinstance(scene, ChunkError)
-        else ChunkError(
-          f"{entry.chunk}: scene '{entry.key}' is no longer at position {entry.position}"
-        )
+    # the scan found this scene here: anything else means the file changed since
+    if isinstance(scene, ChunkError):
+      raise scene.detached()  # the cached one, raised, would keep this call's traceback
+    if not isinstance(scene, dict) or scene["key"] != entry.key:
+      raise ChunkError(
+        f"{entry.chunk}: scene '{entry.key}' is no longer at position {entry.position}"
       )
     return {**scene, "source": entry.chunk}
 

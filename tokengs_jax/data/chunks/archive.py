@@ -8,6 +8,7 @@ lazy tensors that read one record at a time.
 from __future__ import annotations
 
 import collections
+import copy
 import os
 import stat
 import struct
@@ -19,11 +20,18 @@ import zlib
 class ChunkError(ValueError):
   """A chunk file (or one scene in it) is malformed; the message names the file and scene."""
 
+  def detached(self) -> ChunkError:
+    """A copy without traceback, cause or context, to keep (a cached rejection) or raise again:
+    a traceback's frames hold the locals of every function it passed through, the arrays of the
+    rejected scene among them. The message already names the cause."""
+    return copy.copy(self)  # the type, args and attributes (`scene_key`); not the traceback
+
 
 # Allocation bounds, checked against a record's declared size before any byte is read: a forged
 # archive cannot make the reader inflate more than this (torch stores records uncompressed, so a
-# real chunk's records are bounded by the file itself).
-MAX_PICKLE_BYTES = 256 << 20
+# real chunk's records are bounded by the file itself). A real chunk's pickle takes ~75 bytes and
+# ~31 opcodes a tensor; what decoding it allocates is bounded by its opcodes (`unpickler`).
+MAX_PICKLE_BYTES = 32 << 20
 MAX_INFLATED_RECORD_BYTES = 256 << 20
 
 
@@ -69,7 +77,7 @@ def read_member(
   where: str,
   expected_bytes: int | None = None,
   max_bytes: int = MAX_INFLATED_RECORD_BYTES,
-) -> bytes:
+) -> bytearray:
   """One member of an open archive, its size checked before it is read.
 
   Args:
@@ -94,8 +102,13 @@ def read_member(
       f"{where}: compressed record '{name}' would inflate to {info.file_size} bytes "
       f"(limit {max_bytes})"
     )
+  data = bytearray()
   try:
-    data = archive.read(info)
+    with archive.open(info) as member:
+      # grown in place: zipfile's whole-member read concatenates bytes objects, which holds
+      # twice the record (510 MB at a peak for a 255 MiB record, 259 MB so)
+      while piece := member.read(1 << 20):
+        data += piece
   except (
     zipfile.BadZipFile,
     OSError,

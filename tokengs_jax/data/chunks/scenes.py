@@ -8,6 +8,7 @@ naming the file and the scene.
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import os
 from typing import Iterable, Literal, Mapping
@@ -22,6 +23,11 @@ from tokengs_jax.data.chunks.writer import save_tensor_archive
 from tokengs_jax.data.transforms import rigid_inverse
 
 CAMERA_ROW_LENGTH = 18
+# Bounds on what a chunk decodes to, checked on the pickle's declared shapes before any tensor is
+# read (a scene's cameras decode to ~400 bytes a frame): far above any real chunk (RE10K and DL3DV
+# scenes have hundreds of frames, a chunk tens of scenes), far below what exhausts a host.
+MAX_SCENE_FRAMES = 100_000
+MAX_CHUNK_SCENES = 10_000
 
 
 def jpeg_size(data: bytes | np.ndarray, *, where: str = "") -> tuple[int, int]:
@@ -98,6 +104,67 @@ def _loaded(value):
   return value.load() if isinstance(value, LazyTensor) else value
 
 
+def _check_frame_size(data, index: int, height: int, width: int, where: str) -> None:
+  """`ChunkError` unless frame `index`'s JPEG header says `height` x `width` (frame 0's size: the
+  intrinsics are in its pixels, and the frames of a view selection are stacked)."""
+  size = jpeg_size(data, where=f"{where} frame {index}")
+  if size != (height, width):
+    raise ChunkError(
+      f"{where} frame {index}: {size[0]}x{size[1]} pixels, frame 0 is {height}x{width}"
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class LazyFrame(LazyTensor):
+  """A lazy JPEG frame whose `load()` also checks its size against frame 0's: a lazy scan reads
+  only frame 0, so a frame of another size is found when a sample reads it, as a `ChunkError`
+  naming the file, scene and frame."""
+
+  index: int
+  height: int
+  width: int
+  where: str  # file and scene
+
+  def load(self) -> np.ndarray:
+    data = super().load()
+    _check_frame_size(data, self.index, self.height, self.width, self.where)
+    return data
+
+
+def _checked_tensor(value, shape: tuple, integer: bool, what: str, where: str):
+  """`value` if it is a tensor (loaded or lazy) of `shape` (and integer dtype if `integer`), checked
+  before a byte of it is read: a forged shape cannot make the reader decode more."""
+  if not (
+    isinstance(value, (LazyTensor, np.ndarray))
+    and tuple(value.shape) == shape
+    and (not integer or np.issubdtype(value.dtype, np.integer))
+  ):
+    kind = "an integer tensor" if integer else "a tensor"
+    found = (
+      list(value.shape) if isinstance(value, (LazyTensor, np.ndarray)) else type(value).__name__
+    )
+    raise ChunkError(f"{where}: '{what}' must be {kind} {list(shape)}, got {found}")
+  return value
+
+
+def _checked_frames(record: Mapping, where: str) -> list:
+  frames = record["images"]
+  if not isinstance(frames, (list, tuple)) or not frames:
+    raise ChunkError(f"{where}: 'images' must be a non-empty list of JPEG byte tensors")
+  if len(frames) > MAX_SCENE_FRAMES:
+    raise ChunkError(
+      f"{where}: {len(frames)} frames, more than MAX_SCENE_FRAMES {MAX_SCENE_FRAMES}"
+    )
+  if not all(
+    isinstance(frame, (LazyTensor, np.ndarray))
+    and frame.dtype == np.uint8
+    and len(frame.shape) == 1
+    for frame in frames
+  ):
+    raise ChunkError(f"{where}: 'images' must hold uint8 1-D tensors of JPEG bytes")
+  return list(frames)
+
+
 def _scene_from_record(record, path: str, position: int, images_mode: str) -> dict:
   if not isinstance(record, Mapping) or not isinstance(record.get("key"), str):
     raise ChunkError(f"{path}: entry {position} is not a scene dict with a string 'key'")
@@ -106,40 +173,29 @@ def _scene_from_record(record, path: str, position: int, images_mode: str) -> di
   for field in ("cameras", "images"):
     if field not in record:
       raise ChunkError(f"{where}: missing field '{field}'")
-  frames = record["images"]
-  if not isinstance(frames, (list, tuple)) or not frames:
-    raise ChunkError(f"{where}: 'images' must be a non-empty list of JPEG byte tensors")
-  frames = list(frames)
-  if not all(
-    isinstance(frame, (LazyTensor, np.ndarray)) and frame.dtype == np.uint8 for frame in frames
-  ):
-    raise ChunkError(f"{where}: 'images' must hold uint8 tensors of JPEG bytes")
-  if not isinstance(record["cameras"], (LazyTensor, np.ndarray)):
-    raise ChunkError(f"{where}: 'cameras' must be a tensor")
-  if images_mode != "lazy":
-    frames = [_loaded(frame) for frame in frames]
+  frames = _checked_frames(record, where)
+  count = len(frames)
+  cameras = _checked_tensor(record["cameras"], (count, CAMERA_ROW_LENGTH), False, "cameras", where)
+  timestamps = _checked_tensor(
+    record.get("timestamps", np.arange(count)), (count,), True, "timestamps", where
+  )
   height, width = jpeg_size(_loaded(frames[0]), where=f"{where} frame 0")
-  c2w, intrinsics = cameras_to_poses(_loaded(record["cameras"]), height, width, where=where)
-  if len(frames) != c2w.shape[0]:
-    raise ChunkError(f"{where}: {len(frames)} images but {c2w.shape[0]} camera rows")
-  timestamps = _loaded(record.get("timestamps", np.arange(len(frames))))
-  if not (
-    isinstance(timestamps, np.ndarray)
-    and timestamps.shape == (len(frames),)
-    and np.issubdtype(timestamps.dtype, np.integer)
-  ):
-    raise ChunkError(f"{where}: 'timestamps' must be an integer tensor [{len(frames)}]")
-  timestamps = timestamps.astype(np.int64)
+  c2w, intrinsics = cameras_to_poses(_loaded(cameras), height, width, where=where)
+  if images_mode == "lazy":
+    frames = [  # `scan_chunk` loads the pickle lazily: every tensor is a `LazyTensor`
+      LazyFrame(f.storage, f.offset, f.shape, f.stride, i, height, width, where)
+      for i, f in enumerate(frames)
+    ]
+  else:
+    frames = [_loaded(frame) for frame in frames]
+    for index, frame in enumerate(frames):
+      _check_frame_size(frame, index, height, width, where)
   if images_mode == "decode":
-    decoded = [decode_jpeg(f, where=f"{where} frame {i}") for i, f in enumerate(frames)]
-    shapes = {d.shape for d in decoded}
-    if len(shapes) != 1:
-      raise ChunkError(f"{where}: frames differ in size {sorted(shapes)}")
-    frames = np.stack(decoded)
+    frames = np.stack([decode_jpeg(f, where=f"{where} frame {i}") for i, f in enumerate(frames)])
   return {
     "key": key,
     "url": str(record.get("url", "")),
-    "timestamps": timestamps,
+    "timestamps": _loaded(timestamps).astype(np.int64),
     "c2w": c2w,
     "intrinsics": intrinsics,
     "images": frames,
@@ -155,20 +211,27 @@ def scan_chunk(
 
   Returns, in file order, each scene (as `read_chunk`) or the `ChunkError` saying why that scene
   is unusable (NaN camera, corrupt frame 0, ...; its `scene_key` attribute holds the scene's key
-  when it has one). Raises `ChunkError` when the file as a whole is unreadable.
+  when it has one), detached from its traceback (`ChunkError.detached`), so a cached scan holds
+  no arrays of its rejected scenes. Raises `ChunkError` when the file as a whole is unreadable,
+  including one of more than `MAX_CHUNK_SCENES` entries.
   """
   path = str(path)
   content = load_tensor_archive(path, lazy=True)
   if not isinstance(content, list):
     raise ChunkError(f"{path}: a chunk holds a list of scenes, found {type(content).__name__}")
+  if len(content) > MAX_CHUNK_SCENES:
+    raise ChunkError(
+      f"{path}: {len(content)} entries, more than MAX_CHUNK_SCENES {MAX_CHUNK_SCENES}"
+    )
   scenes = []
   for position, record in enumerate(content):
     try:
       scenes.append(_scene_from_record(record, path, position, images))
     except ChunkError as error:
       key = record.get("key") if isinstance(record, Mapping) else None
-      error.scene_key = key if isinstance(key, str) else None
-      scenes.append(error)
+      rejection = error.detached()
+      rejection.scene_key = key if isinstance(key, str) else None
+      scenes.append(rejection)
   return scenes
 
 
@@ -180,9 +243,11 @@ def read_chunk(
   Returns a list of dicts with `key` str, `url` str, `timestamps` int64 [F], `c2w` [F, 4, 4]
   float32 (camera-to-world, OpenCV), `intrinsics` [F, 4] float32 (fx, fy, cx, cy in pixels of the
   stored images), `height`, `width` and `images`: uint8 [F, H, W, 3] (`"decode"`), the F encoded
-  JPEGs as uint8 1-D arrays (`"bytes"`), or F `LazyTensor`s whose `load()` reads one JPEG
-  (`"lazy"`: reads only the pickle, the cameras and frame 0). Raises `ChunkError` naming the file
-  and scene on any malformed content (`scan_chunk` keeps the good scenes of a chunk instead).
+  JPEGs as uint8 1-D arrays (`"bytes"`), or F `LazyFrame`s whose `load()` reads one JPEG
+  (`"lazy"`: reads only the pickle, the cameras and frame 0). Every frame must have frame 0's
+  size (checked when read: on `load()` for lazy frames). Raises `ChunkError` naming the file and
+  scene (and frame) on any malformed content (`scan_chunk` keeps the good scenes of a chunk
+  instead).
   """
   scenes = scan_chunk(path, images=images)
   for scene in scenes:

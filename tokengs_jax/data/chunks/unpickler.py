@@ -62,10 +62,23 @@ _MALFORMED_STREAM = (
 )
 
 
+# Each opcode allocates at most one object of bounded size (~100 bytes: an empty dict or list, a
+# memo entry) besides strings, which the pickle's size bounds: so at most ~200 MB decoded from a
+# pickle whose 1-byte opcodes each make a new list. A real chunk's pickle runs ~31 a tensor.
+MAX_PICKLE_OPCODES = 2_000_000
+
+
 def _guarded(handler):
-  """An opcode handler whose malformed-stream failures become `UnpicklingError`."""
+  """An opcode handler that counts against the opcode budget and whose malformed-stream failures
+  become `UnpicklingError`."""
 
   def run(unpickler):
+    unpickler.opcodes_left -= 1
+    if unpickler.opcodes_left < 0:
+      raise ChunkError(
+        f"{unpickler.path}: the pickle runs more than MAX_PICKLE_OPCODES {MAX_PICKLE_OPCODES} "
+        "opcodes (a chunk's pickle runs ~31 a tensor)"
+      )
     try:
       handler(unpickler)
     except ChunkError:
@@ -130,8 +143,8 @@ class _TensorUnpickler(pickle._Unpickler):  # noqa: SLF001 - the Python one lets
       if code not in _REFUSED_OPCODES
     }
   )
-  dispatch[pickle.REDUCE[0]] = _load_reduce
-  dispatch[pickle.BINPERSID[0]] = _load_binpersid
+  dispatch[pickle.REDUCE[0]] = _guarded(_load_reduce)
+  dispatch[pickle.BINPERSID[0]] = _guarded(_load_binpersid)
 
   def __init__(
     self, data: bytes, archive: zipfile.ZipFile, prefix: str, path: str, byteorder: str, lazy: bool
@@ -143,6 +156,7 @@ class _TensorUnpickler(pickle._Unpickler):  # noqa: SLF001 - the Python one lets
     self._byteorder = byteorder
     self._lazy = lazy
     self._storages: dict[str, Any] = {}
+    self.opcodes_left = MAX_PICKLE_OPCODES
 
   def load(self):
     try:
