@@ -187,20 +187,28 @@ def test_an_unwritable_checkpoint_directory_is_one_line(tmp_path, monkeypatch):
     Checkpointer(tmp_path / "run")
 
 
-# The errors tensorstore raised on a full tmpfs and a read-only one (the spec cut short).
+# Errors as tensorstore words them (the full-disk one as it came from a full tmpfs, spec cut
+# short): (message, the errno it carries).
 TENSORSTORE_ERRORS = {
-  'RESOURCE_EXHAUSTED: Error writing local file "/x/2.orbax-checkpoint-tmp/state/_sharding": '
-  'Failed writing: "/x/_sharding.__lock": Failed to write 1935 bytes to file 12: No space '
-  "left on device [os_error_code='28']": errno.ENOSPC,
-  'PERMISSION_DENIED: Error opening file "/x/manifest.ocdbt": Permission denied '
-  "[tensorstore_spec='{}'] [os_error_code='13']": errno.EACCES,
-  "INVALID_ARGUMENT: Error parsing object member \"driver\" [source locations='...']": None,
+  "disk_full": (
+    'RESOURCE_EXHAUSTED: Error writing local file "/x/2.orbax-checkpoint-tmp/state/_sharding": '
+    'Failed writing: "/x/_sharding.__lock": Failed to write 1935 bytes to file 12: No space '
+    "left on device [os_error_code='28']",
+    errno.ENOSPC,
+  ),
+  "permission_denied": (
+    'PERMISSION_DENIED: Error opening file "/x/manifest.ocdbt": Permission denied '
+    "[tensorstore_spec='{}'] [os_error_code='13']",
+    errno.EACCES,
+  ),
+  "not_a_disk_error": ('INVALID_ARGUMENT: Error parsing object member "driver"', None),
 }
 
 
-@pytest.mark.parametrize("text", TENSORSTORE_ERRORS)
-def test_refused_writes_are_recognised_in_tensorstore_errors(text):
-  assert refused_write_errno(ValueError(text)) == TENSORSTORE_ERRORS[text]
+@pytest.mark.parametrize("case", TENSORSTORE_ERRORS)
+def test_refused_writes_are_recognised_in_tensorstore_errors(case):
+  text, code = TENSORSTORE_ERRORS[case]
+  assert refused_write_errno(ValueError(text)) == code
 
 
 def test_a_refused_write_is_recognised_through_the_exception_chain():
