@@ -102,7 +102,7 @@ def test_cached_rejections_hold_no_traceback_nor_the_arrays_of_their_scenes(tmp_
   # each rejection's traceback kept its frame's bytes resident (~50 MB after one read)
   records = [_record("good")] + [_record(f"bad{i}", seed=i) for i in range(6)]
   for record in records[1:]:
-    record["images"][0] = np.frombuffer(b"\xff\xd8\xff" + bytes(4 * MiB), np.uint8)
+    record["images"][0] = np.frombuffer(b"not a JPEG" + bytes(4 * MiB), np.uint8)
   chunks.save_tensor_archive(tmp_path / "000000.torch", records)
   _deflate_storages(tmp_path / "000000.torch")
 
