@@ -8,16 +8,24 @@ Each process gets `TOKENGS_COORDINATOR=127.0.0.1:<free port>`, `TOKENGS_NUM_PROC
 `jax.distributed.initialize`), plus `JAX_NUM_CPU_DEVICES` with `--devices-per-process` (CPU
 devices per process; CPU collectives are gloo, jax's default). Output lines are prefixed `[p<i>]`.
 
-If a process exits with an error or is killed, the launcher says which and how, stops the others
-(SIGTERM to each process group, SIGKILL after `--grace` seconds) and exits with that process's
-status (128 + signal for a signal), so a surviving process blocked in a collective never hangs the
-job. Rerunning the same command resumes from the last checkpoint (the training loop's job). On
-clusters use the scheduler instead (docs/multihost.md): the launcher is for one machine.
+The job ends as one: if a process exits with an error or is killed, the launcher says which and
+how, stops the others and exits with that process's status (128 + signal for a signal), so a
+surviving process blocked in a collective never hangs the job. A process that exits 0 while others
+still run is named at once; the processes of a JAX job end together (`jax.distributed` waits at
+exit for all of them), so those still running `--finish-timeout` seconds later are stopped and the
+job fails (status 1). SIGTERM or SIGINT to the launcher stops the job (status 128 + signal).
+
+Stopping a process: SIGTERM to it (the training loop then finishes its step, saves it and exits
+143), SIGKILL to its process group (it and its data workers) after `--grace` seconds, or at once
+on a second SIGTERM/SIGINT to the launcher. Rerunning the same command resumes from the last
+checkpoint (the training loop's job). On clusters use the scheduler instead (docs/multihost.md):
+the launcher is for one machine.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import signal
 import socket
@@ -50,19 +58,92 @@ def _forward(prefix: str, stream, out) -> None:
     out.flush()
 
 
+class _Interrupted(Exception):
+  """SIGTERM or SIGINT reached the launcher."""
+
+  def __init__(self, signum: int):
+    super().__init__(signal.Signals(signum).name)
+    self.signum = signum
+
+
+def _interrupt(signum: int, frame) -> None:
+  raise _Interrupted(signum)
+
+
+_STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+
+def _start(command: list[str], index: int, processes: int, address: str, devices: int | None):
+  """Process `index` of the job, in its own process group, and the thread forwarding its output."""
+  env = {
+    **os.environ,
+    "TOKENGS_COORDINATOR": address,
+    "TOKENGS_NUM_PROCESSES": str(processes),
+    "TOKENGS_PROCESS_ID": str(index),
+  }
+  if devices is not None:
+    env["JAX_NUM_CPU_DEVICES"] = str(devices)
+  # Own process group: killing the group also kills its data workers.
+  child = subprocess.Popen(
+    command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True
+  )
+  forwarder = threading.Thread(
+    target=_forward, args=(f"[p{index}] ", child.stdout, sys.stdout), daemon=True
+  )
+  forwarder.start()
+  return child, forwarder
+
+
+def _watch(children: list[subprocess.Popen], timeout: float | None, finish_timeout: float) -> int:
+  """Waits until every process exited 0 (-> 0), one failed (-> its status), the job ran past
+  `timeout` (-> 124), or some still run `finish_timeout` s after one exited 0 (-> 1)."""
+  started, first_finished = time.monotonic(), None
+  while True:
+    codes = [child.poll() for child in children]  # a list: poll every child
+    running = [index for index, code in enumerate(codes) if code is None]
+    failed = [(index, code) for index, code in enumerate(codes) if code not in (None, 0)]
+    if failed:
+      index, code = failed[0]
+      print(f"[launch] process {index} {describe(code)}; stopping the other processes", flush=True)
+      return exit_status(code)
+    if not running:
+      return 0
+    now = time.monotonic()
+    if first_finished is None and len(running) < len(children):
+      first_finished = now
+      print(
+        f"[launch] process {codes.index(0)} exited with status 0 while processes {running} still "
+        f"run; stopping them if they have not ended in {finish_timeout:g} s",
+        flush=True,
+      )
+    if first_finished is not None and now - first_finished > finish_timeout:
+      print(f"[launch] processes {running} did not end with the others; stopping them", flush=True)
+      return 1
+    if timeout is not None and now - started > timeout:
+      print(f"[launch] timeout after {timeout:g} s; stopping all processes", flush=True)
+      return 124
+    time.sleep(0.05)
+
+
 def _stop(processes: list[subprocess.Popen], grace: float) -> None:
-  """SIGTERM to every running process group, SIGKILL to those still alive after `grace` s."""
-  running = [p for p in processes if p.poll() is None]
-  for sig, wait in ((signal.SIGTERM, grace), (signal.SIGKILL, 5.0)):
-    for process in running:
-      try:
-        os.killpg(process.pid, sig)
-      except ProcessLookupError:
-        pass
-    deadline = time.monotonic() + wait
-    while running and time.monotonic() < deadline:
-      running = [p for p in running if p.poll() is None]
-      time.sleep(0.05)
+  """SIGTERM to each running process; after `grace` s (sooner on a second SIGTERM/SIGINT to the
+  launcher), SIGKILL to every process group, which also ends workers left by exited processes."""
+  hurry = threading.Event()
+  for signum in _STOP_SIGNALS:
+    signal.signal(signum, lambda *_: hurry.set())
+  running = [process for process in processes if process.poll() is None]
+  for process in running:
+    with contextlib.suppress(ProcessLookupError):
+      os.kill(process.pid, signal.SIGTERM)
+  deadline = time.monotonic() + grace
+  while running and time.monotonic() < deadline and not hurry.is_set():
+    running = [process for process in running if process.poll() is None]
+    time.sleep(0.05)
+  for process in processes:
+    with contextlib.suppress(ProcessLookupError):
+      os.killpg(process.pid, signal.SIGKILL)
+  for process in processes:
+    process.wait()
 
 
 def launch(
@@ -72,63 +153,30 @@ def launch(
   grace: float = 5.0,
   timeout: float | None = None,
   port: int | None = None,
+  finish_timeout: float = 60.0,
 ) -> int:
-  """Starts `processes` copies of `command`; returns the job's exit status (0: all succeeded)."""
+  """Starts `processes` copies of `command`; returns the job's exit status (0: all succeeded).
+  Call from the main thread (it handles SIGTERM and SIGINT while the job runs)."""
   address = f"127.0.0.1:{port or free_port()}"
   print(f"[launch] {processes} processes, coordinator {address}: {' '.join(command)}", flush=True)
   children, forwarders = [], []
-  for index in range(processes):
-    env = {
-      **os.environ,
-      "TOKENGS_COORDINATOR": address,
-      "TOKENGS_NUM_PROCESSES": str(processes),
-      "TOKENGS_PROCESS_ID": str(index),
-    }
-    if devices_per_process is not None:
-      env["JAX_NUM_CPU_DEVICES"] = str(devices_per_process)
-    # Own process group: stopping a process also stops its data workers.
-    child = subprocess.Popen(
-      command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True
-    )
-    forwarder = threading.Thread(
-      target=_forward, args=(f"[p{index}] ", child.stdout, sys.stdout), daemon=True
-    )
-    forwarder.start()
-    children.append(child)
-    forwarders.append(forwarder)
-
-  deadline = None if timeout is None else time.monotonic() + timeout
-  status = 0
+  previous = {signum: signal.signal(signum, _interrupt) for signum in _STOP_SIGNALS}
   try:
-    while None in [child.poll() for child in children]:  # a list: poll every child
-      failed = [(i, c.returncode) for i, c in enumerate(children) if c.returncode not in (None, 0)]
-      if failed:
-        index, returncode = failed[0]
-        print(
-          f"[launch] process {index} {describe(returncode)}; stopping the other processes",
-          flush=True,
-        )
-        status = exit_status(returncode)
-        break
-      if deadline is not None and time.monotonic() > deadline:
-        print(f"[launch] timeout after {timeout:g} s; stopping all processes", flush=True)
-        status = 124
-        break
-      time.sleep(0.05)
-  except KeyboardInterrupt:
-    print("[launch] interrupted; stopping all processes", flush=True)
-    status = 130
+    for index in range(processes):
+      child, forwarder = _start(command, index, processes, address, devices_per_process)
+      children.append(child)
+      forwarders.append(forwarder)
+    status = _watch(children, timeout, finish_timeout)
+  except _Interrupted as interrupted:
+    print(f"[launch] {interrupted}; stopping all processes", flush=True)
+    status = 128 + interrupted.signum
   finally:
     _stop(children, grace)
+    for signum, handler in previous.items():
+      signal.signal(signum, handler)
   for forwarder in forwarders:
     forwarder.join(timeout=5.0)
-  if status == 0:
-    failed = [(i, c.returncode) for i, c in enumerate(children) if c.returncode != 0]
-    if failed:
-      index, returncode = failed[0]
-      print(f"[launch] process {index} {describe(returncode)}", flush=True)
-      status = exit_status(returncode)
-  else:
+  if status != 0:
     for index, child in enumerate(children):
       print(f"[launch] process {index} {describe(child.returncode)}", flush=True)
   return status
@@ -156,13 +204,25 @@ def main(argv: list[str] | None = None) -> int:
     help="seconds between SIGTERM and SIGKILL when stopping processes",
   )
   parser.add_argument("--timeout", type=float, default=None, help="stop the job after this long")
+  parser.add_argument(
+    "--finish-timeout",
+    type=float,
+    default=60.0,
+    help="seconds the other processes get to end after one exited 0",
+  )
   parser.add_argument("--port", type=int, default=None, help="coordinator port (default: free)")
   args = parser.parse_args(argv[:split])
   command = argv[split + 1 :]
   if not command or args.processes < 1:
     parser.error("need a command after -- and --processes >= 1")
   return launch(
-    command, args.processes, args.devices_per_process, args.grace, args.timeout, args.port
+    command,
+    args.processes,
+    args.devices_per_process,
+    args.grace,
+    args.timeout,
+    args.port,
+    args.finish_timeout,
   )
 
 

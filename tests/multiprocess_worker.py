@@ -1,12 +1,14 @@
 """One process of the multi-process tests (`tests/test_multiprocess.py`), started by the launcher:
 
     python -m experiments.launch --processes 2 --devices-per-process 2 -- \\
-        python tests/multiprocess_worker.py OUT [--steps 6] [--kill-at STEP]
+        python tests/multiprocess_worker.py OUT [--steps 6] [--kill-at STEP] [--signal-at STEP]
 
 Trains a toy regressor on an `InputPipeline` over in-memory scenes (this process's shard, chosen
 by `jax.process_index()`), checkpointing to `OUT/checkpoints` every 2 steps; process 0 writes
 `OUT/result.npz` (final params, history losses), every process writes the scene indices it read to
-`OUT/scenes_<i>.json`. `--kill-at S`: process 1 SIGKILLs itself when step S is logged.
+`OUT/scenes_<i>.json`. `--kill-at S`: process 1 SIGKILLs itself when step S is logged;
+`--signal-at S`: process 1 sends itself SIGTERM then, and every process exits as the experiments
+do when the loop stops (status 143).
 The scene source, pipeline and loss are shared with the in-process reference run of the test.
 """
 
@@ -24,6 +26,7 @@ import numpy as np
 
 from tokengs_jax.data import BoundedSamplerConfig, ExampleConfig, InputPipeline
 from tokengs_jax.train import LoopConfig, OptimConfig, initialize, train
+from tokengs_jax.train.loop import TrainingStopped
 
 NUM_SCENES, LOCAL_BATCH = 8, 2
 OPTIM = OptimConfig(learning_rate=3e-2, schedule="constant")
@@ -104,6 +107,7 @@ def main() -> None:
   parser.add_argument("out", type=pathlib.Path)
   parser.add_argument("--steps", type=int, default=6)
   parser.add_argument("--kill-at", type=int, default=None)
+  parser.add_argument("--signal-at", type=int, default=None)
   args = parser.parse_args()
   initialize()
   index = jax.process_index()
@@ -111,25 +115,28 @@ def main() -> None:
 
   def log(step, metrics):
     print(f"step {step} loss {metrics['loss']!r}", flush=True)  # repr: the exact float
-    if args.kill_at == step and index == 1:
-      os.kill(os.getpid(), signal.SIGKILL)
+    if index == 1 and step in (args.kill_at, args.signal_at):
+      os.kill(os.getpid(), signal.SIGKILL if step == args.kill_at else signal.SIGTERM)
 
   batches = RecordingBatches(iter(pipeline()))
-  state, history = train(
-    loss_fn,
-    init_params(),
-    batches,
-    OPTIM,
-    LoopConfig(
-      total_steps=args.steps,
-      log_every=1,
-      checkpoint_every=2,
-      checkpoint_dir=str(args.out / "checkpoints"),
-      max_to_keep=None,
-      async_checkpoint=False,
-    ),
-    log_fn=log,
-  )
+  try:
+    state, history = train(
+      loss_fn,
+      init_params(),
+      batches,
+      OPTIM,
+      LoopConfig(
+        total_steps=args.steps,
+        log_every=1,
+        checkpoint_every=2,
+        checkpoint_dir=str(args.out / "checkpoints"),
+        max_to_keep=None,
+        async_checkpoint=False,
+      ),
+      log_fn=log,
+    )
+  except TrainingStopped as stopped:
+    raise SystemExit(stopped.exit_status) from None
   (args.out / f"scenes_{index}.json").write_text(json.dumps(batches.seen))
   params = jax.device_get(state.params)
   if index == 0:

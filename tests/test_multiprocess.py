@@ -126,6 +126,32 @@ def test_two_processes_train_like_one_and_a_killed_job_resumes_exactly(tmp_path)
   assert seen[0] == {0, 2, 4, 6} and seen[1] == {1, 3, 5, 7}, seen
 
 
+def test_sigterm_to_one_process_stops_both_at_the_same_step_with_a_checkpoint(tmp_path):
+  """Process 1 alone gets SIGTERM while step 3 is logged: both processes stop after step 4 (they
+  agree one step later), both save step 4's checkpoint and exit 143. The same command resumes both
+  from step 4 and ends as an uninterrupted job."""
+  status, lines = launch(tmp_path, "--signal-at", "3")
+  text = "\n".join(line for _, line in lines)
+  assert status == 143, text
+  for index in range(2):
+    assert f"[p{index}] [train] SIGTERM: stopped at step 4, resume with the same command" in text
+  first_losses = [float(line.split()[4]) for _, line in lines if line.startswith("[p0] step ")]
+  assert len(first_losses) == 4, text
+  assert sorted(p.name for p in (tmp_path / "checkpoints" / "4" / "data").glob("*.json")) == [
+    "process_0-of-2.json",
+    "process_1-of-2.json",
+  ]
+
+  status, lines = launch(tmp_path)
+  text = "\n".join(line for _, line in lines)
+  assert status == 0, text
+  for index in range(2):
+    assert f"[p{index}] [train] resuming from step 4" in text, text
+  result = np.load(tmp_path / "result.npz")
+  assert list(result["steps"]) == [1, 2, 3, 4, 5, 6]
+  assert list(result["losses"][:4]) == first_losses
+
+
 @pytest.mark.slow
 def test_entry_point_in_two_processes_writes_results_from_process_0_only(tmp_path):
   """`python -m experiments.launch --processes 2 -- python -m experiments.re10k run smoke`: trains

@@ -68,3 +68,81 @@ def test_data_workers_and_the_resource_tracker_end_with_a_killed_main_process(tm
     for pid in helpers:
       if _alive(pid):
         os.kill(pid, signal.SIGKILL)
+
+
+def _launcher(child_code: str, *options: str) -> subprocess.Popen:
+  """`experiments.launch` of 2 processes running `python -c CHILD_CODE`, its output piped."""
+  return subprocess.Popen(
+    [sys.executable, "-m", "experiments.launch", "--processes", "2", *options, "--"]
+    + [sys.executable, "-c", child_code],
+    cwd=ROOT,
+    stdout=subprocess.PIPE,
+    stderr=subprocess.STDOUT,
+    text=True,
+  )
+
+
+def test_a_process_that_exits_0_early_does_not_leave_the_others_waiting():
+  early_exit = textwrap.dedent(
+    """
+    import os, time
+    time.sleep(0 if os.environ["TOKENGS_PROCESS_ID"] == "1" else 120)
+    """
+  )
+  started = time.monotonic()
+  job = _launcher(early_exit, "--finish-timeout", "1", "--grace", "1")
+  try:
+    output, _ = job.communicate(timeout=60)
+  finally:
+    job.kill()
+  assert time.monotonic() - started < 30, output
+  assert job.returncode == 1, output
+  assert "process 1 exited with status 0 while processes [0] still run" in output, output
+  assert "processes [0] did not end with the others; stopping them" in output, output
+
+
+_STOPPABLE = textwrap.dedent(
+  """
+  import os, signal, subprocess, sys, time
+  index = os.environ["TOKENGS_PROCESS_ID"]
+
+  def stop(signum, frame):
+    print(f"stopping cleanly", flush=True)
+    sys.exit(128 + signum)
+
+  signal.signal(signal.SIGTERM, stop)
+  helper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
+  print(f"ready {os.getpid()} {helper.pid}", flush=True)
+  time.sleep(120)
+  """
+)
+
+
+def test_sigterm_to_the_launcher_stops_each_process_cleanly_and_reaps_their_helpers():
+  """Each process gets SIGTERM first (a training process saves its step), then its process group
+  SIGKILL: a helper process the child left behind (as a data worker could) ends too."""
+  job = _launcher(_STOPPABLE, "--grace", "10")
+  pids = []
+  try:
+    lines = []
+    for line in job.stdout:
+      lines.append(line)
+      if " ready " in line:
+        pids += [int(pid) for pid in line.split()[2:]]
+        if len(pids) == 4:
+          break
+    stopped_at = time.monotonic()
+    job.send_signal(signal.SIGTERM)
+    output = "".join(lines) + job.communicate(timeout=60)[0]
+    assert time.monotonic() - stopped_at < 8, output
+    assert job.returncode == 128 + signal.SIGTERM, output
+    assert "[launch] SIGTERM; stopping all processes" in output, output
+    for index in range(2):
+      assert f"[p{index}] stopping cleanly" in output, output
+      assert f"[launch] process {index} exited with status 143" in output, output
+    assert _wait_gone(pids, 5.0) == [], "orphaned processes"
+  finally:
+    job.kill()
+    for pid in pids:
+      if _alive(pid):
+        os.kill(pid, signal.SIGKILL)
