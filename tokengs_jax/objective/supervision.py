@@ -137,6 +137,18 @@ def add_coverage(loss: jax.Array, terms: dict, alpha: jax.Array, loss_config):
   return loss, {**terms, "coverage": coverage, "loss": loss}
 
 
+def _add_depth(loss: jax.Array, terms: dict, rendered, depths, loss_config):
+  """`loss + lambda_depth * losses.depth_loss` (terms gain "depth" and the new "loss") where
+  the views carry true depths [..., H, W] (None: unchanged)."""
+  from tokengs_jax import losses
+
+  if depths is None:
+    return loss, terms
+  depth = losses.depth_loss(rendered.depth, rendered.alpha, depths)
+  loss = loss + loss_config.lambda_depth * depth
+  return loss, {**terms, "depth": depth, "loss": loss}
+
+
 def photometric_loss(rgb: jax.Array, images: jax.Array, loss_config, lpips_params=None):
   """RGB, SSIM and LPIPS terms of renders against images (`losses.render_loss` without the
   visibility term, which `add_visibility` adds over all views)."""
@@ -186,8 +198,6 @@ def supervision_loss(
   Returns:
     `(loss, terms)`: the loss terms, "psnr", and `render_diagnostics`.
   """
-  from tokengs_jax import losses
-
   with_depth = depths is not None and loss_config.lambda_depth > 0
   gaussians = gaussians_in_float32(gaussians)
   height, width = images.shape[-3], images.shape[-2]
@@ -214,10 +224,7 @@ def supervision_loss(
       rendered = jax.tree.map(lambda x: x[:, :, 0], rendered)
     loss, terms = photometric_loss(rendered.rgb, views["images"], loss_config, lpips_params)
     loss, terms = add_coverage(loss, terms, rendered.alpha, loss_config)
-    if with_depth:
-      terms["depth"] = losses.depth_loss(rendered.depth, rendered.alpha, views["depths"])
-      loss = loss + loss_config.lambda_depth * terms["depth"]
-      terms["loss"] = loss
+    loss, terms = _add_depth(loss, terms, rendered, views.get("depths"), loss_config)
     return loss, {**terms, **render_diagnostics(rendered.stats)}
 
   views = {
