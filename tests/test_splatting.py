@@ -12,7 +12,7 @@ import pytest
 from conftest import reference_fixture
 
 from tokengs_jax.gaussians import Gaussians
-from tokengs_jax.splatting import RenderConfig, binning, exact, render
+from tokengs_jax.splatting import RenderBudgetWarning, RenderConfig, binning, exact, render
 from tokengs_jax.splatting.reference import render_dense
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
@@ -368,10 +368,14 @@ def _crowded_scene(num=64, seed=3):
 def test_render_exact_rerenders_an_overflowing_scene(monkeypatch):
   g = _crowded_scene()
   tight = RenderConfig(max_intersections=64, chunk_size=8)
-  cut = render(g, W2C[None], INTR[None], height=HEIGHT, width=WIDTH, config=tight)
+  with pytest.warns(RenderBudgetWarning, match="overflowed"):
+    cut = render(g, W2C[None], INTR[None], height=HEIGHT, width=WIDTH, config=tight)
   assert bool(cut.stats.overflow[0]) and int(cut.stats.num_intersections[0]) > 64
   calls = []
-  monkeypatch.setattr(exact, "render", lambda *a, **k: calls.append(k["config"]) or render(*a, **k))
+  quiet = exact.jitted_render  # no warning: render_exact renders again instead
+  monkeypatch.setattr(
+    exact, "jitted_render", lambda *a, **k: calls.append(k["config"]) or quiet(*a, **k)
+  )
   out = exact.render_exact(g, W2C[None], INTR[None], height=HEIGHT, width=WIDTH, config=tight)
   assert len(calls) == 2 and not bool(out.stats.overflow[0]) and not bool(out.stats.truncated[0])
   rgb, alpha, _ = render_dense(jax.tree.map(jnp.asarray, g), W2C, INTR, height=HEIGHT, width=WIDTH)

@@ -3,8 +3,9 @@
 - Axes: OpenCV (+x right, +y down, +z forward).
 - Poses: `c2w [..., 4, 4]` camera-to-world for data and Plücker rays; `w2c [..., 4, 4]`
   world-to-camera for rendering and projection.
-- Intrinsics: `[..., 4]` = (fx, fy, cx, cy) in pixels. RE10K/DL3DV files store them divided by
-  width/height ("normalised"); convert at the file boundary with `intrinsics_to_pixels`.
+- Intrinsics: `[..., 4]` = (fx, fy, cx, cy) in pixels, never a K matrix (convert one with
+  `intrinsics_from_matrix`). RE10K/DL3DV files store them divided by width/height
+  ("normalised"); convert at the file boundary with `intrinsics_to_pixels`.
 - Pixel (row i, column j) has its centre at (j + 0.5, i + 0.5).
 """
 
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from tokengs_jax import math as tmath
 
@@ -41,6 +43,53 @@ def intrinsics_matrix(intrinsics: jax.Array) -> jax.Array:
     ],
     axis=-2,
   )
+
+
+def intrinsics_from_matrix(matrix: jax.Array) -> jax.Array:
+  """K -> (fx, fy, cx, cy).  matrix: [..., 3, 3] or [..., 4, 4] (K padded to 4x4) -> [..., 4]."""
+  if np.shape(matrix)[-2:] not in ((3, 3), (4, 4)):
+    raise ValueError(f"a K matrix is [..., 3, 3] or [..., 4, 4], got shape {np.shape(matrix)}")
+  matrix = jnp.asarray(matrix)
+  return jnp.stack(
+    [matrix[..., 0, 0], matrix[..., 1, 1], matrix[..., 0, 2], matrix[..., 1, 2]], axis=-1
+  )
+
+
+def check_camera_values(
+  poses, intrinsics, *, pose_name: str, camera: str, layout: str, prefix: str = ""
+) -> None:
+  """Raises ValueError for a camera with a non-finite pose or intrinsics, or fx, fy <= 0.
+
+  poses: [..., 4, 4]; intrinsics: [..., 4] (fx, fy, cx, cy), with the same cameras [...] (or
+  broadcasting to them). The message names the array (`pose_name` or "intrinsics") and the first
+  bad camera as "{camera} [i, j] (index into {layout})", after `prefix`.
+  Only concrete arrays are read: a traced one (under jit, vmap, grad) has no values yet, and
+  reading it would cost a device-to-host copy on every step.
+  """
+  checks = ((pose_name, poses, 2), ("intrinsics", intrinsics, 1))
+  for name, values, matrix_axes in checks:
+    if isinstance(values, jax.core.Tracer):
+      continue
+    values = np.asarray(values)
+    bad = ~np.all(np.isfinite(values), axis=tuple(range(-matrix_axes, 0)))
+    if np.any(bad):
+      index = np.argwhere(bad)[0].tolist()
+      raise ValueError(
+        f"{prefix}{name} of {camera} {index} (index into {layout}) is not finite (NaN or inf)"
+      )
+    non_positive = np.any(values[..., :2] <= 0, axis=-1) if name == "intrinsics" else False
+    if np.any(non_positive):
+      index = np.argwhere(non_positive)[0].tolist()
+      hint = (
+        "; a 4x4 K matrix? intrinsics are one (fx, fy, cx, cy) row per camera: convert K with "
+        "camera.intrinsics_from_matrix"
+        if values.shape[-2:] == (4, 4)
+        else ""
+      )
+      raise ValueError(
+        f"{prefix}intrinsics of {camera} {index} (index into {layout}): fx, fy must be > 0, "
+        f"got (fx, fy, cx, cy) = {values[tuple(index)].tolist()}{hint}"
+      )
 
 
 def intrinsics_to_pixels(normalised: jax.Array, height: int, width: int) -> jax.Array:

@@ -11,13 +11,15 @@ buffer size is learnt per input shape, so later calls start at it (one render, n
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import numpy as np
 
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.splatting.config import RenderConfig, RenderResult
-from tokengs_jax.splatting.pipeline import render
+from tokengs_jax.splatting.checks import check_cameras
+from tokengs_jax.splatting.pipeline import jitted_render
 
 # Largest buffer (pairs per camera) `render_exact` and `tuning.tune` grow to: binning holds a
 # few int32 / float32 arrays of this size per camera (~2.5 GiB at 2^26).
@@ -79,6 +81,7 @@ def render_exact(
 
   Raises:
     TypeError: called under a jax transformation (jit, grad, vmap).
+    ValueError: a camera with a NaN / inf or fx, fy <= 0 (as `render`).
     RenderBudgetError: the scene needs more than `BUDGET_LIMIT` pairs per camera.
   """
   leaves = jax.tree.leaves((gaussians, world_to_camera, intrinsics, kwargs))
@@ -101,19 +104,15 @@ def render_exact(
     config_now = dataclasses.replace(config, max_intersections=_learnt_budgets[key])
   else:
     config_now = config
-  while True:
-    out = render(
-      gaussians,
-      world_to_camera,
-      intrinsics,
-      height=height,
-      width=width,
-      config=config_now,
-      **kwargs,
-    )
-    if not np.any(np.asarray(out.stats.overflow)):
-      return out
+  run = functools.partial(
+    jitted_render, gaussians, world_to_camera, intrinsics, height=height, width=width, **kwargs
+  )
+  out = run(config=config_now)
+  check_cameras(world_to_camera, intrinsics)  # after the trace has checked their shapes
+  while np.any(np.asarray(out.stats.overflow)):
     # overflow implies a cut, so the count exceeds the buffer: the next render holds it all
     needed = int(np.max(np.asarray(out.stats.num_intersections, np.int64)))
     config_now = larger_budget(config_now, num, height, width, needed)
     _learnt_budgets[key] = config_now.max_intersections
+    out = run(config=config_now)
+  return out

@@ -5,14 +5,13 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import numbers
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
 from tokengs_jax.gaussians import Gaussians
-from tokengs_jax.splatting import binning, projection, rasterize
+from tokengs_jax.splatting import binning, checks, projection, rasterize
 from tokengs_jax.splatting.config import RenderConfig, RenderResult, RenderStats
 
 _DEPTH_ALPHA_FLOOR = 1e-10  # gsplat's clamp in D / alpha for "ED" depth
@@ -297,62 +296,6 @@ def _finish(
   )
 
 
-def _positive_int(name: str, value) -> None:
-  if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value <= 0:
-    raise ValueError(f"render: {name} must be a positive int, got {value!r}")
-
-
-def _check_inputs(
-  gaussians: Gaussians, world_to_camera, intrinsics, background, height, width
-) -> tuple[int, ...]:
-  """Trace-time checks of `render`'s arguments; returns the broadcast batch shape [...]."""
-  _positive_int("height", height)
-  _positive_int("width", width)
-  scene_batch = gaussians.validate()
-  w2c_shape, intr_shape = jnp.shape(world_to_camera), jnp.shape(intrinsics)
-  for name, value in (("world_to_camera", world_to_camera), ("intrinsics", intrinsics)):
-    dtype = jnp.result_type(value)
-    if not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)):
-      raise ValueError(f"render: {name} must be real numbers, got dtype {dtype}")
-  if len(w2c_shape) < 3 or w2c_shape[-2:] != (4, 4):
-    hint = " (one pose needs a view axis: world_to_camera[None])" if w2c_shape == (4, 4) else ""
-    raise ValueError(f"render: world_to_camera must be [..., V, 4, 4], got shape {w2c_shape}{hint}")
-  if len(intr_shape) < 2 or intr_shape[-1] != 4:
-    hint = (
-      " (a 3x3 K matrix? pass (fx, fy, cx, cy) = K[0, 0], K[1, 1], K[0, 2], K[1, 2])"
-      if intr_shape[-2:] == (3, 3)
-      else ""
-    )
-    raise ValueError(
-      f"render: intrinsics must be [..., V, 4] (fx, fy, cx, cy), got shape {intr_shape}{hint}"
-    )
-  if intr_shape[-2] != w2c_shape[-3]:
-    raise ValueError(
-      f"render: intrinsics {intr_shape} and world_to_camera {w2c_shape} disagree "
-      f"on the number of views V"
-    )
-  try:
-    batch = jnp.broadcast_shapes(scene_batch, w2c_shape[:-3], intr_shape[:-2])
-  except ValueError:
-    raise ValueError(
-      f"render: batch shapes do not broadcast: gaussians {scene_batch}, "
-      f"world_to_camera {w2c_shape[:-3]}, intrinsics {intr_shape[:-2]}"
-    ) from None
-  if background is not None:
-    bg_shape = jnp.shape(background)
-    try:
-      if bg_shape[-1:] != (3,):
-        raise ValueError
-      jnp.broadcast_shapes(bg_shape, batch + (w2c_shape[-3], 3))
-    except ValueError:
-      raise ValueError(
-        f"render: background must be None, [3] or [..., V, 3] for batch {batch} "
-        f"and V = {w2c_shape[-3]}, got shape {bg_shape}"
-      ) from None
-  return batch
-
-
-@functools.partial(jax.jit, static_argnames=("height", "width", "config"))
 def render(
   gaussians: Gaussians,
   world_to_camera: jax.Array,
@@ -376,17 +319,26 @@ def render(
   the outputs come in that compute dtype. Matmuls run at full float32 precision (`PRECISION`).
 
   The (Gaussian, tile) buffer has a static size (`config`); a scene that needs more is reported in
-  `stats.overflow`. Inside jit read that flag (training logs it); for a result that must be exact
-  (evaluation, export) call `render_exact` outside jit, which re-renders with a larger buffer.
+  `stats.overflow`. Inside jit read that flag (training logs it); outside jit an overflowed
+  result also warns (`RenderBudgetWarning`, which waits for the render to read the flag). For a
+  result that must be exact (evaluation, export) call `render_exact`, which re-renders with a
+  larger buffer.
 
   Bad values: a Gaussian with a NaN / inf in any field is rendered as absent (counted in
   `stats.num_culled_nonfinite`) and its gradient is 0; the others render as without it.
-  Shapes, dtypes and sizes are checked at trace time (ValueError naming the argument).
+  Shapes, dtypes and sizes are checked at trace time (ValueError naming the argument). Camera
+  values are checked where they are concrete (outside jit, vmap, grad): a NaN / inf in
+  world_to_camera or intrinsics, or fx, fy <= 0, is a ValueError naming the field and camera.
+  Traced cameras are not checked (their values do not exist yet): such a camera renders what its
+  values give (a NaN one: the background, every Gaussian culled).
 
   Args:
     gaussians: batch shape [...], N Gaussians.
     world_to_camera: [..., V, 4, 4] OpenCV world-to-camera poses (the view axis is required).
-    intrinsics: [..., V, 4] (fx, fy, cx, cy) in pixels (not a 3x3 K).
+    intrinsics: [..., V, 4] (fx, fy, cx, cy) in pixels, one row per view; never a K matrix
+      (convert with `camera.intrinsics_from_matrix`). A [..., 3, 3] K is refused by its shape;
+      a 4x4 K has the shape of four views' rows, and is refused (where concrete) by its zero
+      focal lengths.
     height, width: image size in pixels (positive ints).
     background: None (black), [3] or [..., V, 3] colour composited behind the Gaussians.
     near, far: a Gaussian whose centre depth is outside [near, far] is culled.
@@ -396,7 +348,39 @@ def render(
     RenderResult with rgb [..., V, H, W, 3], alpha and depth [..., V, H, W, 1], means2d
     [..., V, N, 2], radii [..., V, N, 2], depths [..., V, N] and per-camera stats [..., V].
   """
-  batch = _check_inputs(gaussians, world_to_camera, intrinsics, background, height, width)
+  out = jitted_render(
+    gaussians,
+    world_to_camera,
+    intrinsics,
+    height=height,
+    width=width,
+    background=background,
+    near=near,
+    far=far,
+    config=config,
+  )
+  checks.check_cameras(world_to_camera, intrinsics)  # after the trace has checked their shapes
+  checks.warn_if_overflowed(out.stats)
+  return out
+
+
+@functools.partial(jax.jit, static_argnames=("height", "width", "config"))
+def jitted_render(
+  gaussians: Gaussians,
+  world_to_camera: jax.Array,
+  intrinsics: jax.Array,
+  *,
+  height: int,
+  width: int,
+  background: jax.Array | None = None,
+  near: float = 0.025,
+  far: float = 125.0,
+  config: RenderConfig = RenderConfig(),
+) -> RenderResult:
+  """`render` without its host-side checks (the camera values, the overflow warning): the
+  compiled program, whose arguments and result are `render`'s (`render_exact` re-renders with it).
+  """
+  batch = checks.check_shapes(gaussians, world_to_camera, intrinsics, background, height, width)
   dtype = compute_dtype(gaussians.means.dtype)
   gaussians = jax.tree.map(lambda x: jnp.asarray(x, dtype), gaussians)
   world_to_camera = jnp.asarray(world_to_camera, dtype)
