@@ -139,6 +139,10 @@ def test_normalize_images_scales_uint8_and_refuses_what_it_cannot_convert():
     normalize_images(pixels.astype(np.int32))
   with pytest.raises(ValueError, match=r"images: expected float values in \[0, 1\].*divide by 255"):
     normalize_images(pixels.astype(np.float32))
+  with_nan = (pixels / np.float32(255)).copy()
+  with_nan[1, 2, 3, 0] = np.nan  # NaN compares false: it once passed the range check
+  with pytest.raises(ValueError, match=r"images: expected float values in \[0, 1\], got \[nan"):
+    normalize_images(with_nan)
 
 
 def test_normalize_images_checks_a_constant_captured_by_an_outer_jit():

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scenes import FULL, MICRO, random_inputs
 
-from tokengs_jax.model import init_params, reconstruct
+from tokengs_jax.model import encode_views, init_params, reconstruct
 
 
 def _bad_views(change: str):
@@ -32,6 +32,15 @@ def _bad_views(change: str):
   elif change == "focal":
     intrinsics = intrinsics.copy()
     intrinsics[1, 2, 1] = 0.0
+  elif change == "images nan":
+    images = images.copy()
+    images[1, 2, 3, 4, 0] = np.nan
+  elif change == "c2w nan":
+    c2w = c2w.copy()
+    c2w[0, 1, 0, 3] = np.nan
+  elif change == "cx inf":
+    intrinsics = intrinsics.copy()
+    intrinsics[1, 0, 2] = np.inf
   elif change == "times missing":
     config = FULL
   elif change == "times unexpected":
@@ -56,7 +65,7 @@ def _bad_views(change: str):
     ("c2w dtype", TypeError, "c2w must be floating point"),
     ("intrinsics shape", ValueError, r"intrinsics must be \[B, V, 4\]"),
     ("intrinsics dtype", TypeError, "intrinsics must be floating point"),
-    ("focal", ValueError, "fx, fy must be > 0"),
+    ("focal", ValueError, r"intrinsics of view \[1, 2\].*fx, fy must be > 0"),
     ("times missing", ValueError, "pass the input-view times"),
     ("times unexpected", ValueError, "without time embedding"),
     ("times shape", ValueError, r"times must be \[B, V\] = \(2, 3\), got shape \(2, 2\)"),
@@ -67,7 +76,7 @@ def _bad_views(change: str):
 def test_reconstruct_rejects_bad_inputs_at_trace_time(change, error, message):
   config, images, c2w, intrinsics, times, target_times = _bad_views(change)
   params = jax.eval_shape(lambda: init_params(jax.random.key(0), config))
-  trace = jax.eval_shape if change != "focal" else lambda f, *a: f(*a)  # values: concrete only
+  trace = jax.eval_shape if change != "focal" else _call  # values: concrete only
   with pytest.raises(error, match=message):
     trace(
       lambda *a: reconstruct(*a, config=config, times=times, target_times=target_times),
@@ -76,6 +85,31 @@ def test_reconstruct_rejects_bad_inputs_at_trace_time(change, error, message):
       c2w,
       intrinsics,
     )
+
+
+def _call(function, *args):
+  return function(*args)
+
+
+@pytest.mark.parametrize(
+  "change, message",
+  [
+    ("images nan", r"images of view \[1, 2\] .*not finite"),
+    ("c2w nan", r"c2w of view \[0, 1\] .*not finite"),
+    ("cx inf", r"intrinsics of view \[1, 0\] .*not finite"),
+  ],
+)
+def test_reconstruct_refuses_non_finite_concrete_views_naming_input_and_view(change, message):
+  config, images, c2w, intrinsics, _, _ = _bad_views(change)
+  params = jax.eval_shape(lambda: init_params(jax.random.key(0), config))
+  run = lambda *a: reconstruct(*a, config=config)
+  with pytest.raises(ValueError, match=message):
+    run(params, images, c2w, intrinsics)
+  with pytest.raises(ValueError, match=message):
+    encode_views(params, images, c2w, intrinsics, config)
+  # traced (inside jit) the values do not exist yet: nothing to check
+  out = jax.eval_shape(run, params, images, c2w, intrinsics)
+  assert out.means.shape == (2, config.num_gaussians, 3)
 
 
 def test_reconstruct_accepts_uint8_images_and_valid_views():

@@ -13,8 +13,9 @@ For test-time tuning, encode once and decode many times:
 
 Time-conditioned models decode one encoding at several times with `decode_at_times`.
 
-`encode_views` and `reconstruct` check their inputs' shapes and dtypes at trace time
-(`model.inputs.check_views`); the lower-level `encode` / `predict_gaussians` take what they get.
+`encode_views` and `reconstruct` check their inputs' shapes and dtypes at trace time, and their
+values where concrete (`model.inputs.check_views`); the lower-level `encode` /
+`predict_gaussians` take what they get.
 """
 
 from __future__ import annotations
@@ -83,7 +84,8 @@ def normalize_images(images: jax.Array) -> jax.Array:
 
   Raises ValueError (at trace time) unless the last axis is 3 (e.g. grayscale [..., 1]),
   TypeError for other dtypes, and, when the values are concrete (not traced), ValueError for
-  float values outside [0, 1] (e.g. 0..255 floats, which would silently saturate the encoder).
+  float values outside [0, 1] (e.g. 0..255 floats, which would silently saturate the encoder)
+  or NaN.
   """
   if np.ndim(images) == 0 or np.shape(images)[-1] != 3:
     raise ValueError(
@@ -98,7 +100,7 @@ def normalize_images(images: jax.Array) -> jax.Array:
   elif not isinstance(images, jax.core.Tracer) and np.size(images):
     values = np.asarray(images)  # numpy: jnp.min here would be staged inside an outer jit
     low, high = float(values.min()), float(values.max())
-    if low < -_RANGE_SLACK or high > 1.0 + _RANGE_SLACK:
+    if not -_RANGE_SLACK <= low <= high <= 1.0 + _RANGE_SLACK:  # NaN compares false: refused
       raise ValueError(
         f"images: expected float values in [0, 1], got [{low:.4g}, {high:.4g}]"
         + (" (0..255 values: divide by 255 or pass uint8)" if high > 2.0 else "")
@@ -261,7 +263,8 @@ def encode_views(
 
   The one prelude every caller that starts from views uses (`reconstruct`, training, tuning).
   Inputs are checked at trace time (`model.inputs.check_views`: ValueError for shapes,
-  TypeError for dtypes).
+  TypeError for dtypes) and, where concrete, for NaN / inf values and fx, fy <= 0 (ValueError
+  naming the view).
 
   Args:
     params: the params pytree.
@@ -315,7 +318,9 @@ def reconstruct(
     `tokengs_jax.gaussians.Gaussians` with N = config.num_gaussians Gaussians per scene.
 
   Raises:
-    ValueError / TypeError: at trace time, for inputs of the wrong shape / dtype.
+    ValueError / TypeError: at trace time, for inputs of the wrong shape / dtype; outside jit
+      (concrete inputs), ValueError naming the view of a NaN / inf image, c2w or intrinsics, or
+      of fx, fy <= 0 (`model.inputs.check_views`).
   """
   encoded = encode_views(params, images, c2w, intrinsics, config, times)
   if target_times is not None:

@@ -1,9 +1,11 @@
 """Trace-time checks of the views a TokenGS entry point is given (shapes, dtypes, cameras).
 
 Shapes and dtypes are static under `jax.jit`, so these checks run once per trace and cost nothing
-at run time. Values are checked only where they are concrete (a call outside `jit`): focal
-lengths must be positive. Image values in [0, 1] are not checked (that would need the values on
-the host): uint8 images are accepted and scaled by `normalize_images`.
+at run time. Values are checked only where they are concrete (a call outside `jit`, read on the
+host): images, poses and intrinsics must be finite (one NaN pixel would make every Gaussian NaN)
+and focal lengths positive. Traced values (under jit, vmap, grad) do not exist yet and are not
+checked. uint8 images are accepted and scaled by `normalize_images` (which checks that float
+images are in [0, 1] where concrete).
 
 Shape errors are `ValueError`, dtype errors `TypeError`; every message names the argument, the
 expected layout and what was given.
@@ -15,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from tokengs_jax.camera import check_camera_values
 from tokengs_jax.model.configs import ModelConfig
 
 
@@ -37,18 +40,29 @@ def check_times(name: str, times, expected: tuple[int | None, ...], layout: str)
   _check_floating(name, times)
 
 
+def _check_finite_images(images) -> None:
+  """images [B, V, H, W, 3]: a NaN / inf in a concrete float image names its view."""
+  if isinstance(images, jax.core.Tracer) or jnp.result_type(images) == jnp.uint8:
+    return
+  bad = ~np.all(np.isfinite(np.asarray(images)), axis=(2, 3, 4))  # [B, V]
+  if np.any(bad):
+    view = np.argwhere(bad)[0].tolist()
+    raise ValueError(f"images of view {view} (index into [B, V]) are not finite (NaN or inf)")
+
+
 def check_views(images, c2w, intrinsics, config: ModelConfig, times=None) -> None:
   """Raises if the views cannot be encoded by a network of this config.
 
   Args:
     images: [B, V, H, W, 3] RGB, float in [0, 1] or uint8; H, W divisible by the patch size.
     c2w: [B, V, 4, 4] float camera-to-world.
-    intrinsics: [B, V, 4] float fx, fy, cx, cy in pixels (fx, fy > 0 checked when concrete).
+    intrinsics: [B, V, 4] float fx, fy, cx, cy in pixels.
     config: the architecture.
     times: [B, V] input-view times (required iff `config.time_embedding`).
 
   Raises:
-    ValueError: a shape, a missing/unexpected `times`, or a non-positive focal length.
+    ValueError: a shape, a missing/unexpected `times`, or, where concrete, a NaN / inf in the
+      images, c2w or intrinsics or a non-positive focal length (naming the view [b, v]).
     TypeError: a dtype.
   """
   if np.ndim(images) != 5 or np.shape(images)[-1] != 3:
@@ -68,10 +82,8 @@ def check_views(images, c2w, intrinsics, config: ModelConfig, times=None) -> Non
       "intrinsics", f"[B, V, 4] = {(batch, views, 4)} (fx, fy, cx, cy)", intrinsics
     )
   _check_floating("intrinsics", intrinsics)
-  if not isinstance(intrinsics, jax.core.Tracer):
-    focal = np.asarray(intrinsics)[..., :2]
-    if not np.all(focal > 0):
-      raise ValueError(f"intrinsics fx, fy must be > 0, got min {focal.min()}")
+  _check_finite_images(images)
+  check_camera_values(c2w, intrinsics, pose_name="c2w", camera="view", layout="[B, V]")
   if config.time_embedding:
     if times is None:
       raise ValueError("this model has time embeddings: pass the input-view times [B, V]")
