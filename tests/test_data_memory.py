@@ -5,16 +5,24 @@ Allocations are measured with tracemalloc (numpy reports its buffers to it), whi
 this process's Python and numpy allocations: deterministic, unlike the resident set size."""
 
 import gc
+import io
+import json
+import os
+import re
+import struct
 import tracemalloc
 import zipfile
+import zlib
 
 import numpy as np
 import pytest
+from PIL import Image, ImageFile
 
-from tokengs_jax.data import ChunkedSceneSource, chunks
+from tokengs_jax.data import ChunkedSceneSource, DL3DVError, DL3DVSceneSource, chunks, kubric
 from tokengs_jax.data.chunks import ChunkError
 
 MiB = 1 << 20
+OVER_FRAME_BYTES = 64 * MiB + 1  # one byte more than `chunks.images.MAX_FRAME_BYTES`
 
 
 def _scene(key, frames=3, size=8, seed=0):
@@ -49,7 +57,7 @@ def _peak_and_current(function):
   tracemalloc.start()
   try:
     result = function()
-  except ChunkError as error:
+  except (ChunkError, DL3DVError) as error:
     result = error
   gc.collect()
   current, peak = tracemalloc.get_traced_memory()
@@ -119,7 +127,7 @@ def test_cached_rejections_hold_no_traceback_nor_the_arrays_of_their_scenes(tmp_
   assert [error.scene_key for error in rejections] == [f"bad{i}" for i in range(6)]
   for error in rejections:
     assert (error.__traceback__, error.__cause__, error.__context__) == (None, None, None)
-    assert "frame 0: not a decodable image" in str(error)
+    assert "frame 0: corrupt image" in str(error)
 
 
 def test_a_compressed_record_is_inflated_into_one_buffer(tmp_path):
@@ -132,3 +140,142 @@ def test_a_compressed_record_is_inflated_into_one_buffer(tmp_path):
     )
   assert len(data) == 16 * MiB and not any(data[:: 1 << 16])
   assert peak < 1.3 * 16 * MiB
+
+
+# ---- encoded frames (issue 28): their byte length and declared pixel count are bounded before
+# they are read or decoded, by every reader, and errors name the frame, not PIL's buffer
+
+
+def _declaring_more_pixels(data: bytes, height: int, width: int) -> bytes:
+  """A small JPEG or PNG whose header declares `height` x `width` (its pixels are not there)."""
+  data = bytearray(data)
+  if data.startswith(b"\x89PNG"):  # IHDR: width, height, then a CRC over type and data
+    data[16:24] = struct.pack(">II", width, height)
+    data[29:33] = struct.pack(">I", zlib.crc32(data[12:29]))
+  else:  # baseline JPEG start of frame: marker, length, precision, height, width
+    start = data.index(b"\xff\xc0")
+    data[start + 5 : start + 9] = struct.pack(">HH", height, width)
+  return bytes(data)
+
+
+def _encoded(format_name: str) -> bytes:
+  buffer = io.BytesIO()
+  Image.new("RGB", (8, 8)).save(buffer, format=format_name)
+  return buffer.getvalue()
+
+
+@pytest.fixture
+def no_pixel_decoding(monkeypatch):
+  """Fails a test that decodes pixels (and spares the memory a refused header would have cost)."""
+
+  def decode(image):
+    raise AssertionError(f"{image.size[0]}x{image.size[1]} pixels decoded")
+
+  monkeypatch.setattr(ImageFile.ImageFile, "load", decode)
+
+
+def _forge_frame_length(path, actual: int, declared: int):
+  """Rewrites the chunk's pickle so the frame tensor of `actual` bytes declares `declared`: a
+  frame record that large, read, is the 255 MiB garbage frame PIL scanned for 17 s (0.5 GB)."""
+  with zipfile.ZipFile(path) as archive:
+    records = {name: archive.read(name) for name in archive.namelist()}
+  (name,) = [name for name in records if name.endswith("data.pkl")]
+  length = b"M" + struct.pack("<H", actual)  # the storage's numel and the tensor's shape
+  assert records[name].count(length) == 2
+  records[name] = records[name].replace(length, b"J" + struct.pack("<i", declared))
+  with zipfile.ZipFile(path, "w") as archive:
+    for record, data in records.items():
+      archive.writestr(zipfile.ZipInfo(record), data)
+
+
+def test_a_frame_of_more_bytes_than_the_bound_is_refused_before_it_is_read(tmp_path, monkeypatch):
+  record = _record("garbage")
+  record["images"][0] = np.frombuffer(b"\xff\xd8\xff" + bytes(4093), np.uint8)
+  chunks.save_tensor_archive(tmp_path / "000000.torch", [_record("good"), record])
+  _forge_frame_length(tmp_path / "000000.torch", 4096, OVER_FRAME_BYTES)
+  records_read = []
+  read_member = chunks.storage.read_member
+
+  def counting_read_member(archive, name, **kwargs):
+    records_read.append(name)
+    return read_member(archive, name, **kwargs)
+
+  monkeypatch.setattr(chunks.storage, "read_member", counting_read_member)
+  good, rejection = chunks.scan_chunk(tmp_path / "000000.torch")
+  assert good["key"] == "good"
+  assert str(rejection).endswith(
+    "scene 'garbage' frame 0: 67108865 bytes, more than MAX_FRAME_BYTES 67108864"
+  )
+  # the good scene's timestamps, cameras and frame 0; nothing of 'garbage'
+  assert sorted(records_read) == [f"000000/data/{i}" for i in range(3)]
+
+
+def test_a_chunk_frame_declaring_more_pixels_than_the_bound_is_refused_at_the_scan(
+  tmp_path, no_pixel_decoding
+):
+  record = _record("huge")
+  record["images"][0] = np.frombuffer(
+    _declaring_more_pixels(bytes(record["images"][0]), 6000, 6000), np.uint8
+  )
+  chunks.save_tensor_archive(tmp_path / "000000.torch", [record])
+  (rejection,) = chunks.scan_chunk(tmp_path / "000000.torch")
+  assert str(rejection).endswith(
+    "scene 'huge' frame 0: the header declares 6000x6000 pixels, more than MAX_FRAME_PIXELS "
+    "33554432"
+  )
+
+
+@pytest.mark.parametrize("format_name", ["JPEG", "PNG"])
+def test_an_image_pil_only_warns_about_is_refused_before_decoding(format_name, no_pixel_decoding):
+  # 100M pixels: PIL warns (above 89M) but decodes; a 631-byte JPEG took 1.3 GB
+  data = _declaring_more_pixels(_encoded(format_name), 10_000, 10_000)
+  with pytest.warns(Image.DecompressionBombWarning):
+    with pytest.raises(ChunkError, match=r"^c scene 's' frame 3: the header declares 10000x10000"):
+      chunks.decode_jpeg(data, where="c scene 's' frame 3")
+
+
+def _dl3dv_scene(root, image: bytes):
+  """A one-frame DL3DV scene directory `root/s` whose frame is `image`."""
+  transforms = {"w": 8, "h": 8, "fl_x": 8, "fl_y": 8, "cx": 4, "cy": 4}
+  transforms["frames"] = [{"file_path": "images/f.png", "transform_matrix": np.eye(4).tolist()}]
+  (root / "s" / "images_4").mkdir(parents=True)
+  (root / "s" / "transforms.json").write_text(json.dumps(transforms))
+  (root / "s" / "images_4" / "f.png").write_bytes(image)
+  return root / "s" / "images_4" / "f.png"
+
+
+def test_a_dl3dv_frame_over_either_bound_is_refused_before_it_is_read(tmp_path, no_pixel_decoding):
+  _dl3dv_scene(tmp_path / "pixels", _declaring_more_pixels(_encoded("PNG"), 6000, 6000))
+  with pytest.raises(DL3DVError, match=r"f\.png \(scene 's'\): the header declares 6000x6000"):
+    DL3DVSceneSource(tmp_path / "pixels")[0]
+  frame = _dl3dv_scene(tmp_path / "bytes", b"")
+  os.truncate(frame, OVER_FRAME_BYTES)  # sparse: no disk, and no read
+  error, peak, _ = _peak_and_current(lambda: DL3DVSceneSource(tmp_path / "bytes")[0])
+  assert re.search(r"f\.png \(scene 's'\): 67108865 bytes, more than MAX_FRAME_BYTES", str(error))
+  assert peak < MiB
+
+
+def _kubric_view(path, data: bytes, declared_bytes: int):
+  """A Kubric camera whose one member, `rgba_00000.png`, is `data` (declaring another length)."""
+  path.write_bytes(data)
+  members = {"rgba_00000.png": (0, declared_bytes)}
+  return kubric.KubricView(str(path), np.zeros((1, 4, 4)), np.ones(4), 8, 8, members)
+
+
+def test_a_kubric_frame_over_either_bound_is_refused_before_it_is_read(tmp_path, no_pixel_decoding):
+  data = _declaring_more_pixels(_encoded("PNG"), 6000, 6000)
+  view = _kubric_view(tmp_path / "pixels.tar", data, len(data))
+  with pytest.raises(kubric.KubricError, match=r"png: the header declares 6000x6000 pixels"):
+    kubric.decode_member(view, "rgba_00000.png", (8, 8))
+  view = _kubric_view(tmp_path / "bytes.tar", data, OVER_FRAME_BYTES)
+  with pytest.raises(kubric.KubricError, match=r"png: 67108865 bytes, more than MAX_FRAME_BYTES"):
+    kubric.decode_member(view, "rgba_00000.png", (8, 8))
+
+
+def test_image_errors_name_the_frame_and_are_the_same_every_run():
+  # PIL's message named `<_io.BytesIO object at 0x...>`, another address in every run
+  where = "c.torch scene 's' frame 0"
+  for read in (chunks.jpeg_size, chunks.decode_jpeg):
+    with pytest.raises(ChunkError) as error:
+      read(b"not an image", where=where)
+    assert str(error.value) == f"{where}: corrupt image (no image format recognises its header)"

@@ -26,17 +26,16 @@ format.
 from __future__ import annotations
 
 import collections
-import io
 import json
 import os
 import pathlib
 from collections.abc import Iterable, Sequence
 
 import numpy as np
-from PIL import Image
 
 from tokengs_jax.data.chunks import ChunkError, check_regular_file, read_member
 from tokengs_jax.data.chunks.archive import _open_archive
+from tokengs_jax.data.chunks.images import check_frame_bytes, image_size
 from tokengs_jax.data.rejections import Rejections
 from tokengs_jax.data.sampler import MissingIndexEntryError
 
@@ -100,17 +99,24 @@ class _SceneFiles:
       f"{self.path}:{self.key}/{inner}" if self.path.suffix == ".zip" else str(self.path / inner)
     )
 
-  def read(self, name: str) -> bytes:
+  def read(self, name: str, *, is_frame: bool = False) -> bytes:
+    """File `name` of the scene; an image (`is_frame`) is refused above `MAX_FRAME_BYTES` before
+    it is read."""
+    where = f"{self.where(name)} (scene '{self.key}')"
     try:
       if self.path.suffix == ".zip":
         archive, member = _open_archive(str(self.path)), f"{self.key}/{self.prefix}{name}"
         if member not in archive.NameToInfo:
           raise DL3DVError(f"{self.where(name)}: missing (scene '{self.key}')")
-        return read_member(archive, member, where=f"{self.where(name)} (scene '{self.key}')")
+        if is_frame:
+          check_frame_bytes(archive.NameToInfo[member].file_size, where=where)
+        return read_member(archive, member, where=where)
       path = self.path / self.prefix / name
       if not path.exists():
         raise DL3DVError(f"{self.where(name)}: missing (scene '{self.key}')")
       check_regular_file(path)  # a FIFO or device would block or never end
+      if is_frame:
+        check_frame_bytes(path.stat().st_size, where=where)
       return path.read_bytes()
     except ChunkError as error:
       raise DL3DVError(str(error)) from error
@@ -130,7 +136,7 @@ class _SceneImages:
   def __getitem__(self, index: int) -> bytes:
     if not 0 <= index < len(self.names):
       raise IndexError(f"{self.files.path}: frame {index} of {len(self.names)}")
-    return self.files.read(f"{self.folder}/{self.names[index]}")
+    return self.files.read(f"{self.folder}/{self.names[index]}", is_frame=True)
 
 
 def _scene_files(path: pathlib.Path) -> _SceneFiles:
@@ -317,16 +323,9 @@ class DL3DVSceneSource:
     }
 
   def _image_size(self, images: _SceneImages, files: _SceneFiles) -> tuple[int, int]:
-    """(H, W) from the first image's header (PIL reads no pixels for `.size`)."""
-    name = f"{self.image_folder}/{images.names[0]}"
-    try:
-      with Image.open(io.BytesIO(images[0])) as image:
-        width, height = image.size
-    except (OSError, SyntaxError, ValueError) as error:
-      raise DL3DVError(
-        f"{files.where(name)}: not an image ({error}; scene '{files.key}')"
-      ) from error
-    return height, width
+    """(H, W) from the first image's header (no pixel is decoded)."""
+    where = f"{files.where(f'{self.image_folder}/{images.names[0]}')} (scene '{files.key}')"
+    return image_size(images[0], where=where, error=DL3DVError)
 
   def __getstate__(self):  # workers rebuild their own cache
     return {**self.__dict__, "_cache": collections.OrderedDict()}

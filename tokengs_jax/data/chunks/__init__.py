@@ -12,7 +12,8 @@ pickle needs, rebuilt as numpy); writing emits the same pickle opcodes `torch.sa
 
 Modules: `archive` (bounded zip record reading, `ChunkError`), `storage` (typed storages and
 `LazyTensor`), `unpickler` (`load_tensor_archive`), `writer` (`save_tensor_archive`), `scenes`
-(chunk <-> scene records, JPEG helpers).
+(chunk <-> scene records, JPEG helpers), `images` (bounded image decoding, which the DL3DV and
+Kubric readers share).
 """
 
 from tokengs_jax.data.chunks.archive import ChunkError, check_regular_file, open_zip, read_member

@@ -17,6 +17,7 @@ import numpy as np
 from PIL import Image
 
 from tokengs_jax.data.chunks.archive import ChunkError
+from tokengs_jax.data.chunks.images import check_frame_bytes, decode_image, image_size
 from tokengs_jax.data.chunks.storage import LazyTensor
 from tokengs_jax.data.chunks.unpickler import load_tensor_archive
 from tokengs_jax.data.chunks.writer import save_tensor_archive
@@ -31,22 +32,15 @@ MAX_CHUNK_SCENES = 10_000
 
 
 def jpeg_size(data: bytes | np.ndarray, *, where: str = "") -> tuple[int, int]:
-  """(height, width) from a JPEG header without decoding the pixels."""
-  try:
-    with Image.open(io.BytesIO(_as_bytes(data))) as image:
-      width, height = image.size
-  except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as error:
-    raise ChunkError(f"{where}: not a decodable image ({error})") from error
-  return height, width
+  """(height, width) from a JPEG header without decoding the pixels; `ChunkError` naming `where`
+  (file, scene, frame) for a corrupt header or one above `MAX_FRAME_PIXELS`."""
+  return image_size(_as_bytes(data), where=where)
 
 
 def decode_jpeg(data: bytes | np.ndarray, *, where: str = "") -> np.ndarray:
-  """JPEG bytes -> uint8 [H, W, 3]; `where` (file, scene, frame) is named in the error."""
-  try:
-    with Image.open(io.BytesIO(_as_bytes(data))) as image:
-      return np.asarray(image.convert("RGB"))
-  except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as error:
-    raise ChunkError(f"{where}: corrupt image ({error})") from error
+  """JPEG bytes -> uint8 [H, W, 3]; `ChunkError` naming `where` (file, scene, frame) for a corrupt
+  image or one whose header declares more than `MAX_FRAME_PIXELS`."""
+  return decode_image(_as_bytes(data), where=where, mode="RGB")
 
 
 def encode_jpeg(image: np.ndarray, quality: int = 95) -> bytes:
@@ -162,6 +156,9 @@ def _checked_frames(record: Mapping, where: str) -> list:
     for frame in frames
   ):
     raise ChunkError(f"{where}: 'images' must hold uint8 1-D tensors of JPEG bytes")
+  for index, frame in enumerate(frames):  # uint8: elements are bytes; `load` reads the storage
+    stored = frame.storage.numel if isinstance(frame, LazyTensor) else frame.size
+    check_frame_bytes(stored, where=f"{where} frame {index}")
   return list(frames)
 
 

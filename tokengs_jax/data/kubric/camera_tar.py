@@ -19,16 +19,15 @@ object's pose (object-to-world, in the cameras' world) at every frame, as Kubric
 from __future__ import annotations
 
 import dataclasses
-import io
 import json
 import os
 import tarfile
 from typing import Sequence
 
 import numpy as np
-from PIL import Image
 
 from tokengs_jax.data.chunks import ChunkError, check_regular_file
+from tokengs_jax.data.chunks.images import check_frame_bytes, decode_image
 
 # Blender/OpenGL camera axes (x right, y up, looking down -z) -> OpenCV (x right, y down, +z).
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0])
@@ -349,29 +348,27 @@ def decode_member(view: KubricView, name: str, shape: tuple[int, int]) -> np.nda
   resolution: the intrinsics are derived from it). Every failure is a `KubricError` naming tar
   and member."""
   segmentation = name.startswith("segmentation_")
-  try:
-    with Image.open(io.BytesIO(view.read(name))) as image:
-      if segmentation:
-        pixels = np.asarray(image).astype(np.int32)
-      elif name.endswith(".png"):
-        pixels = np.asarray(image.convert("RGB"))
-      else:
-        pixels = np.asarray(image, np.float32)
-  except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as error:
-    raise KubricError(f"{view.where(name)}: corrupt image ({error})") from error
+  where = view.where(name)
+  if name in view.members:  # a missing one is named by `view.read`
+    check_frame_bytes(view.members[name][1], where=where, error=KubricError)
+  mode = "RGB" if name.endswith(".png") and not segmentation else None
+  pixels = decode_image(view.read(name), where=where, error=KubricError, mode=mode)
+  if segmentation:
+    pixels = pixels.astype(np.int32)
+  elif name.endswith(".tiff"):
+    pixels = pixels.astype(np.float32)
   if segmentation and pixels.ndim != 2:
     raise KubricError(
-      f"{view.where(name)}: a segmentation holds one instance number per pixel, found "
-      f"{list(pixels.shape)}"
+      f"{where}: a segmentation holds one instance number per pixel, found {list(pixels.shape)}"
     )
   pixels = pixels[..., 0] if name.endswith(".tiff") and pixels.ndim == 3 else pixels
   if pixels.shape[:2] != shape:
     raise KubricError(
-      f"{view.where(name)} is {list(pixels.shape[:2])}, metadata.json resolution "
+      f"{where} is {list(pixels.shape[:2])}, metadata.json resolution "
       f"is {list(shape)} (the intrinsics would be wrong)"
     )
   if name.endswith(".tiff"):
-    check_finite_depth(pixels, view.where(name))
+    check_finite_depth(pixels, where)
   return pixels
 
 
