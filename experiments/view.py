@@ -5,6 +5,7 @@
     python -m experiments.view outputs/re10k/tiny_synthetic --checkpoint other/params.msgpack
     python -m experiments.view outputs/re10k/tiny_synthetic/gaussians.ply   # any 3DGS PLY
     python -m experiments.view outputs/re10k/tiny_synthetic --screenshot docs/viewer.png
+    python -m experiments.view outputs/re10k/tiny_synthetic --token    # a shared machine
 
 A results folder (written by `experiments.re10k` / `.dl3dv` / `.kubric`) gives its held-out scenes
 (the evaluation's own views) reconstructed by its `params.msgpack`: splats, input cameras (blue)
@@ -15,12 +16,15 @@ and the target view beside our renderer's image of the shown Gaussians (with PSN
 scenes. Opening a folder writes nothing: a synthetic set its settings name that is not there is an
 error, unless `--generate-data` asks for it to be written. The viewer's web client is served from
 the installed viser package (nothing is downloaded), and its websocket answers only that page.
+`--token` makes the page and its websocket require a fresh random token, printed in the URL: on a
+shared machine, the other users reach 127.0.0.1 too.
 `--screenshot PATH` writes a headless-Chromium screenshot and exits instead of serving.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import secrets
 import sys
 import time
 from typing import Annotated
@@ -47,6 +51,9 @@ class ViewSettings:
     num_scenes: held-out scenes offered (0: the run's `eval.num_scenes`).
     host: address to serve on (127.0.0.1: this machine only; 0.0.0.0: the network).
     port: port (the next free one is taken when it is busy).
+    token: require a fresh random token, printed in the URL, on the page and its websocket (on a
+      shared machine the other users reach 127.0.0.1 too; a token chosen on the command line
+      would show in their `ps`).
     render_size: pixels of the longer side of the target-view render in the panel.
     pull_back: the browser starts this many scene depths behind the target camera (0: at it).
     background: RGB in [0, 1] behind the splats (default: the training background).
@@ -62,6 +69,7 @@ class ViewSettings:
   num_scenes: int = 0
   host: str = "127.0.0.1"
   port: int = 8080
+  token: bool = False
   render_size: int = 256
   pull_back: float = 0.6
   background: tuple[float, float, float] = app.TRAINING_BACKGROUND
@@ -70,17 +78,21 @@ class ViewSettings:
 
 
 def start(settings: ViewSettings):
-  """Loads the source and serves it; returns (server, app)."""
+  """Loads the source and serves it; returns (server, app, the URL to open)."""
   names = ("checkpoint", "data_dir", "synthetic_dir", "generate_data", "num_scenes")
   source = scenes.open_source(settings.source, **{k: getattr(settings, k) for k in names})
-  server = viewer_server.start(settings.host, settings.port)
-  return server, app.ViewerApp(
+  token = secrets.token_urlsafe(32) if settings.token else None
+  server = viewer_server.start(settings.host, settings.port, token)
+  viewer = app.ViewerApp(
     source,
     server,
     render_size=settings.render_size,
     pull_back=settings.pull_back,
     background=settings.background,
   )
+  host = "127.0.0.1" if settings.host == "0.0.0.0" else settings.host
+  url = f"http://{host}:{server.get_port()}" + (f"/?token={token}" if token else "")
+  return server, viewer, url
 
 
 def main(argv=None) -> None:
@@ -89,10 +101,9 @@ def main(argv=None) -> None:
   )
   process.setup()
   try:
-    server, _ = start(settings)
+    server, _, url = start(settings)
   except data.GenerationRefused as refused:
     raise SystemExit(f"[view] {refused}") from None
-  url = f"http://{'127.0.0.1' if settings.host == '0.0.0.0' else settings.host}:{server.get_port()}"
   try:
     if settings.screenshot:
       path = browser.screenshot(

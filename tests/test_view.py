@@ -186,7 +186,7 @@ def _free_port() -> int:
 def viewer(results):
   from experiments import view
 
-  server, app = view.start(
+  server, app, _ = view.start(
     view.ViewSettings(
       str(results[0]), port=_free_port(), render_size=64, pull_back=0.0, background=(1.0, 1.0, 1.0)
     )

@@ -1,4 +1,4 @@
-"""Headless-Chromium screenshots of a page on localhost (the viewer's test, docs/viewer.png).
+"""Headless Chromium on localhost: screenshots (the viewer's test, docs/viewer.png) and page texts.
 
 Chromium is the Debian package (`apt-get install -y chromium`), driven over the DevTools protocol
 (its websocket, with the `websockets` package viser already needs): load the page, wait in real
@@ -95,6 +95,13 @@ class _DevTools:
 
   def close(self) -> None:
     self._socket.close()
+
+
+def _chromium_or_raise(chromium: str | None) -> str:
+  chromium = chromium or find_chromium()
+  if chromium is None:
+    raise FileNotFoundError("no Chromium found (apt-get install -y chromium, or set $CHROMIUM)")
+  return chromium
 
 
 def _devtools_port(profile: pathlib.Path, process: subprocess.Popen, log, deadline: float) -> int:
@@ -203,12 +210,9 @@ def screenshot(
     FileNotFoundError: no Chromium.
     TimeoutError: the page did not get ready / settle within `timeout_s`.
   """
-  chromium = chromium or find_chromium()
-  if chromium is None:
-    raise FileNotFoundError("no Chromium found (apt-get install -y chromium, or set $CHROMIUM)")
   deadline = time.monotonic() + timeout_s
   path = pathlib.Path(path)
-  with _chromium_page(chromium, width, height, deadline) as devtools:
+  with _chromium_page(_chromium_or_raise(chromium), width, height, deadline) as devtools:
     devtools("Page.enable")
     devtools(
       "Emulation.setDeviceMetricsOverride",
@@ -226,3 +230,26 @@ def screenshot(
   path.parent.mkdir(parents=True, exist_ok=True)
   path.write_bytes(image)
   return path.resolve()
+
+
+@contextlib.contextmanager
+def headless_page(*, width: int = 1280, height: int = 800, timeout_s: float = 60.0, chromium=None):
+  """The page of a fresh headless Chromium (own temporary profile), for `load`; Chromium is shut
+  down on exit.
+
+  Raises:
+    FileNotFoundError: no Chromium.
+    TimeoutError: Chromium did not open its DevTools port within `timeout_s`.
+  """
+  deadline = time.monotonic() + timeout_s
+  with _chromium_page(_chromium_or_raise(chromium), width, height, deadline) as devtools:
+    devtools("Page.enable")
+    yield devtools
+
+
+def load(page, url: str, text: str, timeout_s: float = 20.0) -> str:
+  """Loads `url` in `page` (from `headless_page`) and returns the page's text once it contains
+  `text`, or as it is after `timeout_s`."""
+  page("Page.navigate", url=url)
+  _wait_for_text(page, text, time.monotonic() + timeout_s)
+  return page.evaluate("document.body === null ? '' : document.body.innerText")
