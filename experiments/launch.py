@@ -11,7 +11,7 @@ devices per process; CPU collectives are gloo, jax's default). Output lines are 
 The job ends as one: if a process exits with an error or is killed, the launcher says which and
 how, stops the others and exits with that process's status (128 + signal for a signal), so a
 surviving process blocked in a collective never hangs the job. A process that exits 0 while others
-still run is named at once; the processes of a JAX job end together (`jax.distributed` waits at
+still run is named; the processes of a JAX job end together (`jax.distributed` waits at
 exit for all of them), so those still running `--finish-timeout` seconds later are stopped and the
 job fails (status 1). SIGTERM or SIGINT to the launcher stops the job (status 128 + signal).
 
@@ -71,6 +71,9 @@ def _interrupt(signum: int, frame) -> None:
 
 
 _STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+# The processes of a JAX job end within about a second of each other: one still running this long
+# after another exited 0 is worth a line (and is stopped after --finish-timeout).
+_NOTE_AFTER_S = 5.0
 
 
 def _start(command: list[str], index: int, processes: int, address: str, devices: int | None):
@@ -97,7 +100,7 @@ def _start(command: list[str], index: int, processes: int, address: str, devices
 def _watch(children: list[subprocess.Popen], timeout: float | None, finish_timeout: float) -> int:
   """Waits until every process exited 0 (-> 0), one failed (-> its status), the job ran past
   `timeout` (-> 124), or some still run `finish_timeout` s after one exited 0 (-> 1)."""
-  started, first_finished = time.monotonic(), None
+  started, first_finished, noted = time.monotonic(), None, False
   while True:
     codes = [child.poll() for child in children]  # a list: poll every child
     running = [index for index, code in enumerate(codes) if code is None]
@@ -111,6 +114,8 @@ def _watch(children: list[subprocess.Popen], timeout: float | None, finish_timeo
     now = time.monotonic()
     if first_finished is None and len(running) < len(children):
       first_finished = now
+    if first_finished is not None and not noted and now - first_finished > _NOTE_AFTER_S:
+      noted = True
       print(
         f"[launch] process {codes.index(0)} exited with status 0 while processes {running} still "
         f"run; stopping them if they have not ended in {finish_timeout:g} s",

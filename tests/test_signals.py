@@ -90,7 +90,7 @@ def test_a_process_that_exits_0_early_does_not_leave_the_others_waiting():
     """
   )
   started = time.monotonic()
-  job = _launcher(early_exit, "--finish-timeout", "1", "--grace", "1")
+  job = _launcher(early_exit, "--finish-timeout", "7", "--grace", "1")
   try:
     output, _ = job.communicate(timeout=60)
   finally:
