@@ -94,6 +94,23 @@ def test_ply_refuses_non_finite(tmp_path):
     export.write_ply(tmp_path / "bad.ply", **g)
 
 
+def test_ply_leaves_out_gaussians_below_min_opacity(tmp_path):
+  """As the official `save_ply`: a Gaussian of opacity below `min_opacity` is left out (one of
+  exactly `min_opacity` stays), and the file is byte for byte the one written without it;
+  `min_opacity=0`, the default, keeps every one, a fully transparent one too."""
+  g = _gaussians(6)
+  g["opacities"][[1, 3, 4]] = [0.0049, 0.005, 0.0]
+  without = {name: np.delete(values, [1, 4], axis=0) for name, values in g.items()}
+  pruned = export.write_ply(tmp_path / "pruned.ply", **g, min_opacity=0.005).read_bytes()
+  assert pruned == export.write_ply(tmp_path / "without.ply", **without).read_bytes()
+  every = export.write_ply(tmp_path / "every.ply", **g, min_opacity=0).read_bytes()
+  assert every == export.write_ply(tmp_path / "default.ply", **g).read_bytes()
+  assert len(export.read_ply(tmp_path / "every.ply")["means"]) == 6
+  g["opacities"][2] = np.nan  # pruning never hides a non-finite Gaussian
+  with pytest.raises(ValueError, match="non-finite"):
+    export.write_ply(tmp_path / "bad.ply", **g, min_opacity=0.005)
+
+
 def test_grid_and_png(tmp_path):
   a = np.zeros((8, 10, 3))
   b = np.ones((6, 4, 3))

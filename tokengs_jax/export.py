@@ -18,6 +18,8 @@ _PLY_FIELDS = (
   + [f"scale_{i}" for i in range(3)]
   + [f"rot_{i}" for i in range(4)]
 )
+# The official `save_ply` leaves out the Gaussians below this opacity (the results folders' PLYs).
+OFFICIAL_MIN_OPACITY = 0.005
 
 
 def _logit(p: np.ndarray, eps: float = 1e-6) -> np.ndarray:
@@ -25,16 +27,25 @@ def _logit(p: np.ndarray, eps: float = 1e-6) -> np.ndarray:
   return np.log(p) - np.log1p(-p)
 
 
-def write_ply(path, means, opacities, scales, quats, colors) -> pathlib.Path:
+def write_ply(
+  path, means, opacities, scales, quats, colors, min_opacity: float = 0.0
+) -> pathlib.Path:
   """Writes Gaussians in the binary PLY layout of the reference 3DGS code (and its viewers).
 
   Viewers store pre-activation values, so opacity goes out as a logit, scales as logs, colour as
   the SH DC coefficient, and quaternions (wxyz) normalised.
 
   means: [N, 3], opacities: [N], scales: [N, 3] (linear), quats: [N, 4] wxyz, colors: [N, 3] in [0, 1].
+  min_opacity: the Gaussians of opacity below it are left out, those of exactly it kept (the
+    official `save_ply` drops opacity < `OFFICIAL_MIN_OPACITY`); 0 keeps every one. A NaN
+    opacity is never left out: it is refused with the other non-finite values.
   """
   means, scales, quats, colors = (np.asarray(a, np.float32) for a in (means, scales, quats, colors))
   opacities = np.asarray(opacities, np.float32).reshape(-1, 1)
+  kept = ~(opacities[:, 0] < np.float32(min_opacity))
+  means, opacities, scales, quats, colors = (
+    a[kept] for a in (means, opacities, scales, quats, colors)
+  )
   norm = np.linalg.norm(quats, axis=-1, keepdims=True)
   quats = np.where(norm > 0, quats / np.maximum(norm, 1e-12), np.array([1, 0, 0, 0], np.float32))
   table = np.concatenate(
