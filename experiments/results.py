@@ -24,6 +24,7 @@ import jax
 import numpy as np
 
 from experiments import pictures
+from experiments.config import EvalSettings
 from tokengs_jax import evaluation, export, splatting
 
 
@@ -218,24 +219,28 @@ def _first_set(entry: dict, method: str):
   return jax.tree.map(np.asarray, entry[method]["gaussians"].first_set())
 
 
-def write_scene_ply(out_dir, entry: dict, method: str) -> list[pathlib.Path]:
-  """gaussians.ply of one kept scene's `method` Gaussians."""
+def write_scene_ply(path, entry: dict, method: str, min_opacity: float) -> list[pathlib.Path]:
+  """A PLY of one kept scene's `method` Gaussians, without those of opacity below
+  `min_opacity` (`export.write_ply`)."""
   if not evaluation.writes_results():
     return []
   one = _first_set(entry, method)
-  path = pathlib.Path(out_dir) / "gaussians.ply"
-  return [export.write_ply(path, one.means, one.opacities, one.scales, one.quats, one.colors)]
+  return [
+    export.write_ply(
+      path, one.means, one.opacities, one.scales, one.quats, one.colors, min_opacity=min_opacity
+    )
+  ]
 
 
 def write_flythrough(
-  out_dir,
+  path,
   entry: dict,
   method: str,
   video_frames: int,
   render_config: splatting.RenderConfig | None = None,
 ) -> list[pathlib.Path]:
-  """flythrough.mp4 of one kept scene's `method` Gaussians: `video_frames` frames through its
-  input cameras and back."""
+  """An MP4 of one kept scene's `method` Gaussians: `video_frames` frames through its input
+  cameras and back."""
   if not evaluation.writes_results():
     return []
   batch = entry["batch"]
@@ -248,7 +253,33 @@ def write_flythrough(
     single, poses[None], intrinsics[None], height=height, width=width, render_config=render_config
   ).rgb
   frames = [pictures.upscale(export.to_uint8(frame), 256) for frame in rgb[0]]
-  return [export.write_mp4(pathlib.Path(out_dir) / "flythrough.mp4", frames, fps=12)]
+  return [export.write_mp4(path, frames, fps=12)]
+
+
+def _media_path(out_dir: pathlib.Path, what: str, suffix: str, key: str | None) -> pathlib.Path:
+  """`<what><suffix>` of the one exported scene (key None), else `<what>/<scene><suffix>`."""
+  return out_dir / f"{what}{suffix}" if key is None else data_path(out_dir / what, key, suffix)
+
+
+def write_scene_media(
+  out_dir, kept: Sequence[dict], method: str, settings: EvalSettings, failures: list[str]
+) -> None:
+  """The PLY and (`settings.video_frames` > 0) fly-through of the first `settings.media_scenes`
+  kept scenes' `method` Gaussians (0: of every kept scene): the one scene's as gaussians.ply /
+  flythrough.mp4, several each under its key in gaussians/ and flythrough/. Each file is a
+  `media_step`."""
+  out_dir = pathlib.Path(out_dir)
+  count = settings.media_scenes
+  for entry in kept if count == 0 else kept[:count]:
+    key = None if count == 1 else entry["key"]
+    about = "" if key is None else f" of scene {key!r}"
+    with media_step(f"gaussians.ply{about}", failures):
+      path = _media_path(out_dir, "gaussians", ".ply", key)
+      write_scene_ply(path, entry, method, settings.ply_min_opacity)
+    if settings.video_frames > 0:
+      with media_step(f"flythrough.mp4{about}", failures):
+        path = _media_path(out_dir, "flythrough", ".mp4", key)
+        write_flythrough(path, entry, method, settings.video_frames)
 
 
 def tensorboard_writer(out_dir):

@@ -194,16 +194,17 @@ class Task:
 def _write_pictures(
   experiment: Experiment, scored: dict[str, evaluation.Evaluation], methods, writer, step: int
 ) -> list[str]:
-  """grids/ (grids/<set>/ for the non-primary sets); PLY and fly-through of the primary set's
-  first scene, from the last method with Gaussians. Each is a `results.media_step`: returns the
-  one-line reasons of those that failed."""
+  """grids/ of the first `eval.grid_scenes` (grids/<set>/ for the non-primary sets); PLY and
+  fly-through of the primary set's first `eval.media_scenes`, from the last method with
+  Gaussians (`results.write_scene_media`). Each is a `results.media_step`: returns the one-line
+  reasons of those that failed."""
   out, failures = pathlib.Path(experiment.output_dir), []
   for position, (name, result) in enumerate(scored.items()):
     folder = out / "grids" if position == 0 else out / "grids" / name
     with results.media_step(f"grids of test set {name}", failures):
       results.write_grids(
         folder,
-        result.kept,
+        result.kept[: experiment.eval.grid_scenes],
         list(methods),
         writer,
         step,
@@ -211,12 +212,8 @@ def _write_pictures(
       )
   primary = next(iter(scored.values()))
   splatted = [name for name, m in methods.items() if m.gaussians is not None]
-  if primary.kept and splatted:
-    with results.media_step("gaussians.ply", failures):
-      results.write_scene_ply(out, primary.kept[0], splatted[-1])
-    if experiment.eval.video_frames > 0:
-      with results.media_step("flythrough.mp4", failures):
-        results.write_flythrough(out, primary.kept[0], splatted[-1], experiment.eval.video_frames)
+  if splatted:
+    results.write_scene_media(out, primary.kept, splatted[-1], experiment.eval, failures)
   return failures
 
 
@@ -256,7 +253,7 @@ def run_eval(
     flush=True,
   )
   scored = evaluation.evaluate_sets(
-    test_sets, methods, evaluation.Scorer(e.lpips), keep=e.grid_scenes
+    test_sets, methods, evaluation.Scorer(e.lpips), keep=e.kept_scenes
   )
   kind = "real" if experiment.data_dir else "synthetic"
   info = {

@@ -208,26 +208,33 @@ class _HandMadeTask(tasks.Task):
     return {"splats": evaluation.Method(gaussians=lambda batch: self._gaussians)}
 
 
-def _gaussians(nan: bool = False):
+def _gaussians(nan: bool = False, transparent: int = 0):
+  """8 Gaussians in front of the cameras, the first `transparent` of opacity 0.001."""
   n = 8
   means = np.random.default_rng(0).uniform(-0.4, 0.4, (1, n, 3)).astype(np.float32)
   means[..., 2] += 2.0
   means[0, 0, 0] = np.nan if nan else means[0, 0, 0]
+  opacities = np.full((1, n), 0.8, np.float32)
+  opacities[0, :transparent] = 0.001
   return Gaussians(
     means=means,
-    opacities=np.full((1, n), 0.8, np.float32),
+    opacities=opacities,
     scales=np.full((1, n, 3), 0.15, np.float32),
     quats=np.tile(np.float32([1, 0, 0, 0]), (1, n, 1)),
     colors=np.full((1, n, 3), 0.7, np.float32),
   )
 
 
-def _hand_made_eval(out: pathlib.Path, task: tasks.Task, video_frames: int = 0) -> dict:
+def _hand_made_eval(
+  out: pathlib.Path, task: tasks.Task, video_frames: int = 0, **eval_changes
+) -> dict:
   smoke = re10k.PRESETS["smoke"]
   experiment = dataclasses.replace(
     smoke,
     output_dir=str(out),
-    eval=dataclasses.replace(smoke.eval, lpips=False, grid_scenes=2, video_frames=video_frames),
+    eval=dataclasses.replace(
+      smoke.eval, lpips=False, grid_scenes=2, video_frames=video_frames, **eval_changes
+    ),
   )
   return tasks.run_eval(experiment, None, task=task)
 
@@ -281,6 +288,39 @@ def test_eval_writes_metrics_before_media_and_survives_a_failing_export(
   assert f"[results] not written: {reason}\n" in capsys.readouterr().out
   assert not (out / "gaussians.ply").exists()
   assert (out / "grids" / "s.png").exists() and (out / "flythrough.mp4").stat().st_size > 0
+
+
+def test_eval_exports_scenes_under_their_names_without_transparent_gaussians(tmp_path):
+  """`eval.media_scenes` N > 1 exports the PLY and fly-through of the first N scenes (0: of
+  every kept one), each under its key as a safe file name in gaussians/ and flythrough/; the
+  default, 1, the first scene's as gaussians.ply / flythrough.mp4. The PLYs leave out the
+  Gaussians below `eval.ply_min_opacity` (default the official 0.005; 0 keeps all); the grids
+  stay those of the first `eval.grid_scenes`."""
+  keys = ["a", "../b", "c"]
+  task = _HandMadeTask(
+    {"test": [(key, _view_batch(i)) for i, key in enumerate(keys)]}, _gaussians(transparent=2)
+  )
+  safe = [results.safe_file_name(key) for key in keys]
+
+  def names(folder, suffix):
+    return sorted(p.name for p in folder.glob(f"*{suffix}"))
+
+  first = tmp_path / "first"
+  _hand_made_eval(first, task, video_frames=2)
+  assert len(export.read_ply(first / "gaussians.ply")["means"]) == 6
+  assert (first / "flythrough.mp4").stat().st_size > 0
+  assert not (first / "gaussians").exists() and not (first / "flythrough").exists()
+  two = tmp_path / "two"
+  _hand_made_eval(two, task, video_frames=2, media_scenes=2, ply_min_opacity=0.0)
+  assert names(two / "gaussians", ".ply") == sorted(name + ".ply" for name in safe[:2])
+  assert names(two / "flythrough", ".mp4") == sorted(name + ".mp4" for name in safe[:2])
+  assert not (two / "gaussians.ply").exists() and not (two / "flythrough.mp4").exists()
+  assert [len(export.read_ply(p)["means"]) for p in (two / "gaussians").glob("*")] == [8, 8]
+  every = tmp_path / "every"
+  _hand_made_eval(every, task, media_scenes=0)
+  assert names(every / "gaussians", ".ply") == sorted(name + ".ply" for name in safe)
+  assert names(every / "grids", ".png") == sorted(name + ".png" for name in safe[:2])
+  assert not (every / "flythrough").exists()  # no video frames
 
 
 def test_upscale_is_nearest_neighbour_to_at_least_the_minimum():
