@@ -1,13 +1,16 @@
 """Training losses of TokenGS (official `tokengs/models/losses.py`, `tokengs.py`, `options.py`).
 
     loss = lambda_rgb * rgb + lambda_ssim * (1 - SSIM) / 2 + lambda_vis * visibility
-           + lambda_lpips * LPIPS  [+ lambda_dyn_aux(step) * loss of the dynamic Gaussians alone]
+           + lambda_lpips * LPIPS + lambda_opacity * mean(-log(opacity + 1e-6))
+           [+ lambda_dyn_aux(step) * loss of the dynamic Gaussians alone]
 
 - rgb: MSE ("l2", official default) or L1 over every pixel and channel.
 - SSIM term: fused-ssim conventions of the official code (11-tap Gaussian window, sigma 1.5,
   zero "same" padding, population covariance, C1 = 0.01^2, C2 = 0.03^2), mapped to (1 - SSIM) / 2.
 - visibility: projected centres outside every supervision view are pulled back (below).
 - LPIPS: VGG v0.1, `normalize=True`, mean over views (optional; `lpips_params` must be given).
+- opacity (`opacity_loss`, official `lambda_opacity`, 0 by default): the mean of -log(opacity)
+  over every Gaussian, a pull of each Gaussian towards full opacity.
 
 Deviation from the official visibility loss: the official code takes gsplat's `means2d`, which
 are projections made without looking at depth (and are zero for culled centres), so a centre
@@ -24,6 +27,7 @@ points on or behind the camera plane, and identical prediction/target.
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Literal
 
 import jax
@@ -67,6 +71,10 @@ class LossConfig:
       rooms) a hole shows the background, and the photometric gradient cannot pull a Gaussian
       that does not overlap the hole into it; this term gives the Gaussians at its rim a reason
       to grow and move over it.
+    lambda_opacity: weight of `opacity_loss` (official `lambda_opacity`, 0 in every official
+      preset): mean -log(opacity + 1e-6) of the Gaussians, pulling each towards opacity 1.
+
+  Every weight (`lambda_*`, `dyn_aux_min`) must be finite and >= 0.
   """
 
   rgb_loss: Literal["l2", "l1"] = "l2"
@@ -85,14 +93,30 @@ class LossConfig:
   motion_threshold: float = 0.1
   dyn_aux_on_motion: bool = False
   lambda_coverage: float = 0.0
+  lambda_opacity: float = 0.0
 
   def __post_init__(self):
+    check_weights(
+      {
+        field.name: getattr(self, field.name)
+        for field in dataclasses.fields(self)
+        if field.name.startswith("lambda_") or field.name == "dyn_aux_min"
+      }
+    )
     if self.rgb_loss not in ("l2", "l1"):
       raise ValueError(f"rgb_loss must be 'l2' or 'l1', got {self.rgb_loss!r}")
     if self.visibility_threshold <= 0:
       raise ValueError("visibility_threshold must be > 0: it is also the cost of a hidden centre")
     if self.dyn_aux_on_motion and not self.lambda_motion > 0:
       raise ValueError("dyn_aux_on_motion needs lambda_motion > 0 (the moving pixels' mask)")
+
+
+def check_weights(weights: dict[str, float]) -> None:
+  """Raises ValueError naming each loss weight (name -> value) that is negative or not finite: a
+  negative weight would reward the error its term measures."""
+  bad = [f"{name}={value!r}" for name, value in weights.items() if not 0 <= value < math.inf]
+  if bad:
+    raise ValueError(f"loss weights must be finite and >= 0, got {', '.join(bad)}")
 
 
 def rgb_loss(pred: jax.Array, target: jax.Array, kind: str = "l2") -> jax.Array:
@@ -199,6 +223,11 @@ def dynamic_aux_weight(step: jax.Array | int, config: LossConfig) -> jax.Array:
 def coverage_loss(alpha: jax.Array) -> jax.Array:
   """Mean uncovered share of the renders: mean(1 - alpha).  alpha: [..., H, W, 1] -> []."""
   return jnp.mean(1.0 - alpha)
+
+
+def opacity_loss(opacities: jax.Array) -> jax.Array:
+  """Official opacity regulariser: mean of -log(opacity + 1e-6).  opacities: [..., N] -> []."""
+  return -jnp.mean(jnp.log(opacities + 1e-6))
 
 
 def depth_loss(depth: jax.Array, alpha: jax.Array, true_depth: jax.Array) -> jax.Array:

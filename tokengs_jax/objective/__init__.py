@@ -14,11 +14,13 @@
 from tokengs_jax.objective.model_loss import (
   dynamic_model_loss,
   static_model_loss,
+  supervised_views,
   time_conditioned_loss,
   tokengs_loss_fn,
 )
 from tokengs_jax.objective.settings import ObjectiveConfig, background_colours, render_settings
 from tokengs_jax.objective.supervision import (
+  add_opacity,
   add_visibility,
   mean_over_view_chunks,
   photometric_loss,
@@ -29,6 +31,7 @@ from tokengs_jax.objective.supervision import (
 
 __all__ = [
   "ObjectiveConfig",
+  "add_opacity",
   "add_visibility",
   "background_colours",
   "dynamic_model_loss",
@@ -38,6 +41,7 @@ __all__ = [
   "render_settings",
   "render_views",
   "static_model_loss",
+  "supervised_views",
   "supervision_loss",
   "time_conditioned_loss",
   "tokengs_loss_fn",

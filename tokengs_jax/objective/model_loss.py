@@ -26,6 +26,7 @@ from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.objective.settings import ObjectiveConfig
 from tokengs_jax.objective.supervision import (
   add_coverage,
+  add_opacity,
   add_visibility,
   gaussians_in_float32,
   mean_over_view_chunks,
@@ -195,6 +196,7 @@ def _score_at_times(
     width,
     loss_config,
   )
+  loss, terms = add_opacity(loss, terms, gaussians.opacities, loss_config)
   return loss, terms, rendered.stats
 
 
@@ -239,6 +241,30 @@ def _scored_with_dynamic_aux(
   return loss, terms
 
 
+def supervised_views(batch: dict, objective: ObjectiveConfig) -> dict:
+  """The batch whose `target_*` views the model losses score: with
+  `objective.use_input_supervision` the targets followed by the input views (official
+  `images_all`, `cam_view_all`, ...), otherwise the batch itself.
+
+  Targets first, so that `decode_times="first"` still decodes at the first target's time, as the
+  official code does with input supervision; the inputs' true depths are unknown (0).
+  """
+  if not objective.use_input_supervision:
+    return batch
+  views = dict(batch)
+  for name in ("images", "c2w", "intrinsics", "times"):
+    if f"target_{name}" in batch:
+      views[f"target_{name}"] = jnp.concatenate(
+        [batch[f"target_{name}"], batch[f"context_{name}"]], axis=1
+      )
+  if "target_depths" in batch:
+    depths = batch["target_depths"]
+    num_inputs = batch["context_images"].shape[1]
+    unknown = jnp.zeros((depths.shape[0], num_inputs, *depths.shape[2:]), depths.dtype)
+    views["target_depths"] = jnp.concatenate([depths, unknown], axis=1)
+  return views
+
+
 def static_model_loss(
   params,
   batch: dict,
@@ -250,7 +276,8 @@ def static_model_loss(
   lpips_params=None,
   reconstruct: Callable[..., Gaussians] | None = None,
 ):
-  """Static models: context views -> `reconstruct` -> `supervision_loss` on the targets.
+  """Static models: context views -> `reconstruct` -> `supervision_loss` on the targets (and
+  the inputs with `objective.use_input_supervision`: `supervised_views`).
 
   reconstruct: `(params, images [B, V, H, W, 3], c2w [B, V, 4, 4], intrinsics [B, V, 4], *,
     config, viewer_c2w [B, T, 4, 4] or None) -> Gaussians` of the model (None:
@@ -261,6 +288,7 @@ def static_model_loss(
   from tokengs_jax.camera import invert_rigid
 
   reconstruct = model.reconstruct if reconstruct is None else reconstruct
+  batch = supervised_views(batch, objective)
   gaussians = reconstruct(
     params,
     batch["context_images"],
@@ -298,9 +326,12 @@ def dynamic_model_loss(
   -> `model.decode_at_times` at `batch["target_times"]` -> `time_conditioned_loss`, plus the
   dynamic auxiliary loss (weight scheduled by `step`) when the model has static and dynamic tokens
   and `loss_config.lambda_dyn_aux > 0`, as official, and the motion term
-  (`loss_config.lambda_motion > 0`: the targets' `losses.moving_pixels`)."""
+  (`loss_config.lambda_motion > 0`: the targets' `losses.moving_pixels`). With
+  `objective.use_input_supervision` the input views are scored too (`supervised_views`)."""
   from tokengs_jax import losses, model
   from tokengs_jax.camera import invert_rigid
+
+  batch = supervised_views(batch, objective)
 
   with_aux = (
     loss_config.lambda_dyn_aux > 0

@@ -31,6 +31,10 @@ class ObjectiveConfig:
       target view from it (the official `split_data` reads the target time from that one view;
       identical results, one decode instead of V, when all target views share a time, as the
       Kubric sampler's do).
+    use_input_supervision: the model losses (`static_model_loss`, `dynamic_model_loss`) score
+      the input views too, as further supervision views after the targets (official
+      `use_input_supervision`, off by default; `model_loss.supervised_views`). Tuning, which
+      supervises the input views anyway, and evaluation, which scores the targets, ignore it.
   """
 
   view_chunk_size: int | None = None
@@ -38,6 +42,7 @@ class ObjectiveConfig:
   near: float = 0.025
   far: float = 125.0
   decode_times: Literal["per_view", "first"] = "per_view"
+  use_input_supervision: bool = False
 
   def __post_init__(self):
     if self.decode_times not in ("per_view", "first"):

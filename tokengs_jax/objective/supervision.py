@@ -137,6 +137,18 @@ def add_coverage(loss: jax.Array, terms: dict, alpha: jax.Array, loss_config):
   return loss, {**terms, "coverage": coverage, "loss": loss}
 
 
+def add_opacity(loss: jax.Array, terms: dict, opacities: jax.Array, loss_config):
+  """`loss + lambda_opacity * losses.opacity_loss` (terms gain "opacity" and the new "loss")
+  where `loss_config.lambda_opacity > 0`; opacities: [..., N] of the scored Gaussians."""
+  from tokengs_jax import losses
+
+  if loss_config.lambda_opacity <= 0:
+    return loss, terms
+  opacity = losses.opacity_loss(opacities)
+  loss = loss + loss_config.lambda_opacity * opacity
+  return loss, {**terms, "opacity": opacity, "loss": loss}
+
+
 def _add_depth(loss: jax.Array, terms: dict, rendered, depths, loss_config):
   """`loss + lambda_depth * losses.depth_loss` (terms gain "depth" and the new "loss") where
   the views carry true depths [..., H, W] (None: unchanged)."""
@@ -179,7 +191,8 @@ def supervision_loss(
   """Loss of Gaussians against supervision views (training targets, or the inputs when tuning).
 
   Views rendered in remat chunks of `objective.view_chunk_size`, `photometric_loss` averaged
-  over chunks, then `add_visibility` over all views (= `losses.render_loss` of one render).
+  over chunks, then `add_visibility` over all views (= `losses.render_loss` of one render) and
+  `add_opacity` of the Gaussians.
 
   Args:
     gaussians: `Gaussians` with batch shape [B] (rendered in float32), or [B, V]: set v seen by
@@ -239,4 +252,7 @@ def supervision_loss(
   loss, terms = mean_over_view_chunks(chunk_loss, views, objective.view_chunk_size)
   # the sets of one scene differ in colour only: their centres are the first set's
   means = gaussians.means[:, 0] if per_view else gaussians.means
-  return add_visibility(loss, terms, means, world_to_camera, intrinsics, height, width, loss_config)
+  loss, terms = add_visibility(
+    loss, terms, means, world_to_camera, intrinsics, height, width, loss_config
+  )
+  return add_opacity(loss, terms, gaussians.opacities, loss_config)
