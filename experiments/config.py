@@ -71,6 +71,19 @@ class TrainSettings:
       0.5); 0: off, as the official base. Token tuning leaves it out.
     lambda_coverage: weight of the coverage term (`losses.coverage_loss`: the share of each
       render left uncovered); 0: off, as the paper.
+    rgb_loss: the photometric error (official `rgb_loss_type`): "l2" (MSE, official default)
+      or "l1" (the official SSIM presets, `SSIM_LOSS`: 0.8 L1 + 0.2 SSIM).
+    lambda_rgb: weight of the photometric term (official `lambda_rgb`: 1.0; 0.8 with SSIM_LOSS).
+    lambda_ssim: weight of the (1 - SSIM) / 2 term (official `lambda_ssim`: 0.2; 0 in the
+      official LPIPS presets, `LPIPS_LOSS`: MSE + 0.5 LPIPS).
+    lambda_opacity: weight of the opacity regulariser (`losses.opacity_loss`, official
+      `lambda_opacity`: mean -log(opacity)); 0: off, as every official preset.
+    use_input_supervision: also score the input views in the training loss (official
+      `use_input_supervision`; `ObjectiveConfig.use_input_supervision`); off, as official.
+
+  Bad loss settings (a negative or non-finite weight, an unknown `rgb_loss`) raise ValueError
+  on construction (`losses.LossConfig`'s checks), so the command line refuses them before any
+  work.
   """
 
   steps: int = 1500
@@ -88,6 +101,35 @@ class TrainSettings:
   lambda_depth: float = 0.0
   lambda_lpips: float = 0.0
   lambda_coverage: float = 0.0
+  rgb_loss: Literal["l2", "l1"] = "l2"
+  lambda_rgb: float = 1.0
+  lambda_ssim: float = 0.2
+  lambda_opacity: float = 0.0
+  use_input_supervision: bool = False
+
+  def __post_init__(self):
+    self.loss_config()  # its checks, at parse time
+
+  def loss_config(self):
+    """The training loss (`losses.LossConfig`): these weights, the library's defaults (official
+    base) for the rest."""
+    from tokengs_jax.losses import LossConfig
+
+    return LossConfig(
+      rgb_loss=self.rgb_loss,
+      lambda_rgb=self.lambda_rgb,
+      lambda_ssim=self.lambda_ssim,
+      lambda_lpips=self.lambda_lpips,
+      lambda_depth=self.lambda_depth,
+      lambda_coverage=self.lambda_coverage,
+      lambda_opacity=self.lambda_opacity,
+    )
+
+
+# The official DL3DV loss variants (`options.py` `_SSIM_LOSS` / `_LPIPS_LOSS`) as TrainSettings
+# fields: `dataclasses.replace(train, **SSIM_LOSS)`.
+SSIM_LOSS = {"rgb_loss": "l1", "lambda_rgb": 0.8, "lambda_ssim": 0.2, "lambda_lpips": 0.0}
+LPIPS_LOSS = {"rgb_loss": "l2", "lambda_rgb": 1.0, "lambda_ssim": 0.0, "lambda_lpips": 0.5}
 
 
 @dataclasses.dataclass(frozen=True)

@@ -13,13 +13,31 @@ Presets:
   256x448), DL3DV sampler (gap 10-40, 4 targets) and translation scale 0.15; finetuning recipe of
   the paper (10k steps, lr 4e-5, 400 warm-up). Eval JSONs: pass the benchmark's index with
   `--eval-index` (the key -> {context, target} format; see docs/experiments.md for the list format).
+  Loss: the official default (MSE + 0.2 SSIM), as the official `finetune_dl3dv_<N>view`.
+- `paper-latent-{2,4,6}view-{ssim,lpips}`: the official 2026.6 latent-bottleneck release
+  (`finetune_dl3dv_latent_<N>view_<loss>` under `finetune`, `eval_dl3dv_latent_<N>view_<loss>`
+  under `eval`): the `dl3dv_latent_<N>view` model, 6 / 4 / 4 targets (official 8 / 8 / 10
+  views), the SSIM variant's loss 0.8 L1 + 0.2 SSIM or the LPIPS variant's MSE + 0.5 LPIPS, and
+  scene-latent tuning at lr 1e-2 when evaluating.
 """
 
 from __future__ import annotations
 
+import dataclasses
+
 from experiments.cli import main
-from experiments.config import SYNTHETIC_MODEL, EvalSettings, Experiment, TrainSettings
+from experiments.config import (
+  LPIPS_LOSS,
+  SSIM_LOSS,
+  SYNTHETIC_MODEL,
+  EvalSettings,
+  Experiment,
+  TrainSettings,
+)
 from tokengs_jax import model
+
+# official (num_input_views, num_views) of the latent release presets
+_LATENT_VIEWS = {2: 8, 4: 8, 6: 10}
 
 PRESETS = {}
 for _views in (2, 4, 6):
@@ -46,6 +64,17 @@ for _views in (2, 4, 6):
     ),
     eval=EvalSettings(num_scenes=0, num_target_views=8, grid_scenes=8, video_frames=96),
   )
+  for _name, _loss in (("ssim", SSIM_LOSS), ("lpips", LPIPS_LOSS)):
+    _paper = PRESETS[f"paper-{_views}view"]
+    PRESETS[f"paper-latent-{_views}view-{_name}"] = dataclasses.replace(
+      _paper,
+      output_dir=f"outputs/dl3dv/paper_latent_{_views}view_{_name}",
+      model=model.preset(f"dl3dv_latent_{_views}view"),
+      train=dataclasses.replace(
+        _paper.train, num_target_views=_LATENT_VIEWS[_views] - _views, **_loss
+      ),
+      eval=dataclasses.replace(_paper.eval, tuning_target="latents", tuning_learning_rate=1e-2),
+    )
 
 if __name__ == "__main__":
   main(PRESETS, "synthetic-4view", "python -m experiments.dl3dv")

@@ -79,16 +79,11 @@ class Task:
     return sets
 
   def loss_config(self, experiment: Experiment):
-    """The training loss weights: the library's defaults (official base), plus the depth term's
-    `train.lambda_depth` (tuning supervises input views, which carry no depth, so it never
-    applies there), the LPIPS term's `train.lambda_lpips` and `train.lambda_coverage`."""
-    from tokengs_jax.losses import LossConfig
-
-    return LossConfig(
-      lambda_depth=experiment.train.lambda_depth,
-      lambda_lpips=experiment.train.lambda_lpips,
-      lambda_coverage=experiment.train.lambda_coverage,
-    )
+    """The training loss weights (`TrainSettings.loss_config`): the photometric, LPIPS, depth,
+    coverage and opacity terms of `experiment.train`, the library's defaults (official base) for
+    the rest. The depth term never applies to tuning: the input views it supervises carry no
+    depth."""
+    return experiment.train.loss_config()
 
   def tuning_loss_config(self, experiment: Experiment):
     """Token tuning's loss: the training loss without the LPIPS term (VGG's cost per tuning
@@ -107,7 +102,10 @@ class Task:
     return load_vgg_params()
 
   def objective(self, experiment: Experiment) -> ObjectiveConfig:
-    return ObjectiveConfig(view_chunk_size=experiment.train.view_chunk_size)
+    return ObjectiveConfig(
+      view_chunk_size=experiment.train.view_chunk_size,
+      use_input_supervision=experiment.train.use_input_supervision,
+    )
 
   def loss_fn(self, experiment: Experiment, config: model.ModelConfig):
     from tokengs_jax.objective import tokengs_loss_fn
