@@ -3,22 +3,29 @@
     python -m experiments.re10k                                  # run, default preset
     python -m experiments.re10k eval paper --data-dir /data/re10k --official-checkpoint w.safetensors
     python -m experiments.re10k run smoke --train.steps 10 --model.enc-depth 1
+    python -m experiments.re10k eval --from-run outputs/re10k/smoke --eval.media-scenes 0
 
 Commands are subcommands (`run` = train then eval, the default; `train`, `finetune`, `eval`), and
 so are the presets (one subcommand per named `Experiment`, the default preset when omitted); every
 field of the chosen preset is a flag (nested fields as `--train.steps`, `--model.num-gs-tokens`).
+
+`eval --from-run RUN_DIR` takes the place of a preset: the experiment a finished run recorded in
+its metrics.json, scoring the weights it trained (`RUN_DIR/params.msgpack`; a run that only
+evaluated: the weights it evaluated) into `RUN_DIR/eval/`; flags override it as a preset's.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import pathlib
 import sys
 from collections.abc import Mapping, Sequence
 from typing import Annotated, Union
 
 import tyro
 
-from experiments.config import Experiment
+from experiments.config import Experiment, from_fields
 from experiments.tasks import COMMANDS, Command, Task, execute
 from tokengs_jax import process
 
@@ -50,7 +57,8 @@ def _invocation_type(presets: Mapping[str, Experiment], default_preset: str):
     "run": "train, then evaluate (default)",
     "train": "train only",
     "finetune": "train from --checkpoint / --official-checkpoint",
-    "eval": "evaluate --checkpoint / --official-checkpoint",
+    "eval": "evaluate --checkpoint / --official-checkpoint, or a finished run's weights with "
+    "its settings: eval --from-run RUN_DIR [flags]",
   }
   command_union = Union[
     tuple(  # noqa: UP007
@@ -64,10 +72,51 @@ def _invocation_type(presets: Mapping[str, Experiment], default_preset: str):
   return command_union, invocation()
 
 
+def _split_from_run(argv: Sequence[str]) -> tuple[str | None, list[str]]:
+  """(the folder of `--from-run DIR` / `--from-run=DIR`, or None; the other arguments)."""
+  rest, folders, args = [], [], iter(argv)
+  for arg in args:
+    if arg == "--from-run":
+      folders.append(next(args, None))
+    elif arg.startswith("--from-run="):
+      folders.append(arg.removeprefix("--from-run="))
+    else:
+      rest.append(arg)
+  if len(folders) > 1 or None in folders:
+    raise SystemExit("--from-run takes one folder: eval --from-run RUN_DIR [flags]")
+  return (folders[0] if folders else None), rest
+
+
+def recorded_experiment(run_dir, experiment_type: type[Experiment]) -> Experiment:
+  """The experiment a finished run recorded in `RUN_DIR/metrics.json`, set to score the weights
+  it trained (`params.msgpack`, when it trained; else the weights it evaluated) into
+  `RUN_DIR/eval/`, so the run's own results stay as they are."""
+  run_dir = pathlib.Path(run_dir)
+  metrics = run_dir / "metrics.json"
+  if not metrics.is_file():
+    raise SystemExit(f"--from-run {run_dir}: no metrics.json (a run / eval writes it) there")
+  try:
+    experiment = from_fields(experiment_type, json.loads(metrics.read_text())["experiment"])
+  except (KeyError, TypeError, ValueError) as error:  # not this entry point's record
+    raise SystemExit(
+      f"--from-run {run_dir}: its metrics.json records no {experiment_type.__name__} "
+      f"({type(error).__name__}: {error}); a run of another entry point?"
+    ) from None
+  changes = {"output_dir": str(run_dir / "eval")}
+  if (run_dir / "params.msgpack").is_file():
+    changes.update(checkpoint=str(run_dir / "params.msgpack"), official_checkpoint=None)
+  return dataclasses.replace(experiment, **changes)
+
+
 def parse(
   argv: Sequence[str], presets: Mapping[str, Experiment], default_preset: str, prog: str
 ) -> tuple[Command, Experiment]:
-  """`[command] [preset] [flags]` -> (command, experiment)."""
+  """`[command] [preset] [flags]` -> (command, experiment); `eval --from-run RUN_DIR [flags]`
+  in place of a preset: the run's `recorded_experiment`."""
+  run_dir, argv = _split_from_run(argv)
+  if run_dir is not None:
+    presets = {"from-run": recorded_experiment(run_dir, type(presets[default_preset]))}
+    default_preset = "from-run"
   command_type, default = _invocation_type(presets, default_preset)
   parsed = tyro.cli(
     command_type,
@@ -76,6 +125,10 @@ def parse(
     prog=prog,
     config=(tyro.conf.OmitSubcommandPrefixes, tyro.conf.CascadeSubcommandArgs),
   )
+  if run_dir is not None and parsed.command != "eval":
+    raise SystemExit(
+      f"--from-run re-evaluates a run: eval --from-run RUN_DIR, not {parsed.command}"
+    )
   return parsed.command, parsed.experiment
 
 

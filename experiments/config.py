@@ -274,3 +274,22 @@ def optim_config(experiment: Experiment):
     total_steps=t.steps,
     warmup_steps=min(t.warmup_steps, max(t.steps - 1, 0)),
   )
+
+
+def from_fields(cls, fields: dict):
+  """A (nested, frozen) settings dataclass from its `dataclasses.asdict` JSON, as metrics.json
+  records an experiment (lists back to tuples); fields it lacks keep their defaults (a record
+  older than a setting). ValueError naming the fields `cls` does not have."""
+  default = cls()
+  unknown = set(fields) - {f.name for f in dataclasses.fields(cls)}
+  if unknown:
+    raise ValueError(f"{cls.__name__} has no fields {sorted(unknown)}")
+  values = {}
+  for name, value in fields.items():
+    current = getattr(default, name)
+    if dataclasses.is_dataclass(current):
+      value = from_fields(type(current), value)
+    elif isinstance(value, list):
+      value = tuple(value)
+    values[name] = value
+  return cls(**values)

@@ -323,6 +323,65 @@ def test_eval_exports_scenes_under_their_names_without_transparent_gaussians(tmp
   assert not (every / "flythrough").exists()  # no video frames
 
 
+def test_recorded_settings_of_every_preset_read_back_as_they_were():
+  """`config.from_fields` rebuilds an experiment from its metrics.json record (JSON lists back
+  to tuples, nested settings, a Kubric experiment's own fields)."""
+  from experiments import config, dl3dv, kubric
+
+  for presets in (re10k.PRESETS, dl3dv.PRESETS, kubric.PRESETS):
+    for preset in presets.values():
+      recorded = json.loads(json.dumps(dataclasses.asdict(preset), default=str))
+      assert config.from_fields(type(preset), recorded) == preset
+  with pytest.raises(ValueError, match="no fields.*'frames'"):
+    config.from_fields(config.Experiment, {"frames": 3})
+
+
+def test_eval_from_run_takes_the_recorded_settings_and_flags_override_them(tmp_path):
+  """`eval --from-run RUN_DIR`: the experiment the run recorded in its metrics.json, scoring its
+  trained weights (`params.msgpack`, when it trained; else the weights it evaluated) into
+  RUN_DIR/eval/; flags override it. Another command, or a folder without metrics.json, refuses."""
+  smoke = re10k.PRESETS["smoke"]
+  run = tmp_path / "run"
+  recorded = dataclasses.replace(
+    smoke,
+    output_dir=str(run),
+    official_checkpoint="w.safetensors",
+    eval=dataclasses.replace(smoke.eval, num_scenes=1, media_scenes=3),
+  )
+  run.mkdir()
+  payload = {"experiment": dataclasses.asdict(recorded)}
+  (run / "metrics.json").write_text(json.dumps(payload, default=str))
+
+  def parse(*argv):
+    return cli.parse(list(argv), re10k.PRESETS, "synthetic-tiny", "prog")
+
+  assert parse("eval", "--from-run", str(run)) == (
+    "eval",
+    dataclasses.replace(recorded, output_dir=str(run / "eval")),
+  )
+  (run / "params.msgpack").write_bytes(b"")
+  command, experiment = parse(
+    "eval", f"--from-run={run}", "--eval.num-scenes", "4", "--output-dir", str(tmp_path / "x")
+  )
+  assert experiment == dataclasses.replace(
+    recorded,
+    checkpoint=str(run / "params.msgpack"),
+    official_checkpoint=None,
+    output_dir=str(tmp_path / "x"),
+    eval=dataclasses.replace(recorded.eval, num_scenes=4),
+  )
+  with pytest.raises(SystemExit, match="eval --from-run"):
+    parse("run", "--from-run", str(run))
+  with pytest.raises(SystemExit, match="metrics.json"):
+    parse("eval", "--from-run", str(tmp_path))
+  from experiments import kubric
+
+  kubric_run = {"experiment": dataclasses.asdict(kubric.PRESETS["synthetic-tiny"])}
+  (run / "metrics.json").write_text(json.dumps(kubric_run, default=str))
+  with pytest.raises(SystemExit, match="records no Experiment.*another entry point"):
+    parse("eval", "--from-run", str(run))
+
+
 def test_upscale_is_nearest_neighbour_to_at_least_the_minimum():
   image = np.arange(2 * 3 * 3).reshape(2, 3, 3).astype(np.uint8)
   big = pictures.upscale(image, 128)
@@ -372,7 +431,8 @@ def test_entry_point_end_to_end(tmp_path):
   """`python -m experiments.re10k run pretrain` (the command that trained the shipped weights)
   at the smoke preset's scale: generate (the varied family), train TokenGS and the
   pixel-aligned baseline from scratch, evaluate with geometry, write every file; then ship the
-  run's weights as the shipped ones were (`experiments.weights ship`)."""
+  run's weights as the shipped ones were (`experiments.weights ship`), and re-evaluate the run
+  from its folder alone (`eval --from-run`) to the same scores."""
   out = tmp_path / "results"
   completed = subprocess.run(
     [
@@ -451,6 +511,36 @@ def test_entry_point_end_to_end(tmp_path):
   assert set(provenance["files"]) == {"params.msgpack", "pixel_aligned.msgpack"}
   assert provenance["experiment"] == payload["experiment"]
   assert provenance["command"].startswith("python -m experiments.re10k run pretrain")
+
+  # re-evaluated from its folder alone (`eval --from-run`): the same settings, the same scores
+  again = subprocess.run(
+    [sys.executable, "-m", "experiments.re10k", "eval", "--from-run", str(out)],
+    cwd=REPO,
+    capture_output=True,
+    text=True,
+    timeout=600,
+    check=False,
+  )
+  assert again.returncode == 0, again.stderr[-4000:]
+  rescored = json.loads((out / "eval" / "metrics.json").read_text())
+  assert rescored["experiment"] == {
+    **payload["experiment"],
+    "output_dir": str(out / "eval"),
+    "checkpoint": str(out / "params.msgpack"),
+  }
+  for name in ("test", "ood_galleries"):
+    before, after = (
+      record if name == "test" else record["other_test_sets"][name]
+      for record in (payload, rescored)
+    )
+    for method, scores in before["metrics"].items():
+      np.testing.assert_allclose(
+        [s["psnr"] for s in after["metrics"][method]["per_scene"]],
+        [s["psnr"] for s in scores["per_scene"]],
+        rtol=1e-4,
+        err_msg=f"{name}: {method}",
+      )
+  assert (out / "eval" / "gaussians.ply").stat().st_size > 0
 
 
 @pytest.mark.slow

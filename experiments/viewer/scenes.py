@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments import data, kubric, weights
-from experiments.config import Experiment
+from experiments.config import Experiment, from_fields
 from experiments.tasks import Task
 from tokengs_jax import evaluation, export, metrics
 from tokengs_jax.gaussians import Gaussians
@@ -148,30 +148,12 @@ def psnr(image: np.ndarray, target: np.ndarray) -> float:
 # Sources: a results folder, or a bare PLY
 
 
-def _from_fields(cls, fields: dict):
-  """A (nested, frozen) settings dataclass from its `dataclasses.asdict` JSON (lists -> tuples)."""
-  default = cls()
-  known = {f.name for f in dataclasses.fields(cls)}
-  unknown = set(fields) - known
-  if unknown:
-    raise ValueError(f"{cls.__name__} has no fields {sorted(unknown)}")
-  values = {}
-  for name, value in fields.items():
-    current = getattr(default, name)
-    if dataclasses.is_dataclass(current):
-      value = _from_fields(type(current), value)
-    elif isinstance(value, list):
-      value = tuple(value)
-    values[name] = value
-  return cls(**values)
-
-
 def experiment_from_fields(fields: dict):
   """(experiment, task) from `metrics.json["experiment"]`: a Kubric run when the fields hold the
   Kubric-only ones (`KubricExperiment` extends `Experiment`)."""
   if set(fields) <= {f.name for f in dataclasses.fields(Experiment)}:
-    return _from_fields(Experiment, fields), Task()
-  return _from_fields(kubric.KubricExperiment, fields), kubric.KubricTask()
+    return from_fields(Experiment, fields), Task()
+  return from_fields(kubric.KubricExperiment, fields), kubric.KubricTask()
 
 
 _MISSING_DATA = (
