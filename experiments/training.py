@@ -44,13 +44,13 @@ def train_model(
   """Trains with the library loop (sharded over every device); returns (params, history, seconds).
   With `train.steps == 0` the starting weights come back unchanged (`run` then evaluates them).
   SIGTERM/SIGINT: the loop saves the step it finished and says so; the process then exits with
-  128 + the signal's number (`SystemExit`), and the same command resumes.
+  128 + the signal's number (`SystemExit`), and the same command resumes. A checkpoint that
+  cannot be written (disk full, permission denied) ends the run with its one-line reason, status 1.
 
   loss_fn: `(params, batch, key, step) -> (loss, aux)`.
   batches: iterator of this process's batches.
   """
-  from tokengs_jax.train import LoopConfig, train
-  from tokengs_jax.train.loop import TrainingStopped
+  from tokengs_jax.train import CheckpointWriteError, LoopConfig, TrainingStopped, train
 
   if experiment.train.steps == 0:
     print("[train] 0 steps: the starting weights are the trained ones", flush=True)
@@ -71,6 +71,9 @@ def train_model(
     state, history = train(loss_fn, params, batches, optim_config(experiment), loop, log_fn=logger)
   except TrainingStopped as stopped:  # the loop has said where and how to resume
     raise SystemExit(stopped.exit_status) from None
+  except CheckpointWriteError as refused:  # its message names the step, the path and the remedy
+    print(f"[train] {refused}", flush=True)
+    raise SystemExit(1) from None
   finally:
     logger.close()
   seconds = time.perf_counter() - start
