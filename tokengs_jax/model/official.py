@@ -1,4 +1,4 @@
-"""Official PyTorch checkpoints (.safetensors) <-> our params pytree, without torch.
+"""Official PyTorch checkpoints (.safetensors, torch .pth) <-> our params pytree, without torch.
 
 Our module tree mirrors the official one (see `network.py`), so names map by rule:
   path segments joined with "."; a list entry "encoder_3" is torch "encoder.3";
@@ -11,6 +11,7 @@ Our module tree mirrors the official one (see `network.py`), so names map by rul
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import re
@@ -25,6 +26,9 @@ from tokengs_jax.model.configs import ModelConfig
 
 # Keys the official `state_dict()` strips anyway (frozen LPIPS network inside the module).
 _IGNORED_PREFIXES = ("lpips_loss.",)
+# The [rows, width] tables the official finetuning resizes from a checkpoint with another count.
+RESIZABLE_TABLES = ("gs_tokens", "gs_tokens_dynamic", "enc_dec_backbone.latents")
+_LOG = logging.getLogger(__name__)
 _LIST_ENTRY = re.compile(r"_(\d+)$")
 
 
@@ -74,11 +78,33 @@ def _unflatten(items: dict[tuple[str, ...], np.ndarray]) -> Params:
   return tree
 
 
-def params_from_state_dict(state_dict: dict[str, np.ndarray], config: ModelConfig) -> Params:
-  """Official state_dict (numpy, torch layouts) -> params, with strict key and shape checks.
+def _fits(name: str, stored: tuple[int, ...], wanted: tuple[int, ...], strict: bool) -> bool:
+  if stored == wanted:
+    return True
+  resized = name in RESIZABLE_TABLES and len(stored) == len(wanted) == 2
+  return not strict and resized and stored[1] == wanted[1]
+
+
+def params_from_state_dict(
+  state_dict: dict[str, np.ndarray], config: ModelConfig, *, strict: bool = True
+) -> Params:
+  """Official state_dict (numpy, torch layouts) -> params, with key and shape checks.
+
+  Args:
+    state_dict: official names -> tensors (the frozen LPIPS network's are ignored).
+    config: the model's architecture.
+    strict: the checkpoint must hold exactly the model's tensors. With False, as the official
+      tolerant load (`load_model_checkpoint`) that seeds a model of another architecture from
+      pretrained weights: missing and unexpected tensors are left out and logged (a warning
+      naming every one), and the `RESIZABLE_TABLES` may have another row count (they come back
+      at the checkpoint's size). The params are then partial: `train.transplant_params` fills
+      them into fresh ones, growing or thinning the tables and seeding dynamic tokens from static
+      ones as the official `init_tokens_from_existing`, `init_latents_from_existing` and
+      `init_dynamic_tokens_from_static`.
 
   Raises:
-    ValueError: naming every missing tensor, unexpected tensor and shape mismatch.
+    ValueError: naming every missing tensor, unexpected tensor and shape mismatch, on a
+      mis-shaped tensor (strict or not) or, when strict, a missing or unexpected one.
   """
   expected = {
     official_name(path): (path, shape.shape) for path, shape in _flat_paths(param_shapes(config))
@@ -89,23 +115,27 @@ def params_from_state_dict(state_dict: dict[str, np.ndarray], config: ModelConfi
   mismatched = []
   for name in sorted(present & set(expected)):
     path, shape = expected[name]
-    want = _torch_shape(path, shape, config.patch_size)
-    if tuple(state_dict[name].shape) != tuple(want):
+    want = tuple(_torch_shape(path, shape, config.patch_size))
+    if not _fits(name, tuple(state_dict[name].shape), want, strict):
       mismatched.append(f"{name}: checkpoint {tuple(state_dict[name].shape)} != model {want}")
-  if missing or unexpected or mismatched:
-    lines = ["official checkpoint does not match the config:"]
+  listing = [
+    f"  {title} ({len(items)}): " + ", ".join(items)
     for title, items in (
       ("missing", missing),
       ("unexpected", unexpected),
       ("shape mismatch", mismatched),
-    ):
-      if items:
-        lines.append(f"  {title} ({len(items)}): " + ", ".join(items))
-    raise ValueError("\n".join(lines))
+    )
+    if items
+  ]
+  if mismatched or (strict and listing):
+    raise ValueError("\n".join(["official checkpoint does not match the config:", *listing]))
+  if listing:
+    _LOG.warning("\n".join(["official checkpoint loaded non-strictly, left out:", *listing]))
   # Own C-contiguous float32 copies: no views into (possibly memory-mapped) checkpoint data.
   items = {
     path: np.array(_from_torch_layout(path, np.asarray(state_dict[name])), np.float32, order="C")
     for name, (path, _) in expected.items()
+    if name in present
   }
   return _unflatten(items)
 
@@ -174,20 +204,34 @@ def read_safetensors(path: str | os.PathLike) -> dict[str, np.ndarray]:
   return tensors
 
 
-def load_official_checkpoint(path: str | os.PathLike, config: ModelConfig) -> Params:
-  """Read an official TokenGS `.safetensors` checkpoint into our params pytree.
+def load_official_checkpoint(
+  path: str | os.PathLike, config: ModelConfig, *, strict: bool = True
+) -> Params:
+  """Read an official TokenGS checkpoint into our params pytree.
 
-  Tensors stored as F32, F16 or BF16 are all converted (exactly) to float32.
+  A `.safetensors` file, or (any other name, as the official loaders) a `torch.save`d state dict
+  (`.pth`, `.pt`), read without torch and without executing anything in it
+  (`official_pth.read_torch_state_dict`). Tensors stored as F32, F16 or BF16 are all converted
+  (exactly) to float32.
 
   Args:
-    path: the .safetensors file (official parameter names, torch layouts).
-    config: the architecture it was trained with (see `config_from_official`).
+    path: the checkpoint (official parameter names, torch layouts).
+    config: the architecture to load into (see `config_from_official`).
+    strict: see `params_from_state_dict`; False seeds a model with more or fewer tokens or
+      latents, or with dynamic tokens, from the checkpoint (then `train.transplant_params`).
 
   Returns:
     The params pytree (float32 numpy arrays; jax.device_put them as needed).
 
   Raises:
-    ValueError: if any tensor is missing, unexpected or of the wrong shape (all are named), or if
-      the file is not valid safetensors.
+    ValueError: if a tensor is mis-shaped or (strict) missing or unexpected (all are named), or
+      if the file is not valid safetensors or a readable torch state dict.
   """
-  return params_from_state_dict(read_safetensors(os.fspath(path)), config)
+  path = os.fspath(path)
+  if path.endswith("safetensors"):
+    return params_from_state_dict(read_safetensors(path), config, strict=strict)
+  # imported here: the torch reader builds on the data package's chunk reader, and importing the
+  # model should not load the data pipeline (grain and all) for it
+  from tokengs_jax.model.official_pth import read_torch_state_dict
+
+  return params_from_state_dict(read_torch_state_dict(path), config, strict=strict)

@@ -1,6 +1,7 @@
 """Growing token tables for finetuning (1024 -> 4096 Gaussian tokens; dynamic from static).
 
-As the official finetuning initialisation: the first rows of a larger table are the pretrained
+As the official finetuning initialisation (`init_tokens_from_existing`, and the same rule for the
+scene latents, `init_latents_from_existing`): the first rows of a larger table are the pretrained
 tokens, the extra rows are pretrained tokens taken cyclically plus N(0, noise_std^2) noise; a
 smaller table takes evenly spaced rows. Dynamic tokens start as cyclic copies of the static
 tokens without noise (a random subset when fewer).
@@ -55,17 +56,19 @@ def transplant_params(
   key: jax.Array,
   pretrained,
   fresh,
-  token_names: tuple[str, ...] = ("gs_tokens",),
+  token_names: tuple[str, ...] = ("gs_tokens", "latents"),
   noise_std: float = 0.01,
   dynamic_from_static: bool = True,
 ):
   """Loads `pretrained` into the structure of `fresh`, growing token tables (tolerant load).
 
   Leaves present in both with equal shapes are copied; a leaf whose path has a component starting
-  with one of `token_names` and whose row count differs is resized with `expand_tokens`; anything
-  else keeps its fresh initialisation and is reported. With `dynamic_from_static`, a `gs_tokens_dynamic`
-  table that the pretrained (static) model lacks starts from its `gs_tokens`
-  (`dynamic_tokens_from_static`), as the official `init_dynamic_tokens_from_static`.
+  with one of `token_names` (the Gaussian tokens, static and dynamic, and the scene latents) and
+  whose row count differs is resized with `expand_tokens`; anything else keeps its fresh
+  initialisation and is reported. With `dynamic_from_static`, a `gs_tokens_dynamic` table that the
+  pretrained (static) model lacks starts from its `gs_tokens` (`dynamic_tokens_from_static`), as
+  the official `init_dynamic_tokens_from_static`. `pretrained` may be partial, e.g. an official
+  checkpoint read with `load_official_checkpoint(..., strict=False)`.
 
   Returns:
     `(params, report)` with `report` a list of "path: action" strings for the non-copied leaves.
