@@ -278,4 +278,22 @@ def test_image_errors_name_the_frame_and_are_the_same_every_run():
   for read in (chunks.jpeg_size, chunks.decode_jpeg):
     with pytest.raises(ChunkError) as error:
       read(b"not an image", where=where)
-    assert str(error.value) == f"{where}: corrupt image (no image format recognises its header)"
+    assert str(error.value) == (
+      f"{where}: corrupt image (not a JPEG / PNG / TIFF file: no format recognises its header)"
+    )
+
+
+@pytest.mark.parametrize("format_name", ["GIF", "BMP", "ICO"])
+def test_only_the_formats_datasets_ship_are_opened(format_name):
+  # every format PIL registers would otherwise parse untrusted bytes (EPS runs Ghostscript)
+  with pytest.raises(ChunkError, match=r"^f: corrupt image \(not a JPEG / PNG / TIFF file"):
+    chunks.decode_jpeg(_encoded(format_name), where="f")
+
+
+def test_a_depth_map_in_an_example_is_bounded_like_every_frame(no_pixel_decoding):
+  from tokengs_jax.data import pipeline
+
+  depth = _declaring_more_pixels(_encoded("PNG"), 6000, 6000)  # encoded, as a record holds it
+  record = {"key": "s", "path": "c.torch", "height": 8, "width": 8, "depths": [depth]}
+  with pytest.raises(pipeline.BadExampleError, match=r"depth 0: the header declares 6000x6000"):
+    pipeline._depth(record, 0)

@@ -17,16 +17,15 @@ Batches are dicts of numpy arrays (docs/design.md): `context_images [B, Vc, H, W
 from __future__ import annotations
 
 import dataclasses
-import io
 import signal
 from typing import Callable, Literal, Sequence
 
 import grain
 import numpy as np
-from PIL import Image
 
 from tokengs_jax import process
 from tokengs_jax.data.chunks import ChunkError, LazyTensor, decode_jpeg
+from tokengs_jax.data.chunks.images import check_frame_bytes, decode_image
 from tokengs_jax.data.dl3dv import DL3DVError
 from tokengs_jax.data.kubric import KubricError, pointmap_scale
 from tokengs_jax.data.rejections import Rejections, summarize_rejections
@@ -171,13 +170,9 @@ def _depth(record: dict, index: int) -> np.ndarray:
   if isinstance(depth, LazyTensor):
     depth = depth.load()
   if not isinstance(depth, np.ndarray):
-    try:
-      with Image.open(io.BytesIO(bytes(depth))) as image:
-        depth = np.asarray(image, np.float32)
-    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as error:
-      raise BadExampleError(
-        f"{_where(record)} depth {index}: corrupt depth image ({error})"
-      ) from error
+    where = f"{_where(record)} depth {index}"
+    check_frame_bytes(len(depth), where=where, error=BadExampleError)
+    depth = decode_image(bytes(depth), where=where, error=BadExampleError).astype(np.float32)
   depth = depth[..., 0] if depth.ndim == 3 else depth
   if depth.shape != (record["height"], record["width"]):
     raise BadExampleError(

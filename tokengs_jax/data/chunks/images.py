@@ -23,6 +23,10 @@ from tokengs_jax.data.chunks.archive import ChunkError
 MAX_FRAME_BYTES = 64 << 20
 MAX_FRAME_PIXELS = 1 << 25
 
+# The formats the datasets ship (RE10K JPEG, DL3DV PNG / JPEG, Kubric PNG and TIFF depth). PIL
+# would otherwise try every format it registers on untrusted bytes, EPS among them (Ghostscript).
+IMAGE_FORMATS = ("JPEG", "PNG", "TIFF")
+
 # What PIL raises for a malformed, truncated or oversized (> 2 x MAX_IMAGE_PIXELS) image.
 _DECODE_ERRORS = (OSError, SyntaxError, ValueError, Image.DecompressionBombError)
 
@@ -37,9 +41,12 @@ def _open(data: bytes, where: str, error: type[ValueError]) -> Image.Image:
   """`data` opened by PIL, which reads only the header; `error` unless its declared size is
   within `MAX_FRAME_PIXELS`."""
   try:
-    image = Image.open(io.BytesIO(data))
+    image = Image.open(io.BytesIO(data), formats=IMAGE_FORMATS)
   except Image.UnidentifiedImageError:  # its message holds the buffer's repr: named by `where`
-    raise error(f"{where}: corrupt image (no image format recognises its header)") from None
+    raise error(
+      f"{where}: corrupt image (not a {' / '.join(IMAGE_FORMATS)} file: no format recognises its "
+      "header)"
+    ) from None
   except _DECODE_ERRORS as cause:
     raise error(f"{where}: corrupt image ({cause})") from cause
   width, height = image.size
