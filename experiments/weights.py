@@ -43,11 +43,18 @@ def beside(params_path, name: str) -> pathlib.Path | None:
 
 
 def initial_params(experiment: Experiment, *, finetune: bool):
-  """Fresh weights, or (finetune / eval) the given checkpoint grown into the model if needed."""
+  """Fresh weights, or (finetune / eval) the given checkpoint grown into the model if needed.
+
+  An official checkpoint is read strictly for evaluation (it must be the model's architecture)
+  and leniently for finetuning, as the official `init_tokens_from_existing` allows: more tokens,
+  dynamic tokens or another latent count than it holds are grown by `transplant_params`, with
+  every missing or unexpected tensor logged (a mis-shaped weight is still refused)."""
   config = experiment.model
   fresh = model.init_params(jax.random.key(experiment.seed), config)
   if experiment.official_checkpoint:
-    loaded = model.load_official_checkpoint(experiment.official_checkpoint, config)
+    loaded = model.load_official_checkpoint(
+      experiment.official_checkpoint, config, strict=not finetune
+    )
   elif experiment.checkpoint:
     loaded = load_params(experiment.checkpoint)
   else:
