@@ -229,3 +229,11 @@ def test_a_signal_during_the_last_step_is_delivered_after_the_final_save(tmp_pat
       log_fn=signal_at(4, signal.SIGTERM),
     )
   assert Checkpointer(directory).all_steps() == [4]
+
+
+def test_a_host_array_reaching_the_compiled_step_is_an_error_not_a_silent_copy(monkeypatch):
+  from tokengs_jax.train import loop
+
+  monkeypatch.setattr(loop, "shard_batch", lambda batch, mesh: batch)  # numpy arrays, not placed
+  with pytest.raises(Exception, match="[Dd]isallowed host-to-device transfer"):
+    train(toy_loss, toy_params(), ToyBatches(), OPTIM, LoopConfig(total_steps=2), log_fn=quiet)

@@ -150,7 +150,10 @@ def train(
       if compiled is None:  # compile first, then meet: the first collective runs in step
         compiled = train_step.lower(state, batch, key).compile()
         barrier("tokengs_train_step_compiled")
-      state, metrics = compiled(state, batch, key)
+      # Every input is on its devices already (shard_batch, the state, the key): an implicit host
+      # transfer here would be a silent per-step copy, so it is an error (as big_vision's loop).
+      with jax.transfer_guard("disallow"):
+        state, metrics = compiled(state, batch, key)
       log.pending.append(metrics)
       step += 1
       is_last = step == loop_config.total_steps
