@@ -642,8 +642,9 @@ def test_kubric_entry_point_end_to_end(tmp_path):
   assert "trained beats same_camera" in payload["checks"]
   assert payload["test_sets"] == ["test", "ood_kubric"]  # the frozen held-out dynamic family
   history = json.loads((out / "train_history.json").read_text())
-  # the official auxiliary weight, scaled to 2 steps: held at step 0, decayed to 0 at step 1
-  assert [h["dyn_aux_weight"] for h in history] == pytest.approx([0.3, 0.0])
+  # the auxiliary weight held all run (`pretrain`'s dyn_aux_hold_fraction 1.0), on the moving pixels
+  assert [h["dyn_aux_weight"] for h in history] == pytest.approx([0.3, 0.3])
+  assert all(math.isfinite(h["motion"]) for h in history)
   for name in ("mean_dynamic", "median_dynamic", "median_tracked", "mean_static"):
     assert math.isfinite(payload["dynamic"][f"{name}_displacement_t0_t1"]), name
   for name in ("in_between_times.png", "static_dynamic.png", "scene_flow.png"):
