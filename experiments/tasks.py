@@ -45,7 +45,7 @@ class Task:
   """What differs between datasets: batches, held-out scenes, loss, methods, extra pictures.
 
   The default is the static chunked datasets (RE10K, DL3DV and the synthetic set); Kubric
-  overrides it (`experiments.kubric.KubricTask`).
+  overrides it (`experiments.kubric_task.KubricTask`).
   """
 
   name: str | None = None  # results title; default the experiment's dataset

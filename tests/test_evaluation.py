@@ -187,7 +187,7 @@ def test_evaluation_renders_each_method_with_its_objective(monkeypatch):
   the render on black plus (1 - alpha) x the batch's mean input colour), and the model methods
   of a run carry (and tune with) the run's objective."""
   from experiments import pixel_baseline
-  from experiments.kubric import KubricExperiment, KubricTask
+  from experiments.kubric_task import KubricExperiment, KubricTask
   from tokengs_jax import model, tuning
   from tokengs_jax.objective import ObjectiveConfig
 

@@ -656,9 +656,10 @@ def test_kubric_entry_point_end_to_end(tmp_path):
 
 def test_kubric_loss_is_the_official_release_scaled_to_the_run():
   from experiments import kubric
+  from experiments.kubric_task import KubricTask
 
   paper = kubric.PRESETS["paper"]
-  config = kubric.KubricTask().loss_config(paper)
+  config = KubricTask().loss_config(paper)
   assert (config.rgb_loss, config.lambda_rgb, config.lambda_ssim, config.lambda_vis) == (
     "l1",
     0.8,
@@ -674,16 +675,16 @@ def test_kubric_loss_is_the_official_release_scaled_to_the_run():
   ) == (0.3, 5_000, 10_000, 0.0)
   assert (config.lambda_motion, config.dyn_aux_on_motion) == (0.0, False)
   tiny = kubric.PRESETS["pretrain"]  # what trained the default's shipped weights
-  config = kubric.KubricTask().loss_config(tiny)
+  config = KubricTask().loss_config(tiny)
   # the default's deviations: moving pixels x5, the auxiliary term on them, held all run
   assert (config.lambda_motion, config.dyn_aux_on_motion) == (4.0, True)
   assert config.dyn_aux_hold_steps == tiny.train.steps
   assert config.dyn_aux_decay_steps == round(0.2 * tiny.train.steps)
   # token tuning's input views moved nowhere: the official auxiliary term
-  assert not kubric.KubricTask().tuning_loss_config(tiny).dyn_aux_on_motion
-  assert kubric.KubricTask().objective(tiny).decode_times == "first"
+  assert not KubricTask().tuning_loss_config(tiny).dyn_aux_on_motion
+  assert KubricTask().objective(tiny).decode_times == "first"
   mse = dataclasses.replace(tiny, rgb_loss="l2")
-  assert kubric.KubricTask().loss_config(mse).rgb_loss == "l2"
+  assert KubricTask().loss_config(mse).rgb_loss == "l2"
 
 
 def test_tick_labels_keep_significant_zeros():
@@ -838,11 +839,11 @@ def test_a_batch_that_does_not_split_evenly_across_processes_is_rejected(
   tmp_path, monkeypatch, entry_point
 ):
   """Both entry points split the global batch with one check, before any data is written."""
-  from experiments import kubric
+  from experiments.kubric_task import KubricTask
 
   monkeypatch.setattr(jax, "process_count", lambda: 3)
   if entry_point == "kubric":
-    task, experiment = kubric.KubricTask(), _tiny_kubric(tmp_path)
+    task, experiment = KubricTask(), _tiny_kubric(tmp_path)
   else:
     task, experiment = tasks.Task(), _small_smoke(tmp_path)
   experiment = dataclasses.replace(
@@ -859,9 +860,9 @@ def test_kubric_synthetic_subsets_are_published_whole_stamped_and_rewritten_when
 ):
   """Each subset goes through `data.ensure_generated_set`: reused under the same settings,
   written anew under others, never left half-written, and refused when it records none."""
-  from experiments import kubric
+  from experiments import kubric_task
 
-  task, experiment = kubric.KubricTask(), _tiny_kubric(tmp_path)
+  task, experiment = kubric_task.KubricTask(), _tiny_kubric(tmp_path)
   root = task.root(experiment)
   assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]  # no staging folder left
   assert sorted(p.name for p in root.iterdir()) == ["test", "v0"]
@@ -888,7 +889,7 @@ def test_kubric_synthetic_subsets_are_published_whole_stamped_and_rewritten_when
     raise RuntimeError("interrupted")
 
   shutil.rmtree(root / "v0")  # missing: the next call writes it
-  monkeypatch.setattr(kubric, "generate_kubric_like", interrupted)
+  monkeypatch.setattr(kubric_task, "generate_kubric_like", interrupted)
   with pytest.raises(RuntimeError, match="interrupted"):
     task.root(more)
   assert not (root / "v0").exists()  # the half-written subset was never published

@@ -12,6 +12,7 @@ import pytest
 
 from experiments import cli
 from experiments import kubric as kubric_experiment
+from experiments.kubric_task import KubricExperiment, KubricTask
 from experiments.config import SyntheticSettings
 from experiments.tasks import execute
 from tokengs_jax import scene_flow
@@ -30,7 +31,7 @@ H = W = 16
 CAMERAS, FRAMES = 3, 6
 
 
-def _experiment(root, **changes) -> kubric_experiment.KubricExperiment:
+def _experiment(root, **changes) -> KubricExperiment:
   """The tiny preset with 2 input views on 2 generated held-out scenes of 3 cameras x 6 frames at
   16x16."""
   tiny = kubric_experiment.PRESETS["synthetic-tiny"]
@@ -49,7 +50,7 @@ def _experiment(root, **changes) -> kubric_experiment.KubricExperiment:
 @pytest.fixture(scope="module")
 def data_root(tmp_path_factory):
   root = tmp_path_factory.mktemp("kubric_eval")
-  kubric_experiment.KubricTask().prepare(_experiment(root))
+  KubricTask().prepare(_experiment(root))
   return root
 
 
@@ -110,7 +111,7 @@ def _pairs(batch, side: str) -> set[tuple[int, float]]:
 
 def test_experiment_batches_never_score_an_input_view(data_root):
   experiment = _experiment(data_root)
-  task = kubric_experiment.KubricTask()
+  task = KubricTask()
   assert task.check_evaluation(experiment) is None
   examples = task.evaluation_scenes(experiment)
   assert [key for key, _ in examples] == ["scene_000000", "scene_000001"]
@@ -142,7 +143,7 @@ def test_index_views_are_read_as_camera_and_frame(data_root, tmp_path):
     "scene_000000": None,  # left out by the benchmark
   }
   experiment = _experiment(data_root, eval_index=_write_index(tmp_path / "index.json", entries))
-  task = kubric_experiment.KubricTask()
+  task = KubricTask()
   assert task.check_evaluation(experiment) == {
     "requested": 2,
     "evaluated": 1,
@@ -170,7 +171,7 @@ def test_the_cli_takes_an_index_and_a_bad_one_fails_before_any_work(data_root, t
   assert parsed.eval_index == path
   experiment = _experiment(data_root, eval_index=path)
   with pytest.raises(EvaluationIndexError, match="scene_000000' 'target'"):
-    execute("run", experiment, kubric_experiment.KubricTask())
+    execute("run", experiment, KubricTask())
   assert not (data_root / "results" / "params.msgpack").exists()  # nothing was trained
 
 
@@ -195,7 +196,7 @@ def test_the_cli_takes_an_index_and_a_bad_one_fails_before_any_work(data_root, t
 def test_index_entries_outside_the_data_are_errors(data_root, tmp_path, entries, message):
   experiment = _experiment(data_root, eval_index=_write_index(tmp_path / "index.json", entries))
   with pytest.raises(EvaluationIndexError, match=message):
-    kubric_experiment.KubricTask().check_evaluation(experiment)
+    KubricTask().check_evaluation(experiment)
 
 
 @pytest.mark.parametrize(

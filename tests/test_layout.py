@@ -45,7 +45,7 @@ NOT_EVALUATORS = {
   "tokengs_jax/train/loop.py:_MetricsLog.evaluation": "logs the scalars of the loop's eval_fn",
   "experiments/config.py:EvalSettings": "the evaluation's command-line settings",
   "experiments/tasks.py:Task.check_evaluation": "checks the index against the data, no scores",
-  "experiments/kubric.py:KubricTask.check_evaluation": "the same, for Kubric",
+  "experiments/kubric_task.py:KubricTask.check_evaluation": "the same, for Kubric",
   "experiments/tasks.py:run_eval": "the entry points' driver: scores with evaluation.evaluate_sets",
   "experiments/viewer/browser.py:_DevTools.evaluate": "Chrome DevTools' Runtime.evaluate (JS)",
 }

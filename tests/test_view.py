@@ -12,6 +12,7 @@ import pytest
 from PIL import Image
 
 from experiments import data, kubric, re10k, weights
+from experiments.kubric_task import KubricExperiment, KubricTask
 from experiments.viewer import browser, scenes
 from experiments.viewer import server as viewer_server
 from experiments.viewer.app import READY_TEXT, novel_target, vertical_fov
@@ -107,7 +108,7 @@ def test_experiment_round_trips_through_metrics_json(preset):
   fields = json.loads(json.dumps(dataclasses.asdict(preset), default=str))
   experiment, task = scenes.experiment_from_fields(fields)
   assert experiment == preset
-  assert isinstance(task, kubric.KubricTask) == isinstance(preset, kubric.KubricExperiment)
+  assert isinstance(task, KubricTask) == isinstance(preset, KubricExperiment)
   with pytest.raises(ValueError, match="no fields"):
     scenes.experiment_from_fields({**fields, "not_a_field": 1})
 

@@ -17,8 +17,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments import data, kubric, weights
+from experiments import data, weights
 from experiments.config import Experiment, from_fields
+from experiments.kubric_task import KubricExperiment, KubricTask
 from experiments.tasks import Task
 from tokengs_jax import evaluation, export, metrics
 from tokengs_jax.gaussians import Gaussians
@@ -153,7 +154,7 @@ def experiment_from_fields(fields: dict):
   Kubric-only ones (`KubricExperiment` extends `Experiment`)."""
   if set(fields) <= {f.name for f in dataclasses.fields(Experiment)}:
     return from_fields(Experiment, fields), Task()
-  return from_fields(kubric.KubricExperiment, fields), kubric.KubricTask()
+  return from_fields(KubricExperiment, fields), KubricTask()
 
 
 _MISSING_DATA = (

@@ -1,0 +1,376 @@
+"""What `python -m experiments.kubric` runs besides its presets: `KubricExperiment` (the
+settings: `Experiment` plus the Kubric view sampling, loss weights and synthetic rig) and
+`KubricTask` (Kubric data, generated when synthetic; the evaluated views, by index or the default
+protocol; the dynamic loss, the static-only baseline and the dynamic pictures). The presets and
+their description (`--help`) are the entry point's, `experiments/kubric.py`."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import pathlib
+from typing import Literal
+
+import numpy as np
+
+from experiments import data, dynamic_pictures, weights
+from experiments.config import Experiment
+from experiments.tasks import Task, TrainedBaseline
+from tokengs_jax import evaluation, losses, model
+from tokengs_jax.data import (
+  DATASET_PRESETS,
+  EvaluationIndexReport,
+  ExampleConfig,
+  InputPipeline,
+  make_example,
+)
+from tokengs_jax.data.kubric import (
+  KubricSceneSource,
+  default_evaluation_views,
+  evaluation_fields,
+  flat_views,
+  kubric_view_selector,
+  list_kubric_scenes,
+  load_kubric_evaluation_index,
+  validate_kubric_evaluation_index,
+)
+from tokengs_jax.data.synthetic import generate_kubric_like
+from tokengs_jax.data.synthetic.kubric_ood import FROZEN_SEED as OOD_SEED
+from tokengs_jax.data.synthetic.kubric_ood import generate_kubric_ood
+from tokengs_jax.objective import ObjectiveConfig
+
+# The held-out dynamic family's subset is also its test set's name in the results.
+TRAIN_SUBSET, TEST_SUBSET, OOD_SUBSET = "v0", "test", "ood_kubric"
+
+
+@dataclasses.dataclass(frozen=True)
+class KubricExperiment(Experiment):
+  """`Experiment` plus the Kubric view sampling and the synthetic rig.
+
+  Attributes:
+    num_cameras: cameras per scene: the synthetic rig's size, and the camera tars every scene
+      must have and is read from (`KubricSceneSource`; a scene with fewer is rejected). The
+      released Kubric-4D rig, and the official loader, have 9 (the `paper` preset).
+    min_gap / max_gap: frame span of an example's input views (official 3 / 23); the default
+      evaluation spreads its inputs over `max_gap` frames (at most the clip).
+    flow_times: times sampled for the scene-flow and in-between pictures.
+    flow_tracks: dynamic Gaussians drawn in the scene-flow plot (the most opaque ones).
+    rgb_loss: photometric term, "l1" (official release) or "l2" (MSE: PSNR's own criterion).
+    lambda_dyn_aux: base weight of the dynamic-only auxiliary loss (official release 0.3).
+    dyn_aux_hold_fraction / dyn_aux_decay_fraction: the auxiliary weight is held for this
+      fraction of `train.steps`, then decays linearly to 0 over the next (official 5k / 10k of 50k).
+    lambda_motion: the target pixels that moved weigh 1 + this (`losses.LossConfig`; 0: off).
+    dyn_aux_on_motion: the auxiliary loss scores the moving pixels only (False: all, official).
+    background: what every render of training, token tuning and evaluation composites behind the
+      Gaussians: "grey" (official `bg_color`, 0.5) or "input_mean" (each example's mean input
+      colour: targets from other cameras show regions no input saw; `ObjectiveConfig.background`).
+    normalization: the frame the cameras are expressed in: "mean_cam" (official Kubric: the
+      mean input camera) or "first_cam" (the first input camera, as RE10K: the frame of a static
+      base trained on RE10K-like data).
+  """
+
+  num_cameras: int = 4
+  min_gap: int = 3
+  max_gap: int = 23
+  flow_times: int = 8
+  flow_tracks: int = 48
+  rgb_loss: Literal["l1", "l2"] = "l1"
+  lambda_dyn_aux: float = 0.3
+  dyn_aux_hold_fraction: float = 0.1
+  dyn_aux_decay_fraction: float = 0.2
+  lambda_motion: float = 0.0
+  dyn_aux_on_motion: bool = False
+  background: Literal["grey", "input_mean"] = "grey"
+  normalization: Literal["mean_cam", "first_cam"] = "mean_cam"
+
+
+def kubric_example_config(experiment: KubricExperiment, *, training: bool) -> ExampleConfig:
+  """The official Kubric example preset (pointmap scale) at the experiment's image size and
+  camera normalisation; random flips only in training."""
+  return dataclasses.replace(
+    DATASET_PRESETS["kubric"],
+    image_shape=tuple(experiment.image_size),
+    normalization=experiment.normalization,
+    random_flip=training,
+    deterministic=not training,
+  )
+
+
+def kubric_views(experiment: KubricExperiment, num_targets: int):
+  """The official dynamic view selection (targets <= context views, as official)."""
+  return kubric_view_selector(
+    experiment.num_context_views, num_targets, experiment.min_gap, experiment.max_gap
+  )
+
+
+class KubricTask(Task):
+  """Kubric data (generated when synthetic), the dynamic loss and the dynamic pictures."""
+
+  name = "kubric"
+
+  def prepare(self, experiment: KubricExperiment) -> None:
+    self.root(experiment)
+
+  def root(self, experiment: KubricExperiment) -> pathlib.Path:
+    """The data root; synthetic: writes each subset (the training family's train / test, and
+    `synthetic.num_ood` scenes of the frozen held-out family,
+    `tokengs_jax.data.synthetic.kubric_ood`) that is missing or was written with other arguments
+    (`data.ensure_generated_set`: staged, stamped `<subset>/generator.json`)."""
+    if experiment.data_dir:
+      return pathlib.Path(experiment.data_dir)
+    root = pathlib.Path(experiment.synthetic_dir)
+    s = experiment.synthetic
+    generators = {
+      TRAIN_SUBSET: (generate_kubric_like, s.num_train, {"seed": experiment.seed}),
+      TEST_SUBSET: (generate_kubric_like, s.num_test, {"seed": experiment.seed + 1000}),
+      OOD_SUBSET: (generate_kubric_ood, s.num_ood, {}),  # its own frozen seed
+    }
+    height, width = experiment.image_size
+    for subset, (generate, count, seed_argument) in generators.items():
+      if count <= 0:
+        continue
+      arguments = {
+        "num_scenes": count,
+        "height": height,
+        "width": width,
+        "frames": s.frames,
+        "num_cameras": experiment.num_cameras,
+        **seed_argument,
+      }
+      data.ensure_generated_set(
+        root,
+        (subset,),
+        {"generator": generate.__name__, **arguments},
+        functools.partial(generate, subset=subset, workers=s.workers, **arguments),
+        stamp=f"{subset}/generator.json",
+        what=f"{count} synthetic Kubric scenes to {root / subset}",
+        replace_other_settings=True,
+      )
+    return root
+
+  def sources(self, experiment: KubricExperiment) -> tuple[KubricSceneSource, KubricSceneSource]:
+    """(training scenes, held-out scenes): the synthetic subsets, or with `--data-dir` the last
+    `eval.num_scenes` (default 16) scenes of the listing held out; with `--data-dir` and
+    `--eval-index`, every scene of the listing is searched for the index's keys and those the
+    index names are left out of training."""
+    root = self.root(experiment)
+    if not experiment.data_dir:
+      return (
+        KubricSceneSource(root, [TRAIN_SUBSET], num_cameras=experiment.num_cameras),
+        KubricSceneSource(root, [TEST_SUBSET], num_cameras=experiment.num_cameras),
+      )
+    scenes = list_kubric_scenes(root)
+    if experiment.eval_index:
+      named = set(load_kubric_evaluation_index(experiment.eval_index))
+      return (
+        KubricSceneSource(
+          scenes=[s for s in scenes if s.name not in named], num_cameras=experiment.num_cameras
+        ),
+        KubricSceneSource(scenes=scenes, num_cameras=experiment.num_cameras),
+      )
+    held_out = experiment.eval.num_scenes or 16
+    return (
+      KubricSceneSource(scenes=scenes[:-held_out], num_cameras=experiment.num_cameras),
+      KubricSceneSource(scenes=scenes[-held_out:], num_cameras=experiment.num_cameras),
+    )
+
+  def ood_source(self, experiment: KubricExperiment) -> KubricSceneSource | None:
+    """The first `synthetic.num_ood` scenes of the frozen held-out family; None for real data or
+    `synthetic.num_ood = 0`."""
+    if experiment.data_dir or experiment.synthetic.num_ood <= 0:
+      return None
+    scenes = list_kubric_scenes(self.root(experiment), [OOD_SUBSET])
+    return KubricSceneSource(
+      scenes=scenes[: experiment.synthetic.num_ood], num_cameras=experiment.num_cameras
+    )
+
+  def training_batches(self, experiment: KubricExperiment):
+    """This process's batches from the shared input pipeline: grain workers, and an iterator
+    state the checkpoints save, so a resumed run continues the data stream where it stopped."""
+    local = data.local_batch_size(experiment.train.batch_size)  # before any data is written
+    train, _ = self.sources(experiment)
+    pipeline = InputPipeline(
+      train,
+      kubric_example_config(experiment, training=True),
+      batch_size=local,
+      seed=experiment.seed,
+      num_workers=experiment.train.num_workers,
+      select_views=kubric_views(experiment, experiment.train.num_target_views),
+      skip_bad=bool(experiment.data_dir),
+    )
+    return pipeline
+
+  def test_sets(self, experiment: KubricExperiment) -> dict[str, list[evaluation.Scene]]:
+    """Its test split and, when synthetic, every scene of the held-out dynamic family
+    (`ood_kubric`; the default protocol's views, drawn with the family's frozen seed so they do
+    not follow `--seed`). The static galleries and courtyards are not scored: they do not move."""
+    sets = {"test": self.evaluation_scenes(experiment)}
+    ood = self.ood_source(experiment)
+    if ood is not None:
+      sets[OOD_SUBSET] = self._evaluation_scenes(
+        experiment, ood, self._default_views(experiment, ood, 0, OOD_SEED), OOD_SEED
+      )
+    return sets
+
+  def check_evaluation(self, experiment: KubricExperiment) -> dict | None:
+    """Chooses every evaluated scene's views (the held-out family's too) before any work, so a
+    bad `--eval-index` (or a clip too short for the default protocol) fails now; returns the
+    index report for metrics.json (None without an index)."""
+    _, report = self.evaluation_views(experiment)
+    ood = self.ood_source(experiment)
+    if ood is not None:
+      self._default_views(experiment, ood, 0, OOD_SEED)
+    return None if report is None else report.as_dict()
+
+  def evaluation_views(
+    self, experiment: KubricExperiment
+  ) -> tuple[list[tuple[int, tuple[np.ndarray, np.ndarray]]], EvaluationIndexReport | None]:
+    """(position in the held-out source, (context [Vc, 2], target [Vt, 2]) (camera, frame)
+    pairs) of each evaluated scene, at most `eval.num_scenes` (0: all), and the index's report
+    (None without `--eval-index`: the default protocol, drawn per scene from (seed, position))."""
+    _, test = self.sources(experiment)
+    limit = experiment.eval.num_scenes
+    if experiment.eval_index:
+      index = load_kubric_evaluation_index(experiment.eval_index)
+      report = validate_kubric_evaluation_index(
+        index, test, num_context=experiment.num_context_views, where=experiment.eval_index
+      )
+      position = {key: i for i, key in enumerate(test.keys)}
+      keys = report.matched[:limit] if limit > 0 else report.matched
+      return [(position[key], index[key]) for key in keys], report
+    return self._default_views(experiment, test, limit, experiment.seed), None
+
+  @staticmethod
+  def _default_views(
+    experiment: KubricExperiment, source: KubricSceneSource, limit: int, seed: int
+  ) -> list[tuple[int, tuple[np.ndarray, np.ndarray]]]:
+    """The default protocol's views of the first `limit` scenes of `source` (0: all), scene at
+    `position` drawn from `default_rng([seed, position])`."""
+    chosen = []
+    for position in range(min(len(source), limit) if limit > 0 else len(source)):
+      record = source[position]
+      views = default_evaluation_views(
+        record["num_cameras"],
+        record["num_frames"],
+        experiment.num_context_views,
+        experiment.eval.num_target_views,
+        experiment.max_gap,
+        np.random.default_rng([seed, position]),
+      )
+      chosen.append((position, views))
+    return chosen
+
+  def evaluation_scenes(self, experiment: KubricExperiment) -> list[tuple[str, dict]]:
+    """(key, batch of one) per evaluated scene of the test split (`_evaluation_scenes`)."""
+    _, test = self.sources(experiment)
+    return self._evaluation_scenes(
+      experiment, test, self.evaluation_views(experiment)[0], experiment.seed
+    )
+
+  @staticmethod
+  def _evaluation_scenes(
+    experiment: KubricExperiment,
+    source: KubricSceneSource,
+    chosen: list[tuple[int, tuple[np.ndarray, np.ndarray]]],
+    seed: int,
+  ) -> list[tuple[str, dict]]:
+    """(key, batch of one) per (position, views) of `chosen`; besides `make_example`'s fields the
+    batches carry `context_cameras` / `target_cameras` and `target_motion_masks`
+    (`evaluation_fields`)."""
+    config = kubric_example_config(experiment, training=False)
+    examples = []
+    for position, views in chosen:
+      record = source[position]
+      rng = np.random.default_rng([seed, position])
+      example = make_example(record, config, rng, views=flat_views(record, views))
+      example.update(evaluation_fields(record, views, config.image_shape))
+      examples.append((record["key"], {k: v[None] for k, v in example.items()}))
+    return examples
+
+  def methods(
+    self, experiment: KubricExperiment, params, include_untrained: bool
+  ) -> dict[str, evaluation.Method]:
+    """The common methods, the baselines of dynamic scenes (same camera, nearest time) among
+    the baselines."""
+    return {
+      **evaluation.baselines(dynamic=True),
+      **super().methods(experiment, params, include_untrained),
+    }
+
+  def trained_baselines(self, experiment: KubricExperiment) -> list[TrainedBaseline]:
+    """The common ones, and with `eval.static_baseline` the static-only model: every dynamic
+    token becomes a static one (the same Gaussian budget and input-time embedding), so its
+    Gaussians cannot depend on the target time."""
+    baselines = super().trained_baselines(experiment)
+    if not experiment.eval.static_baseline:
+      return baselines
+    config = experiment.model
+    static = config.replace(
+      num_gs_tokens=config.num_gs_tokens + config.num_dynamic_gs_tokens, num_dynamic_gs_tokens=0
+    )
+
+    def init_params(key):
+      # its own weights beside --checkpoint where a run saved them (`run pretrain` ships both),
+      # else from --checkpoint as the dynamic model, its dynamic tokens then fresh static ones
+      start = experiment.checkpoint and weights.beside(experiment.checkpoint, "static_only")
+      if start:
+        print(f"[static_only] starting from {start}", flush=True)
+        return weights.load_params(start)
+      return weights.initial_params(dataclasses.replace(experiment, model=static), finetune=False)
+
+    return baselines + [
+      TrainedBaseline(
+        "static_only",
+        init_params,
+        self.loss_fn(experiment, static),
+        lambda params: evaluation.feed_forward(params, static, self.objective(experiment)),
+      )
+    ]
+
+  def loss_config(self, experiment: KubricExperiment) -> losses.LossConfig:
+    """The official Kubric release loss, its auxiliary schedule scaled to `train.steps`."""
+    steps = experiment.train.steps
+    return losses.LossConfig(
+      rgb_loss=experiment.rgb_loss,
+      lambda_rgb=0.8,
+      lambda_ssim=0.2,
+      lambda_vis=1.0,
+      lambda_dyn_aux=experiment.lambda_dyn_aux,
+      lambda_motion=experiment.lambda_motion,
+      dyn_aux_on_motion=experiment.dyn_aux_on_motion,
+      lambda_coverage=experiment.train.lambda_coverage,
+      dyn_aux_hold_steps=round(experiment.dyn_aux_hold_fraction * steps),
+      dyn_aux_decay_steps=max(round(experiment.dyn_aux_decay_fraction * steps), 1),
+    )
+
+  def objective(self, experiment: KubricExperiment) -> ObjectiveConfig:
+    # every target view of a Kubric example shares one time: decode once (official)
+    objective = ObjectiveConfig(
+      view_chunk_size=experiment.train.view_chunk_size, decode_times="first"
+    )
+    if experiment.background == "input_mean":
+      return dataclasses.replace(objective, background="input_mean")
+    return objective
+
+  def loss_fn(self, experiment: KubricExperiment, config: model.ModelConfig):
+    if not config.time_embedding:
+      raise ValueError("Kubric training needs a time-conditioned model (time_embedding=True)")
+    return super().loss_fn(experiment, config)
+
+  def extra_visuals(
+    self, experiment: KubricExperiment, config, params, examples, writer, step
+  ) -> dict:
+    out = pathlib.Path(experiment.output_dir) / "dynamic"
+    return {
+      "dynamic": dynamic_pictures.write_pictures(
+        out,
+        params,
+        config,
+        examples[0],
+        experiment.flow_times,
+        experiment.flow_tracks,
+        writer,
+        step,
+      ),
+      "scene_flow": dynamic_pictures.scene_flow_report(out, params, config, examples),
+    }
