@@ -114,9 +114,9 @@ def main() -> None:
     "default's step budget.\n\n" + table + "\n![data scaling](data_scaling.png)\n"
   )
   sys.path.insert(0, str(REPO))
-  from experiments import plot
+  from experiments import figures
 
-  plot.line_plot(
+  figures.line_plot(
     docs / "data_scaling.png",
     {s: c for s, c in curves.items() if c[0]},
     title="Held-out margin over the best copy vs training scenes",

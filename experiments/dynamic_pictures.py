@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments import plot
+from experiments import figures
 from tokengs_jax import evaluation, export, scene_flow
 from tokengs_jax.camera import invert_rigid, project_points
 from tokengs_jax.gaussians import Gaussians
@@ -54,7 +54,7 @@ def write_pictures(
   )
   tracks = np.where((np.asarray(depth)[0] > 0)[:, None], np.asarray(uv)[0], np.nan)
   tracks = tracks.reshape(len(chosen), len(times), 2)
-  plot.trajectory_plot(
+  figures.trajectory_plot(
     out / "scene_flow.png", tracks, title=f"scene flow, {key}", background=renders[0]
   )
   motion = np.linalg.norm(dynamic[:, -1] - dynamic[:, 0], axis=-1)
@@ -137,7 +137,7 @@ def scene_flow_report(out: pathlib.Path, params, config, examples) -> dict:
   objects = [{"scene": s["scene"], **o} for s in scenes for o in s["objects"]]
   tracked = [o for o in objects if o["moving"] and o["relative_epe"] is not None]
   if scenes:  # data without motion truth has no error to draw
-    plot.scatter_plot(
+    figures.scatter_plot(
       out / "scene_flow_error.png",
       {
         "moving objects": (

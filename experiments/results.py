@@ -23,7 +23,7 @@ from collections.abc import Mapping, Sequence
 import jax
 import numpy as np
 
-from experiments import pictures
+from experiments import figures
 from experiments.config import EvalSettings
 from tokengs_jax import evaluation, export, splatting
 
@@ -188,9 +188,9 @@ def scene_grid(entry: dict, methods: Sequence[str]) -> np.ndarray:
   near_far = None
   if splatted:
     last = entry[splatted[-1]]
-    images, near_far = pictures.depth_row(list(last["depth"]), list(last["alpha"]))
+    images, near_far = figures.depth_row(list(last["depth"]), list(last["alpha"]))
     rows.append((f"depth ({splatted[-1]})", images))
-  return pictures.labelled_grid(rows, title=str(entry["key"]), depth_range=near_far)
+  return figures.labelled_grid(rows, title=str(entry["key"]), depth_range=near_far)
 
 
 def write_grids(
@@ -252,7 +252,7 @@ def write_flythrough(
   rgb = evaluation.render_targets(
     single, poses[None], intrinsics[None], height=height, width=width, render_config=render_config
   ).rgb
-  frames = [pictures.upscale(export.to_uint8(frame), 256) for frame in rgb[0]]
+  frames = [figures.upscale(export.to_uint8(frame), 256) for frame in rgb[0]]
   return [export.write_mp4(path, frames, fps=12)]
 
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from experiments import cli, data, pictures, plot, re10k, results, tasks
+from experiments import cli, data, figures, re10k, results, tasks
 from tokengs_jax import evaluation, export, model
 from tokengs_jax.gaussians import Gaussians
 
@@ -151,17 +151,17 @@ def test_scene_grid_is_readable_upscaled_labelled_with_a_depth_colour_bar():
   grid = results.scene_grid(entry, ["nearest_view", "trained"])
   # five rows (inputs, targets, two methods, depth) of 16-px views upscaled 8x to 128 px
   assert grid.dtype == np.uint8 and grid.shape[0] >= 5 * 128
-  no_labels = pictures.labelled_grid([("", [np.zeros((16, 16, 3))])])
-  labels = pictures.labelled_grid([("nearest_view", [np.zeros((16, 16, 3))])])
+  no_labels = figures.labelled_grid([("", [np.zeros((16, 16, 3))])])
+  labels = figures.labelled_grid([("nearest_view", [np.zeros((16, 16, 3))])])
   assert labels.shape[1] > no_labels.shape[1]  # the label column holds the text
   assert (labels[:, :40] < 128).any()  # dark text left of the cells
   # the depth row carries a colour bar: the ramp from near (top, t = 1) to far (bottom, t = 0)
   rows = [("depth", [export.colorize_depth(depth[0])])]
   assert (
-    pictures.labelled_grid(rows, depth_range=(1.0, 3.0)).shape[1]
-    > pictures.labelled_grid(rows).shape[1]
+    figures.labelled_grid(rows, depth_range=(1.0, 3.0)).shape[1]
+    > figures.labelled_grid(rows).shape[1]
   )
-  bar = np.asarray(pictures._colour_bar(128, (1.0, 3.0), pictures._font()))
+  bar = np.asarray(figures._colour_bar(128, (1.0, 3.0), figures._font()))
   np.testing.assert_array_equal(bar[0, 0], export.to_uint8(export.depth_ramp(1.0)))
   np.testing.assert_array_equal(bar[-1, 0], export.to_uint8(export.depth_ramp(0.0)))
 
@@ -384,14 +384,14 @@ def test_eval_from_run_takes_the_recorded_settings_and_flags_override_them(tmp_p
 
 def test_upscale_is_nearest_neighbour_to_at_least_the_minimum():
   image = np.arange(2 * 3 * 3).reshape(2, 3, 3).astype(np.uint8)
-  big = pictures.upscale(image, 128)
+  big = figures.upscale(image, 128)
   assert big.shape == (128, 192, 3)
   np.testing.assert_array_equal(big[::64, ::64], image)
-  assert pictures.upscale(np.zeros((200, 300, 3))).shape == (200, 300, 3)
+  assert figures.upscale(np.zeros((200, 300, 3))).shape == (200, 300, 3)
 
 
 def test_line_plot_draws_every_series(tmp_path):
-  path = plot.line_plot(
+  path = figures.line_plot(
     tmp_path / "p.png",
     {"a": ([1, 2, 4], [1.0, 2.0, 1.5]), "b": ([1, 2, 4], [0.5, float("nan"), 3.0])},
     title="t",
@@ -401,13 +401,13 @@ def test_line_plot_draws_every_series(tmp_path):
     dashed=("b",),
   )
   image = np.asarray(Image.open(path))
-  for color in plot.PALETTE[:2]:
+  for color in figures.PALETTE[:2]:
     assert np.any(np.all(image == np.array(color, np.uint8), axis=-1)), color
 
 
 def test_trajectory_plot_on_background(tmp_path):
   tracks = np.stack([np.linspace([2, 2], [20, 10], 5), np.linspace([30, 5], [5, 30], 5)])
-  path = plot.trajectory_plot(
+  path = figures.trajectory_plot(
     tmp_path / "t.png", tracks, title="flow", background=np.zeros((32, 32, 3)), size=64
   )
   assert Image.open(path).size == (64, 64)
@@ -689,8 +689,8 @@ def test_kubric_loss_is_the_official_release_scaled_to_the_run():
 
 def test_tick_labels_keep_significant_zeros():
   ticks = np.array([0.0, 10.0, 25.0, 50.0])
-  assert [plot._label(v, ticks) for v in ticks] == ["0", "10", "25", "50"]
-  assert plot._label(19.0, np.array([18.5, 19.0, 19.5])) == "19"
+  assert [figures._label(v, ticks) for v in ticks] == ["0", "10", "25", "50"]
+  assert figures._label(19.0, np.array([18.5, 19.0, 19.5])) == "19"
 
 
 def test_evaluation_scenes_read_a_list_format_index(tmp_path):

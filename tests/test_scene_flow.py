@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from experiments import plot
+from experiments import figures
 from tokengs_jax import scene_flow
 from tokengs_jax.data.synthetic.scenes import axis_angle, random_rotation
 from tokengs_jax.data.transforms import flip_horizontal, normalize_cameras
@@ -234,7 +234,7 @@ def test_a_scene_scores_gaussians_in_the_example_frame_against_the_world_truth()
 
 
 def test_the_error_figure_draws_each_object_and_the_stay_put_line(tmp_path):
-  path = plot.scatter_plot(
+  path = figures.scatter_plot(
     tmp_path / "error.png",
     {"moving objects": ([0.1, 0.2, float("nan")], [0.05, 0.3, 1.0])},
     title="t",
@@ -243,10 +243,10 @@ def test_the_error_figure_draws_each_object_and_the_stay_put_line(tmp_path):
     diagonal="Gaussians that stay put",
   )
   image = np.asarray(Image.open(path).convert("RGB"))
-  for color in (plot.PALETTE[0], (127, 127, 127)):
+  for color in (figures.PALETTE[0], (127, 127, 127)):
     assert np.all(image == np.array(color, np.uint8), axis=-1).sum() > 20, color
   # a marker per finite point and no line between them: two blobs of the series' colour
-  blue = np.all(image == np.array(plot.PALETTE[0], np.uint8), axis=-1)
+  blue = np.all(image == np.array(figures.PALETTE[0], np.uint8), axis=-1)
   blue[:, -170:] = False  # the legend
   rows = np.flatnonzero(blue.any(axis=1))
   assert np.ptp(rows) > 20 and blue.sum() < 2 * 60

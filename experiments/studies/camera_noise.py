@@ -19,7 +19,7 @@ import jax
 import numpy as np
 import tyro
 
-from experiments import data, pixel_baseline, plot, weights
+from experiments import data, figures, pixel_baseline, weights
 from experiments.studies import StudySettings, psnr_of, train, trained_tokengs, write_table
 from tokengs_jax import evaluation, process
 
@@ -117,7 +117,7 @@ def main(settings: CameraNoise) -> list[dict]:
       )
     ],
   )
-  plot.line_plot(
+  figures.line_plot(
     out / "camera_noise.png",
     curves,
     title="Camera noise robustness",

@@ -19,7 +19,7 @@ import pathlib
 import numpy as np
 import tyro
 
-from experiments import data, plot
+from experiments import data, figures
 from experiments.studies import StudySettings, psnr_of, trained_tokengs, write_table
 from tokengs_jax import evaluation, process
 from tokengs_jax.tuning import TuningConfig
@@ -110,14 +110,14 @@ def plot_curves(
 ) -> None:
   """`views.png` (PSNR vs input views) and `tuning_steps.png` (each target's curve, from the
   untuned 2-view score at step 0)."""
-  plot.line_plot(
+  figures.line_plot(
     out / "views.png",
     {"TokenGS (feed-forward)": _curve(view_rows)},
     title="Context extension",
     xlabel="input views",
     ylabel="PSNR (dB)",
   )
-  plot.line_plot(
+  figures.line_plot(
     out / "tuning_steps.png",
     {target: _curve([base, *rows]) for target, rows in by_target.items()},
     title="Test-time tuning",

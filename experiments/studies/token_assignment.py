@@ -22,7 +22,7 @@ import jax
 import numpy as np
 import tyro
 
-from experiments import data, pictures, plot, results
+from experiments import data, figures, results
 from experiments.studies import StudySettings, trained_tokengs, write_table
 from tokengs_jax import evaluation, export, process
 from tokengs_jax.gaussians import Gaussians
@@ -65,7 +65,7 @@ def scene_picture(gaussians: Gaussians, coloured: Gaussians, batch: dict) -> np.
       ).rgb[0]
     )
 
-  return pictures.labelled_grid(
+  return figures.labelled_grid(
     [
       ("inputs", list(batch["context_images"][0])),
       ("targets", list(batch["target_images"][0])),
@@ -117,7 +117,7 @@ def main(settings: TokenAssignment) -> list[dict]:
       )
     ],
   )
-  plot.line_plot(
+  figures.line_plot(
     out / "spread.png",
     {"tokens (sorted)": (np.arange(len(order)), mean_spread[order])},
     title="Spatial spread of each token's Gaussians / scene spread",

@@ -24,7 +24,7 @@ import jax
 import numpy as np
 import tyro
 
-from experiments import data, plot, weights
+from experiments import data, figures, weights
 from experiments.studies import StudySettings, psnr_of, train, trained_tokengs, write_table
 from tokengs_jax import evaluation, model, process
 from tokengs_jax.tuning import TuningConfig
@@ -104,7 +104,7 @@ def main(settings: TokenCount) -> list[dict]:
       (f"{len(examples)} held-out scenes; models: {how}; run time on {jax.devices()[0].platform}.")
     ],
   )
-  plot.line_plot(
+  figures.line_plot(
     out / "psnr_vs_tokens.png",
     psnr_curves,
     title="PSNR vs Gaussian tokens",
@@ -112,7 +112,7 @@ def main(settings: TokenCount) -> list[dict]:
     ylabel="PSNR (dB)",
     log_x=True,
   )
-  plot.line_plot(
+  figures.line_plot(
     out / "runtime_vs_psnr.png",
     runtime_curves,
     title="Run time vs PSNR",

@@ -19,7 +19,7 @@ import pathlib
 import numpy as np
 import tyro
 
-from experiments import data, plot
+from experiments import data, figures
 from experiments.studies import StudySettings, trained_tokengs, write_table
 from tokengs_jax import evaluation, process
 from tokengs_jax.tuning import TuningConfig
@@ -108,7 +108,7 @@ def main(settings: ViewExtrapolation) -> list[dict]:
       )
     ],
   )
-  plot.line_plot(
+  figures.line_plot(
     out / "view_extrapolation.png",
     curves,
     title="View extrapolation",

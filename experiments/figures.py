@@ -1,8 +1,7 @@
-"""Line, scatter and trajectory plots as PNG without matplotlib (PIL's ImageDraw + its bitmap font).
-
-matplotlib is not a dependency of the project; the studies only need labelled line and scatter
-charts and a 2-D trajectory picture, which PIL draws well enough.
-"""
+"""The figures the experiments write, drawn with PIL (matplotlib is not a dependency): picture
+grids a person can read (cells upscaled nearest to at least 128 px, labelled rows, a colour bar for
+depth rows; `labelled_grid`, returned as arrays) and charts written as PNG (`line_plot`,
+`scatter_plot`, `trajectory_plot`)."""
 
 from __future__ import annotations
 
@@ -14,6 +13,111 @@ from collections.abc import Sequence
 
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
+
+from tokengs_jax import export
+
+_BLACK, _WHITE = (0, 0, 0), (255, 255, 255)
+
+
+def _font(size: int | None = None):
+  """PIL's default font at `size` px (None: its default size, the charts' text)."""
+  return ImageFont.load_default(size=size)
+
+
+# ----------------------------------------------------------------------------------------------
+# Picture grids
+
+MIN_CELL = 128  # pixels of a cell's shorter side
+_GRID_TEXT_SIZE = 14
+_PAD = 4
+_BAR_WIDTH = 16
+
+
+def upscale(image: np.ndarray, min_size: int = MIN_CELL) -> np.ndarray:
+  """[H, W, C] repeated by the smallest integer factor that makes min(H, W) >= min_size."""
+  factor = max(1, math.ceil(min_size / min(image.shape[:2])))
+  return np.repeat(np.repeat(image, factor, axis=0), factor, axis=1)
+
+
+def depth_row(
+  depths: Sequence[np.ndarray], alphas: Sequence[np.ndarray | None]
+) -> tuple[list[np.ndarray], tuple[float, float] | None]:
+  """Depth maps [H, W, 1] coloured on one shared scale -> (images, (near, far) depth or None)."""
+  inverse_range = export.inverse_depth_range(depths, alphas)
+  images = [export.colorize_depth(d, a, inverse_range) for d, a in zip(depths, alphas)]
+  if inverse_range is None:
+    return images, None
+  lo, hi = inverse_range
+  return images, (1.0 / max(hi, 1e-12), 1.0 / max(lo, 1e-12))
+
+
+def _colour_bar(height: int, near_far: tuple[float, float], font) -> Image.Image:
+  """A vertical ramp (near at the top) with its depth values written beside it."""
+  t = np.linspace(1.0, 0.0, height)[:, None].repeat(_BAR_WIDTH, axis=1)
+  ramp = Image.fromarray(export.to_uint8(export.depth_ramp(t)))
+  labels = [f"near {near_far[0]:.2f}", f"far {near_far[1]:.2f}"]
+  text_width = max(int(font.getlength(label)) for label in labels)
+  bar = Image.new("RGB", (_BAR_WIDTH + _PAD + text_width, height), _WHITE)
+  bar.paste(ramp, (0, 0))
+  draw = ImageDraw.Draw(bar)
+  draw.text((_BAR_WIDTH + _PAD, 0), labels[0], fill=_BLACK, font=font)
+  draw.text((_BAR_WIDTH + _PAD, height), labels[1], fill=_BLACK, font=font, anchor="ls")
+  return bar
+
+
+def labelled_grid(
+  rows: Sequence[tuple[str, Sequence[np.ndarray]]],
+  *,
+  title: str = "",
+  depth_range: tuple[float, float] | None = None,
+  min_cell: int = MIN_CELL,
+) -> np.ndarray:
+  """Rows of images, each row named on its left; cells upscaled to at least `min_cell` px.
+
+  rows: (label, images [H, W, 3] floats in [0, 1] or uint8) per row.
+  depth_range: (near, far) depth of the rows labelled "depth ..." (`depth_row`): draws a colour
+    bar at the end of each such row.
+  Returns the picture, uint8 [H, W, 3].
+  """
+  font = _font(_GRID_TEXT_SIZE)
+  rows = [
+    (label, [upscale(export.to_uint8(img), min_cell) for img in images])
+    for label, images in rows
+    if len(images)
+  ]
+  label_width = max([int(font.getlength(label)) for label, _ in rows] + [0]) + 2 * _PAD
+  heights = [max(img.shape[0] for img in images) for _, images in rows]
+  bars = {
+    i: _colour_bar(heights[i], depth_range, font)
+    for i, (label, _) in enumerate(rows)
+    if depth_range is not None and label.startswith("depth")
+  }
+  widths = [
+    sum(img.shape[1] + _PAD for img in images) + (bars[i].width + _PAD if i in bars else 0)
+    for i, (_, images) in enumerate(rows)
+  ]
+  top = 24 if title else _PAD
+  canvas = Image.new(
+    "RGB", (label_width + max(widths) + _PAD, top + sum(h + _PAD for h in heights)), _WHITE
+  )
+  draw = ImageDraw.Draw(canvas)
+  if title:
+    draw.text((_PAD, _PAD), title, fill=_BLACK, font=font)
+  y = top
+  for i, ((label, images), height) in enumerate(zip(rows, heights)):
+    draw.text((_PAD, y + height // 2), label, fill=_BLACK, font=font, anchor="lm")
+    x = label_width
+    for img in images:
+      canvas.paste(Image.fromarray(img), (x, y))
+      x += img.shape[1] + _PAD
+    if i in bars:
+      canvas.paste(bars[i], (x, y))
+    y += height + _PAD
+  return np.asarray(canvas)
+
+
+# ----------------------------------------------------------------------------------------------
+# Charts
 
 # Tableau-like palette, distinguishable in print.
 PALETTE = (
@@ -139,20 +243,20 @@ def _draw_axes(draw, axes: _Axes, font) -> None:
   """The plot-area frame, horizontal grid lines with y labels, and x tick marks with labels."""
   width, height = axes.size
   (x_lo, x_hi), (y_lo, y_hi) = axes.x_range, axes.y_range
-  draw.rectangle([_LEFT, _TOP, width - _RIGHT, height - _BOTTOM], outline=(0, 0, 0))
+  draw.rectangle([_LEFT, _TOP, width - _RIGHT, height - _BOTTOM], outline=_BLACK)
   for tick in axes.y_ticks:
     if y_lo <= tick <= y_hi:
       v = axes.v(tick)
       draw.line([_LEFT - 4, v, width - _RIGHT, v], fill=(225, 225, 225))
-      draw.text((4, v - 5), _label(tick, axes.y_ticks), fill=(0, 0, 0), font=font)
+      draw.text((4, v - 5), _label(tick, axes.y_ticks), fill=_BLACK, font=font)
   for tick in axes.x_ticks:
     if axes.log_x or x_lo <= tick <= x_hi:
       u = axes.u(tick)
-      draw.line([u, height - _BOTTOM, u, height - _BOTTOM + 4], fill=(0, 0, 0))
+      draw.line([u, height - _BOTTOM, u, height - _BOTTOM + 4], fill=_BLACK)
       draw.text(
         (u - 8, height - _BOTTOM + 6),
         _label(tick, None if axes.log_x else np.asarray(axes.x_ticks)),
-        fill=(0, 0, 0),
+        fill=_BLACK,
         font=font,
       )
 
@@ -167,13 +271,13 @@ def _save(image: Image.Image, path) -> pathlib.Path:
 def _chart(axes: _Axes, *, title: str, xlabel: str, ylabel: str):
   """A white canvas with the axes and the texts drawn.  -> (image, draw, font)."""
   width, height = axes.size
-  image = Image.new("RGB", axes.size, "white")
+  image = Image.new("RGB", axes.size, _WHITE)
   draw = ImageDraw.Draw(image)
-  font = ImageFont.load_default()
+  font = _font()
   _draw_axes(draw, axes, font)
-  draw.text((_LEFT, 10), title, fill=(0, 0, 0), font=font)
-  draw.text(((width - 6 * len(xlabel)) // 2, height - 18), xlabel, fill=(0, 0, 0), font=font)
-  draw.text((4, _TOP - 16), ylabel, fill=(0, 0, 0), font=font)
+  draw.text((_LEFT, 10), title, fill=_BLACK, font=font)
+  draw.text(((width - 6 * len(xlabel)) // 2, height - 18), xlabel, fill=_BLACK, font=font)
+  draw.text((4, _TOP - 16), ylabel, fill=_BLACK, font=font)
   return image, draw, font
 
 
@@ -182,7 +286,7 @@ def _legend(draw, font, width: int, entries: Sequence[tuple[str, tuple]]) -> Non
   for row, (name, color) in enumerate(entries):
     y = _TOP + 6 + 14 * row
     draw.line([width - _RIGHT - 150, y + 5, width - _RIGHT - 130, y + 5], fill=color, width=3)
-    draw.text((width - _RIGHT - 125, y), name, fill=(0, 0, 0), font=font)
+    draw.text((width - _RIGHT - 125, y), name, fill=_BLACK, font=font)
 
 
 def line_plot(
@@ -286,7 +390,7 @@ def trajectory_plot(
     )
     points = trajectories * scale
   else:
-    image = Image.new("RGB", (size, size), "white")
+    image = Image.new("RGB", (size, size), _WHITE)
     finite = trajectories[np.isfinite(trajectories).all(-1)]
     lo, hi = (finite.min(0), finite.max(0)) if finite.size else (np.zeros(2), np.ones(2))
     span = max(float((hi - lo).max()), 1e-9)
@@ -302,5 +406,5 @@ def trajectory_plot(
     if np.isfinite(track[-1]).all():
       u, v = track[-1]
       draw.ellipse([u - 2, v - 2, u + 2, v + 2], fill=tuple(int(c) for c in color))
-  ImageDraw.Draw(image).text((4, 4), title, fill=(0, 0, 0), font=ImageFont.load_default())
+  ImageDraw.Draw(image).text((4, 4), title, fill=_BLACK, font=_font())
   return _save(image, path)
