@@ -126,11 +126,7 @@ def train(
   """
   mesh = make_mesh() if mesh is None else mesh
   optimizer = make_optimizer(optim_config)
-  replicated = NamedSharding(mesh, P())
-  init_state = jax.jit(
-    lambda p: create_train_state(p, optimizer, loop_config.seed), out_shardings=replicated
-  )
-  state = init_state(replicate(jax.device_get(params), mesh))
+  state = _initial_state(params, optimizer, mesh, loop_config.seed)
 
   checkpointer = _checkpointer(loop_config)
   # Leaving the blocks waits for a pending save and closes the manager, also on an error, and then
@@ -170,6 +166,14 @@ def train(
       if not is_last and (signum := stop_request.agreed()):
         _stop(signum, step, state, batches, log, checkpointer)
     return state, history
+
+
+def _initial_state(params, optimizer, mesh: Mesh, seed: int) -> TrainState:
+  """A fresh, replicated `TrainState` of `params`, built on the devices."""
+  init_state = jax.jit(
+    lambda p: create_train_state(p, optimizer, seed), out_shardings=NamedSharding(mesh, P())
+  )
+  return init_state(replicate(jax.device_get(params), mesh))
 
 
 def _save(checkpointer: Checkpointer, state: TrainState, batches, log: _MetricsLog, step: int):
