@@ -1,5 +1,5 @@
 """Training infrastructure on a toy regression model: schedules, decay mask, sharding,
-accumulation, precision, token expansion."""
+accumulation, precision, token expansion, Gaussian splitting."""
 
 import functools
 import math
@@ -22,6 +22,7 @@ from tokengs_jax.train import (
   make_optimizer,
   make_train_step,
   shard_batch,
+  split_gaussians,
   transplant_params,
 )
 from tokengs_jax.train.optim import beta1_schedule, weight_decay_mask
@@ -291,3 +292,39 @@ def test_transplant_grows_tokens_and_reports():
     params["gs_tokens_dynamic"], pretrained["gs_tokens"][np.array([0, 1, 2, 3, 0, 1])]
   )
   assert "gs_tokens_dynamic: from static gs_tokens" in report
+
+
+def test_split_gaussians_copies_each_parent_and_refuses_non_multiples():
+  kernel = jax.random.normal(jax.random.PRNGKey(0), (5, 2 * 3))
+  split = np.asarray(split_gaussians(jax.random.PRNGKey(1), kernel, 3, 6, noise_std=0.01))
+  parents = np.asarray(kernel).reshape(5, 2, 3)
+  children = split.reshape(5, 6, 3)
+  np.testing.assert_allclose(children, np.repeat(parents, 3, axis=1), atol=0.01 * 6)
+  assert (children[:, 0] != children[:, 1]).any()  # noise parts identical children
+  bias = jnp.arange(6.0)
+  np.testing.assert_array_equal(
+    split_gaussians(jax.random.PRNGKey(1), bias, 3, 4), [0, 1, 2] * 2 + [3, 4, 5] * 2
+  )
+  with pytest.raises(ValueError, match="cannot split 2"):
+    split_gaussians(jax.random.PRNGKey(1), kernel, 3, 5)
+
+
+def test_transplant_splits_the_head_into_more_gaussians_per_token():
+  """A head grown from 4 to 16 Gaussians per token decodes each pretrained Gaussian 4 times."""
+  from scenes import MICRO, micro_params
+
+  from tokengs_jax import model
+
+  grown_config = MICRO.replace(dec_patch_size=4)
+  fresh = model.init_params(jax.random.key(3), grown_config)
+  params, report = transplant_params(jax.random.key(0), micro_params(), fresh, noise_std=0.0)
+  assert sorted(r for r in report if "deconv" in r) == [
+    "activation_head/deconv/bias: Gaussians per token 4 -> 16 (split)",
+    "activation_head/deconv/kernel: Gaussians per token 4 -> 16 (split)",
+  ]
+  images = jax.random.normal(jax.random.key(4), (1, MICRO.num_input_views, 16, 16, 3))
+  plucker = jax.random.normal(jax.random.key(5), (1, MICRO.num_input_views, 16, 16, 6))
+  before = model.predict_gaussians(micro_params(), images, plucker, MICRO)
+  after = model.predict_gaussians(params, images, plucker, grown_config)
+  assert after.shape[1] == 4 * before.shape[1]
+  np.testing.assert_allclose(after, np.repeat(np.asarray(before), 4, axis=1), atol=1e-5)

@@ -12,7 +12,12 @@ from tokengs_jax.train.loop import LoopConfig, NonFiniteError, TrainingStopped, 
 from tokengs_jax.train.optim import OptimConfig, learning_rate_schedule, make_optimizer
 from tokengs_jax.train.state import TrainState, create_train_state
 from tokengs_jax.train.step import Precision, make_train_step, train_step_fn
-from tokengs_jax.train.tokens import dynamic_tokens_from_static, expand_tokens, transplant_params
+from tokengs_jax.train.tokens import (
+  dynamic_tokens_from_static,
+  expand_tokens,
+  split_gaussians,
+  transplant_params,
+)
 
 __all__ = [
   "CheckpointWriteError",
@@ -36,5 +41,6 @@ __all__ = [
   "shard_batch",
   "train",
   "train_step_fn",
+  "split_gaussians",
   "transplant_params",
 ]

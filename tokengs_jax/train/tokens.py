@@ -1,10 +1,14 @@
-"""Growing token tables for finetuning (1024 -> 4096 Gaussian tokens; dynamic from static).
+"""Growing a pretrained model for finetuning: more tokens, dynamic from static, more Gaussians.
 
 As the official finetuning initialisation (`init_tokens_from_existing`, and the same rule for the
 scene latents, `init_latents_from_existing`): the first rows of a larger table are the pretrained
 tokens, the extra rows are pretrained tokens taken cyclically plus N(0, noise_std^2) noise; a
 smaller table takes evenly spaced rows. Dynamic tokens start as cyclic copies of the static
 tokens without noise (a random subset when fewer).
+
+Not in the official code: a head that decodes r times more Gaussians per token (a larger
+`dec_patch_size`) starts with each pretrained Gaussian split into r children: the parent's
+readout columns plus noise, so the children begin where the parent was and part under training.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from tokengs_jax.model.head import RAW_CHANNELS
 from tokengs_jax.train.optim import path_name
 
 
@@ -52,6 +57,37 @@ def dynamic_tokens_from_static(
   return static_tokens[jax.random.permutation(key, count)[:num_dynamic]]
 
 
+HEAD_NAMES = ("activation_head/deconv/kernel", "activation_head/deconv/bias")
+
+
+def split_gaussians(
+  key: jax.Array, readout: jax.Array, channels: int, count: int, noise_std: float = 0.01
+) -> jax.Array:
+  """A head readout for `count` Gaussians per token from one for fewer: each parent split evenly.
+
+  Args:
+    key: PRNG key for the noise.
+    readout: `[..., G * channels]` pretrained kernel `[C, G * channels]` or bias `[G * channels]`,
+      Gaussian `k`'s channels at columns `k * channels ... (k + 1) * channels - 1`.
+    channels: raw channels per Gaussian (14).
+    count: Gaussians per token of the new head, a multiple of `G`.
+    noise_std: noise std relative to the readout's own std, on the children's kernel columns
+      (none on a bias): identical children would receive identical gradients forever.
+
+  Returns:
+    `[..., count * channels]`: new Gaussian `n` is a copy of parent `n // (count // G)`.
+  """
+  parents = readout.shape[-1] // channels
+  if count % parents:
+    raise ValueError(f"cannot split {parents} Gaussians per token into {count}")
+  blocks = readout.reshape(*readout.shape[:-1], parents, channels)
+  children = jnp.repeat(blocks, count // parents, axis=-2).reshape(*readout.shape[:-1], -1)
+  if readout.ndim == 1:
+    return children
+  scale = noise_std * jnp.std(readout)
+  return children + scale * jax.random.normal(key, children.shape, readout.dtype)
+
+
 def transplant_params(
   key: jax.Array,
   pretrained,
@@ -64,7 +100,9 @@ def transplant_params(
 
   Leaves present in both with equal shapes are copied; a leaf whose path has a component starting
   with one of `token_names` (the Gaussian tokens, static and dynamic, and the scene latents) and
-  whose row count differs is resized with `expand_tokens`; anything else keeps its fresh
+  whose row count differs is resized with `expand_tokens`; the Gaussian head's readout, when the
+  model decodes a multiple of the pretrained Gaussians per token, with `split_gaussians`; anything
+  else keeps its fresh
   initialisation and is reported. With `dynamic_from_static`, a `gs_tokens_dynamic` table that the
   pretrained (static) model lacks starts from its `gs_tokens` (`dynamic_tokens_from_static`), as
   the official `init_dynamic_tokens_from_static`. `pretrained` may be partial, e.g. an official
@@ -101,6 +139,17 @@ def transplant_params(
       return expand_tokens(
         jax.random.fold_in(key, len(report)), jnp.asarray(old, leaf.dtype), leaf.shape[0], noise_std
       )
+    if old is not None and name.endswith(HEAD_NAMES) and old.shape[:-1] == leaf.shape[:-1]:
+      parents, count = old.shape[-1] // RAW_CHANNELS, leaf.shape[-1] // RAW_CHANNELS
+      if count % parents == 0:
+        report.append(f"{name}: Gaussians per token {parents} -> {count} (split)")
+        return split_gaussians(
+          jax.random.fold_in(key, len(report)),
+          jnp.asarray(old, leaf.dtype),
+          RAW_CHANNELS,
+          count,
+          noise_std,
+        )
     report.append(f"{name}: kept fresh ({'missing' if old is None else f'shape {old.shape}'})")
     return leaf
 
