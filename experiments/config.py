@@ -80,10 +80,21 @@ class TrainSettings:
       `lambda_opacity`: mean -log(opacity)); 0: off, as every official preset.
     use_input_supervision: also score the input views in the training loss (official
       `use_input_supervision`; `ObjectiveConfig.use_input_supervision`); off, as official.
+    grad_accum_steps: micro-batches per optimiser step (gradient accumulation): each
+      step's `batch_size` examples are run as this many equal micro-batches one after
+      another and their gradients averaged before one clipped AdamW update (`OptimConfig.
+      accumulation_steps`), so a batch too big for the devices' memory trains as it would whole.
+      `steps`, the schedules and the log / checkpoint / evaluation periods stay in optimiser
+      steps. `batch_size` must divide by it (and each process's micro-batch by its devices).
+    eval_every: every this many steps, score the trained model feed-forward (no token tuning,
+      no LPIPS) on the first `eval_scenes` scenes of the test split and log the means as
+      "eval/psnr", "eval/ssim", ... (training history and TensorBoard); 0: never (default).
+    eval_scenes: held-out scenes of that periodic evaluation.
 
-  Bad loss settings (a negative or non-finite weight, an unknown `rgb_loss`) raise ValueError
-  on construction (`losses.LossConfig`'s checks), so the command line refuses them before any
-  work.
+  Bad settings (a negative or non-finite loss weight, an unknown `rgb_loss`, a batch that does
+  not split into `grad_accum_steps` micro-batches, a negative period) raise ValueError on
+  construction (`losses.LossConfig`'s checks for the loss), so the command line refuses them
+  before any work.
   """
 
   steps: int = 1500
@@ -106,9 +117,23 @@ class TrainSettings:
   lambda_ssim: float = 0.2
   lambda_opacity: float = 0.0
   use_input_supervision: bool = False
+  grad_accum_steps: int = 1
+  eval_every: int = 0
+  eval_scenes: int = 2
 
   def __post_init__(self):
     self.loss_config()  # its checks, at parse time
+    if self.grad_accum_steps < 1:
+      raise ValueError(f"grad_accum_steps must be >= 1, got {self.grad_accum_steps}")
+    if self.batch_size % self.grad_accum_steps:
+      raise ValueError(
+        f"batch_size {self.batch_size} does not split into grad_accum_steps "
+        f"{self.grad_accum_steps} equal micro-batches"
+      )
+    if self.eval_every < 0 or self.eval_scenes < 1:
+      raise ValueError(
+        f"eval_every must be >= 0 and eval_scenes >= 1, got {self.eval_every}, {self.eval_scenes}"
+      )
 
   def loss_config(self):
     """The training loss (`losses.LossConfig`): these weights, the library's defaults (official
@@ -264,7 +289,7 @@ class Experiment:
 
 
 def optim_config(experiment: Experiment):
-  """The library optimiser settings of `experiment.train`."""
+  """The library optimiser settings of `experiment.train` (its steps: optimiser updates)."""
   from tokengs_jax.train import OptimConfig
 
   t = experiment.train
@@ -273,13 +298,17 @@ def optim_config(experiment: Experiment):
     schedule=t.schedule,
     total_steps=t.steps,
     warmup_steps=min(t.warmup_steps, max(t.steps - 1, 0)),
+    accumulation_steps=t.grad_accum_steps,
   )
 
 
 def from_fields(cls, fields: dict):
   """A (nested, frozen) settings dataclass from its `dataclasses.asdict` JSON, as metrics.json
   records an experiment (lists back to tuples); fields it lacks keep their defaults (a record
-  older than a setting). ValueError naming the fields `cls` does not have."""
+  older than a setting; a class's `upgrade_record(fields)`, where it has one, first rewrites the
+  record of a setting that has moved). ValueError naming the fields `cls` does not have."""
+  if hasattr(cls, "upgrade_record"):
+    fields = cls.upgrade_record(fields)
   default = cls()
   unknown = set(fields) - {f.name for f in dataclasses.fields(cls)}
   if unknown:

@@ -52,7 +52,10 @@ Training uses the library's dynamic objective (`tokengs_loss_fn` of a time-condi
 with the official Kubric release weights (`finetune_dl3dv_kubric_dyn_release`): L1 x 0.8 + SSIM
 x 0.2 + visibility x 1, and the dynamic-only auxiliary loss at 0.3, held for the first 10% of the
 steps and decayed linearly to 0 over the next 20% (official 5k hold / 10k decay of 50k steps;
-`pretrain` changes it, above).
+`pretrain` changes it, above). The common loss flags change it as on the static entry points
+(`--train.rgb-loss l2`, `--train.lambda-ssim`, `--train.lambda-lpips`, `--train.lambda-coverage`,
+`--train.lambda-opacity`, `--train.use-input-supervision`); the dynamic terms are top-level flags
+(`--lambda-dyn-aux`, `--lambda-motion`, `--dyn-aux-hold-fraction`, ...).
 One decode per example at the targets' time (`decode_times="first"`, official). Token tuning
 (`trained+token_tuning`) tunes on the input views at their own times with the same loss (the
 auxiliary term at its base weight, as the official tuning) and renders the targets at theirs.
@@ -66,6 +69,7 @@ from experiments.cli import main
 from experiments.config import (
   PRETRAINED_KUBRIC,
   PRETRAINED_SYNTHETIC,
+  SSIM_LOSS,
   SYNTHETIC_MODEL,
   EvalSettings,
   SyntheticSettings,
@@ -88,7 +92,12 @@ _PRETRAIN = KubricExperiment(
   min_gap=3,
   max_gap=8,
   train=TrainSettings(
-    steps=1200, batch_size=4, num_target_views=2, learning_rate=3e-4, warmup_steps=100
+    steps=1200,
+    batch_size=4,
+    num_target_views=2,
+    learning_rate=3e-4,
+    warmup_steps=100,
+    **SSIM_LOSS,  # the official Kubric release's photometric terms
   ),
   eval=EvalSettings(
     num_scenes=4,
@@ -126,6 +135,7 @@ PRESETS = {
       warmup_steps=400,
       log_every=50,
       checkpoint_every=5_000,
+      **SSIM_LOSS,
     ),
     eval=EvalSettings(num_scenes=16, num_target_views=4, grid_scenes=8, video_frames=96),
   ),

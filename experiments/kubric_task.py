@@ -14,7 +14,7 @@ from typing import Literal
 import numpy as np
 
 from experiments import data, dynamic_pictures, weights
-from experiments.config import Experiment
+from experiments.config import SSIM_LOSS, Experiment, TrainSettings
 from experiments.tasks import Task, TrainedBaseline
 from tokengs_jax import evaluation, losses, model
 from tokengs_jax.data import (
@@ -41,6 +41,8 @@ from tokengs_jax.objective import ObjectiveConfig
 
 # The held-out dynamic family's subset is also its test set's name in the results.
 TRAIN_SUBSET, TEST_SUBSET, OOD_SUBSET = "v0", "test", "ood_kubric"
+# Training settings whose loss terms are the official Kubric release's (L1 x 0.8 + SSIM x 0.2).
+KUBRIC_TRAIN = TrainSettings(**SSIM_LOSS)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,7 +57,10 @@ class KubricExperiment(Experiment):
       evaluation spreads its inputs over `max_gap` frames (at most the clip).
     flow_times: times sampled for the scene-flow and in-between pictures.
     flow_tracks: dynamic Gaussians drawn in the scene-flow plot (the most opaque ones).
-    rgb_loss: photometric term, "l1" (official release) or "l2" (MSE: PSNR's own criterion).
+    train: as `Experiment`'s, its loss terms (`--train.rgb-loss`, `--train.lambda-ssim`, ...)
+      the official Kubric release's by default (`SSIM_LOSS`: L1 x 0.8 + SSIM x 0.2); the
+      dynamic terms are the fields below. `train.lambda_depth` must stay 0: Kubric examples
+      carry no true depth.
     lambda_dyn_aux: base weight of the dynamic-only auxiliary loss (official release 0.3).
     dyn_aux_hold_fraction / dyn_aux_decay_fraction: the auxiliary weight is held for this
       fraction of `train.steps`, then decays linearly to 0 over the next (official 5k / 10k of 50k).
@@ -74,7 +79,7 @@ class KubricExperiment(Experiment):
   max_gap: int = 23
   flow_times: int = 8
   flow_tracks: int = 48
-  rgb_loss: Literal["l1", "l2"] = "l1"
+  train: TrainSettings = KUBRIC_TRAIN
   lambda_dyn_aux: float = 0.3
   dyn_aux_hold_fraction: float = 0.1
   dyn_aux_decay_fraction: float = 0.2
@@ -82,6 +87,25 @@ class KubricExperiment(Experiment):
   dyn_aux_on_motion: bool = False
   background: Literal["grey", "input_mean"] = "grey"
   normalization: Literal["mean_cam", "first_cam"] = "mean_cam"
+
+  def __post_init__(self):
+    if self.train.lambda_depth > 0:
+      raise ValueError(
+        "train.lambda_depth must be 0 on Kubric: its examples carry no true depth to supervise"
+      )
+    KubricTask().loss_config(self)  # the dynamic terms' checks, at parse time
+
+  @staticmethod
+  def upgrade_record(fields: dict) -> dict:
+    """A run recorded before the loss terms moved to `train` (a top-level `rgb_loss`; `train`'s
+    photometric, SSIM, LPIPS, depth and opacity weights then unused): the loss it trained with,
+    in `train`."""
+    if "rgb_loss" not in fields:
+      return fields
+    fields = dict(fields)
+    used = {**SSIM_LOSS, "rgb_loss": fields.pop("rgb_loss"), "lambda_depth": 0.0}
+    fields["train"] = {**fields.get("train", {}), **used, "lambda_opacity": 0.0}
+    return fields
 
 
 def kubric_example_config(experiment: KubricExperiment, *, training: bool) -> ExampleConfig:
@@ -328,17 +352,17 @@ class KubricTask(Task):
     ]
 
   def loss_config(self, experiment: KubricExperiment) -> losses.LossConfig:
-    """The official Kubric release loss, its auxiliary schedule scaled to `train.steps`."""
+    """The common terms of `experiment.train` (`TrainSettings.loss_config`: photometric, SSIM,
+    LPIPS, coverage, opacity; the official release's L1 x 0.8 + SSIM x 0.2 in every preset) plus
+    the dynamic ones: visibility x 1 and the auxiliary loss, its schedule scaled to
+    `train.steps`."""
     steps = experiment.train.steps
-    return losses.LossConfig(
-      rgb_loss=experiment.rgb_loss,
-      lambda_rgb=0.8,
-      lambda_ssim=0.2,
+    return dataclasses.replace(
+      experiment.train.loss_config(),
       lambda_vis=1.0,
       lambda_dyn_aux=experiment.lambda_dyn_aux,
       lambda_motion=experiment.lambda_motion,
       dyn_aux_on_motion=experiment.dyn_aux_on_motion,
-      lambda_coverage=experiment.train.lambda_coverage,
       dyn_aux_hold_steps=round(experiment.dyn_aux_hold_fraction * steps),
       dyn_aux_decay_steps=max(round(experiment.dyn_aux_decay_fraction * steps), 1),
     )
@@ -346,7 +370,9 @@ class KubricTask(Task):
   def objective(self, experiment: KubricExperiment) -> ObjectiveConfig:
     # every target view of a Kubric example shares one time: decode once (official)
     objective = ObjectiveConfig(
-      view_chunk_size=experiment.train.view_chunk_size, decode_times="first"
+      view_chunk_size=experiment.train.view_chunk_size,
+      decode_times="first",
+      use_input_supervision=experiment.train.use_input_supervision,
     )
     if experiment.background == "input_mean":
       return dataclasses.replace(objective, background="input_mean")

@@ -291,9 +291,15 @@ def _train(experiment: Experiment, task: Task, command: Command, writer, info: d
     flush=True,
   )
   pipeline = task.training_batches(experiment)
+  # `train.eval_every`: the model's feed-forward score on the first test scenes, during training
+  evaluate = training.held_out_metrics(
+    experiment,
+    lambda: task.evaluation_scenes(experiment),
+    lambda trained: evaluation.feed_forward(trained, config, task.objective(experiment)),
+  )
   # The loop's history covers the whole run, resumed or not: the checkpoints carry its log.
   params, history, seconds = training.train_model(
-    experiment, params, task.loss_fn(experiment, config), iter(pipeline), writer
+    experiment, params, task.loss_fn(experiment, config), iter(pipeline), writer, evaluate
   )
   rejected = pipeline.rejection_summary()
   print(f"[data] training data rejected:\n{rejected}", flush=True)

@@ -1,11 +1,15 @@
-"""Training an experiment's model with the library loop, with a progress bar and TensorBoard."""
+"""Training an experiment's model with the library loop, with a progress bar and TensorBoard,
+gradient accumulation (`train.grad_accum_steps`) and a periodic held-out score
+(`train.eval_every`)."""
 
 from __future__ import annotations
 
 import pathlib
 import time
+from collections.abc import Callable, Sequence
 
 import jax
+import numpy as np
 
 from experiments.config import Experiment, optim_config
 
@@ -13,9 +17,10 @@ from experiments.config import Experiment, optim_config
 class _TrainLogger:
   """The loop's `log_fn`: a tqdm progress bar plus TensorBoard scalars."""
 
-  def __init__(self, total_steps: int, writer, start_step: int = 0):
+  def __init__(self, total_steps: int, writer, start_step: int = 0, micro_steps: int = 1):
     from tqdm.auto import tqdm
 
+    self.micro_steps = micro_steps  # loop steps per optimiser step: logged in optimiser steps
     self.bar = tqdm(
       total=total_steps,
       initial=start_step,
@@ -27,8 +32,10 @@ class _TrainLogger:
     self.writer = writer
 
   def __call__(self, step: int, logged: dict) -> None:
+    logged = in_optimiser_steps({**logged, "step": step}, self.micro_steps)
+    step = logged.pop("step")
     for name, value in logged.items():
-      if name != "step" and self.writer is not None:
+      if self.writer is not None:
         self.writer.add_scalar(name if "/" in name else f"train/{name}", value, step)
     if "loss" in logged:
       self.bar.update(step - self.bar.n)
@@ -38,37 +45,149 @@ class _TrainLogger:
     self.bar.close()
 
 
+def in_optimiser_steps(entry: dict, micro_steps: int) -> dict:
+  """A loop log entry (its "step", "steps_per_s" in loop steps) in optimiser steps, each
+  `micro_steps` loop steps (`train.grad_accum_steps`)."""
+  entry = {**entry, "step": entry["step"] // micro_steps}
+  if "steps_per_s" in entry:
+    entry["steps_per_s"] /= micro_steps
+  return entry
+
+
+class _MicroBatches:
+  """Each batch of `batches` as `count` equal micro-batches along the batch axis, in turn.
+
+  Its state (what the loop checkpoints) is the wrapped iterator's before the batch being split
+  plus the micro-batches of it already given, so a run stopped between two micro-batches resumes
+  at the next one.
+  """
+
+  def __init__(self, batches, count: int):
+    self.batches, self.count = batches, count
+    self.pieces, self.given, self.before = [], 0, self._inner_state()
+
+  def _inner_state(self):
+    return self.batches.get_state() if hasattr(self.batches, "get_state") else None
+
+  def __iter__(self):
+    return self
+
+  def __next__(self) -> dict:
+    if self.given == len(self.pieces):
+      self.before = self._inner_state()
+      batch = {name: np.asarray(value) for name, value in next(self.batches).items()}
+      size = len(next(iter(batch.values())))
+      if size % self.count:
+        raise ValueError(
+          f"this process's batch of {size} examples does not split into grad_accum_steps "
+          f"{self.count} equal micro-batches"
+        )
+      parts = {name: np.split(value, self.count) for name, value in batch.items()}
+      self.pieces = [{name: part[i] for name, part in parts.items()} for i in range(self.count)]
+      self.given = 0
+    self.given += 1
+    return self.pieces[self.given - 1]
+
+  def get_state(self):
+    if self.given == len(self.pieces):  # between two batches
+      return {"batches": self._inner_state(), "given": 0}
+    return {"batches": self.before, "given": self.given}
+
+  def set_state(self, state) -> None:
+    if state["batches"] is not None:
+      self.batches.set_state(state["batches"])
+    self.pieces, self.given = [], 0
+    for _ in range(state["given"]):  # the micro-batches already trained on
+      next(self)
+
+
+def held_out_metrics(
+  experiment: Experiment, scenes: Callable[[], Sequence], method: Callable
+) -> Callable[[dict], dict] | None:
+  """The periodic score of `train.eval_every` (None when 0): `params -> {"psnr", "ssim", ...}`,
+  the means over the first `train.eval_scenes` of `scenes()` (the test split's (key, batch)
+  pairs) of `method(params)` (an `evaluation.Method`), scored as the final evaluation scores
+  (`evaluation.evaluate`) without LPIPS."""
+  from tokengs_jax import evaluation
+
+  if experiment.train.eval_every <= 0:
+    return None
+  chosen = list(scenes())[: experiment.train.eval_scenes]
+  scorer = evaluation.Scorer(lpips=False)
+
+  def metrics(params) -> dict:
+    scored = evaluation.evaluate(chosen, {"model": method(params)}, scorer)
+    return scored.scores["model"].summary()
+
+  return metrics
+
+
+def _loop_config(experiment: Experiment):
+  """The library loop's settings: its steps are micro-steps (`grad_accum_steps` per optimiser
+  step), so every period is scaled to fall on an optimiser step."""
+  from tokengs_jax.train import LoopConfig
+
+  t, micro = experiment.train, experiment.train.grad_accum_steps
+  return LoopConfig(
+    total_steps=t.steps * micro,
+    seed=experiment.seed,
+    log_every=t.log_every * micro,
+    checkpoint_every=t.checkpoint_every * micro,
+    eval_every=t.eval_every * micro,
+    checkpoint_dir=str((pathlib.Path(experiment.output_dir) / "checkpoints").resolve()),
+    async_checkpoint=False,
+  )
+
+
+def _accumulated(loss_fn, batches, micro: int):
+  """(loss_fn, batches) for `micro` micro-steps per optimiser step: the loss sees the optimiser
+  step (its step-scheduled terms keep their schedule), the batches come in micro-batches."""
+  if micro == 1:
+    return loss_fn, batches
+
+  def micro_loss_fn(params, batch, key, step):
+    return loss_fn(params, batch, key, step // micro)
+
+  return micro_loss_fn, _MicroBatches(batches, micro)
+
+
 def train_model(
-  experiment: Experiment, params, loss_fn, batches, writer=None
+  experiment: Experiment, params, loss_fn, batches, writer=None, evaluate=None
 ) -> tuple[dict, list[dict], float]:
   """Trains with the library loop (sharded over every device); returns (params, history, seconds).
   With `train.steps == 0` the starting weights come back unchanged (`run` then evaluates them).
   SIGTERM/SIGINT: the loop saves the step it finished and says so; the process then exits with
   128 + the signal's number (`SystemExit`), and the same command resumes. A checkpoint that
   cannot be written (disk full, permission denied) ends the run with its one-line reason, status 1.
+  The history's and TensorBoard's steps are optimiser steps (`train.grad_accum_steps` loop steps
+  each).
 
   loss_fn: `(params, batch, key, step) -> (loss, aux)`.
   batches: iterator of this process's batches.
+  evaluate: `params -> dict of scalars` (`held_out_metrics`), run every `train.eval_every`
+    steps and logged as "eval/<name>"; None: no periodic evaluation.
   """
-  from tokengs_jax.train import CheckpointWriteError, LoopConfig, TrainingStopped, train
+  from tokengs_jax.train import CheckpointWriteError, TrainingStopped, train
 
   if experiment.train.steps == 0:
     print("[train] 0 steps: the starting weights are the trained ones", flush=True)
     return jax.device_get(params), [], 0.0
 
-  out = pathlib.Path(experiment.output_dir)
-  loop = LoopConfig(
-    total_steps=experiment.train.steps,
-    seed=experiment.seed,
-    log_every=experiment.train.log_every,
-    checkpoint_every=experiment.train.checkpoint_every,
-    checkpoint_dir=str((out / "checkpoints").resolve()),
-    async_checkpoint=False,
-  )
-  logger = _TrainLogger(experiment.train.steps, writer)
+  micro = experiment.train.grad_accum_steps
+  loss_fn, batches = _accumulated(loss_fn, batches, micro)
+  eval_fn = None if evaluate is None else lambda state: evaluate(jax.device_get(state.params))
+  logger = _TrainLogger(experiment.train.steps, writer, micro_steps=micro)
   start = time.perf_counter()
   try:
-    state, history = train(loss_fn, params, batches, optim_config(experiment), loop, log_fn=logger)
+    state, history = train(
+      loss_fn,
+      params,
+      batches,
+      optim_config(experiment),
+      _loop_config(experiment),
+      eval_fn=eval_fn,
+      log_fn=logger,
+    )
   except TrainingStopped as stopped:  # the loop has said where and how to resume
     raise SystemExit(stopped.exit_status) from None
   except CheckpointWriteError as refused:  # its message names the step, the path and the remedy
@@ -77,4 +196,5 @@ def train_model(
   finally:
     logger.close()
   seconds = time.perf_counter() - start
+  history = [in_optimiser_steps(entry, micro) for entry in history]
   return jax.device_get(state.params), history, seconds

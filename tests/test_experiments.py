@@ -683,8 +683,60 @@ def test_kubric_loss_is_the_official_release_scaled_to_the_run():
   # token tuning's input views moved nowhere: the official auxiliary term
   assert not KubricTask().tuning_loss_config(tiny).dyn_aux_on_motion
   assert KubricTask().objective(tiny).decode_times == "first"
-  mse = dataclasses.replace(tiny, rgb_loss="l2")
+  mse = dataclasses.replace(tiny, train=dataclasses.replace(tiny.train, rgb_loss="l2"))
   assert KubricTask().loss_config(mse).rgb_loss == "l2"
+
+
+def _refusal(capsys, parse, *argv) -> str:
+  """What the command line says, on one line, as it refuses `argv` (tyro's boxed message)."""
+  with pytest.raises(SystemExit):
+    parse(*argv)
+  return " ".join(re.sub("[\u2500-\u257f]", " ", capsys.readouterr().err).split())
+
+
+def test_kubric_presets_keep_their_loss_and_honour_the_common_train_flags(capsys):
+  """The loss terms moved to `train` (issue 26): each preset's loss is the one it had (by hand:
+  the official release's L1 x 0.8 + SSIM x 0.2 + visibility x 1 and the auxiliary term), the
+  common `--train.*` loss flags now change Kubric's loss, and a record of a run from before the
+  move reads back to the loss it trained with."""
+  from experiments import config, kubric
+  from experiments.kubric_task import KubricExperiment, KubricTask
+  from tokengs_jax.losses import LossConfig
+
+  release = dict(rgb_loss="l1", lambda_rgb=0.8, lambda_ssim=0.2, lambda_vis=1.0)
+  pretrain = dict(release, lambda_dyn_aux=0.3, lambda_motion=4.0, dyn_aux_on_motion=True)
+  expected = {
+    "pretrain": LossConfig(**pretrain, dyn_aux_hold_steps=1200, dyn_aux_decay_steps=240),
+    # 0 steps: nothing to hold, the decay's one-step floor
+    "synthetic-tiny": LossConfig(**pretrain, dyn_aux_hold_steps=0, dyn_aux_decay_steps=1),
+    "paper": LossConfig(
+      **release, lambda_dyn_aux=0.3, dyn_aux_hold_steps=5_000, dyn_aux_decay_steps=10_000
+    ),
+  }
+  for name, loss in expected.items():
+    assert KubricTask().loss_config(kubric.PRESETS[name]) == loss, name
+  assert KubricTask().loss_config(KubricExperiment()).lambda_rgb == 0.8  # the release's default
+
+  def parse(*argv):
+    return cli.parse(list(argv), kubric.PRESETS, "synthetic-tiny", "prog")[1]
+
+  flags = ("--train.lambda-ssim", "0.5", "--train.rgb-loss", "l2", "--train.lambda-opacity", "0.1")
+  loss = KubricTask().loss_config(parse("run", "paper", *flags))
+  assert loss == dataclasses.replace(
+    expected["paper"], lambda_ssim=0.5, rgb_loss="l2", lambda_opacity=0.1
+  )
+  tuned = parse("--train.use-input-supervision")
+  assert KubricTask().objective(tuned).use_input_supervision
+  assert "Unrecognized" in _refusal(capsys, parse, "--rgb-loss", "l2")  # the duplicate flag
+  said = _refusal(capsys, parse, "--train.lambda-depth", "0.1")
+  assert "lambda_depth must be 0 on Kubric" in said
+  assert "dyn_aux_on_motion needs lambda_motion" in _refusal(capsys, parse, "--lambda-motion", "0")
+
+  old = json.loads(json.dumps(dataclasses.asdict(kubric.PRESETS["pretrain"]), default=str))
+  old["rgb_loss"] = "l2"  # recorded top-level, and train's unused photometric weights
+  old["train"].update(rgb_loss="l2", lambda_rgb=1.0, lambda_ssim=0.2, lambda_opacity=0.3)
+  read = config.from_fields(KubricExperiment, old)
+  assert KubricTask().loss_config(read) == dataclasses.replace(expected["pretrain"], rgb_loss="l2")
 
 
 def test_tick_labels_keep_significant_zeros():

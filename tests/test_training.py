@@ -1,7 +1,11 @@
-"""experiments.training: how a run ends when the loop cannot go on."""
+"""experiments.training: how a run ends when the loop cannot go on; gradient accumulation and
+the periodic held-out evaluation."""
 
 import dataclasses
+import json
+import math
 
+import numpy as np
 import pytest
 
 import tokengs_jax.train
@@ -41,3 +45,105 @@ def test_a_stopped_run_exits_with_the_signals_shell_status(tmp_path, monkeypatch
   with pytest.raises(SystemExit) as ended:
     training.train_model(_experiment(tmp_path), {}, None, iter(()))
   assert ended.value.code == 143
+
+
+def _parse(*argv):
+  from experiments import cli, re10k
+
+  return cli.parse(["run", "smoke", *argv], re10k.PRESETS, "synthetic-tiny", "prog")[1]
+
+
+def test_accumulation_and_periodic_evaluation_flags_reach_the_optimiser_and_the_loop(capsys):
+  """`--train.grad-accum-steps` (issue 26): the optimiser averages that many micro-batches per
+  update, the loop runs that many micro-steps per optimiser step with every period scaled to
+  land on one; `--train.eval-every` reaches the loop's evaluation period. Bad values are
+  refused as the command line is parsed."""
+  from experiments.config import optim_config
+
+  experiment = _parse(
+    "--train.grad-accum-steps", "2", "--train.eval-every", "3", "--train.checkpoint-every", "5"
+  )
+  assert optim_config(experiment).accumulation_steps == 2
+  assert optim_config(experiment).total_steps == experiment.train.steps  # optimiser updates
+  loop = training._loop_config(experiment)
+  assert (loop.total_steps, loop.log_every, loop.eval_every, loop.checkpoint_every) == (
+    2 * experiment.train.steps,
+    2 * experiment.train.log_every,
+    6,
+    10,
+  )
+  assert training._loop_config(_parse()).eval_every == 0  # off by default
+  assert optim_config(_parse()).accumulation_steps == 1
+  for argv, said in [
+    (("--train.grad-accum-steps", "0"), "grad_accum_steps must be >= 1"),
+    (("--train.grad-accum-steps", "3"), "batch_size 2 does not split into grad_accum_steps 3"),
+    (("--train.eval-every", "-1"), "eval_every must be >= 0"),
+    (("--train.eval-every", "2", "--train.eval-scenes", "0"), "eval_scenes >= 1"),
+  ]:
+    with pytest.raises(SystemExit):
+      _parse(*argv)
+    assert said in " ".join(capsys.readouterr().err.replace("│", " ").split()), argv
+
+
+class _Numbered:
+  """Batches {"x": [2k, 2k + 1]}, k = 0, 1, ..., with a grain-like state."""
+
+  def __init__(self):
+    self.next = 0
+
+  def __next__(self):
+    self.next += 1
+    return {"x": np.array([2 * self.next - 2, 2 * self.next - 1])}
+
+  def get_state(self):
+    return {"next": self.next}
+
+  def set_state(self, state):
+    self.next = state["next"]
+
+
+def test_micro_batches_split_each_batch_and_resume_between_two_of_them():
+  micro = training._MicroBatches(_Numbered(), 2)
+  assert [int(next(micro)["x"][0]) for _ in range(3)] == [0, 1, 2]
+  state = json.loads(json.dumps(micro.get_state()))  # mid-batch, as a checkpoint holds it
+  resumed = training._MicroBatches(_Numbered(), 2)
+  resumed.set_state(state)
+  assert [int(next(resumed)["x"][0]) for _ in range(3)] == [3, 4, 5]
+  assert [int(next(micro)["x"][0]) for _ in range(3)] == [3, 4, 5]
+  with pytest.raises(
+    ValueError, match="batch of 2 examples does not split into grad_accum_steps 3"
+  ):
+    next(training._MicroBatches(_Numbered(), 3))
+  loss_fn, _ = training._accumulated(lambda params, batch, key, step: step, iter(()), 3)
+  assert [loss_fn(None, None, None, step) for step in (0, 2, 3, 7)] == [0, 0, 1, 2]
+
+
+def test_a_run_scores_held_out_scenes_every_eval_every_steps_with_accumulation(tmp_path):
+  """The smoke preset for 4 optimiser steps of 2 micro-batches each, scored on one test scene
+  every 2 steps: the history (train_history.json) holds "eval/psnr" and "eval/ssim" at steps 2
+  and 4, and the training metrics at every step, all counted in optimiser steps."""
+  from experiments import re10k, tasks
+
+  smoke = re10k.PRESETS["smoke"]
+  experiment = dataclasses.replace(
+    smoke,
+    output_dir=str(tmp_path / "out"),
+    synthetic_dir=str(tmp_path / "data"),
+    synthetic=dataclasses.replace(smoke.synthetic, num_train=2, num_test=1, num_ood=0, workers=1),
+    train=dataclasses.replace(
+      smoke.train,
+      steps=4,
+      batch_size=8,  # micro-batches of 4, one example per test device
+      log_every=1,
+      grad_accum_steps=2,
+      eval_every=2,
+      eval_scenes=1,
+    ),
+  )
+  tasks.execute("train", experiment)
+  history = json.loads((tmp_path / "out" / "train_history.json").read_text())
+  evaluated = [entry for entry in history if "eval/psnr" in entry]
+  assert [entry["step"] for entry in evaluated] == [2, 4]
+  for entry in evaluated:
+    assert math.isfinite(entry["eval/psnr"]) and 0 < entry["eval/ssim"] <= 1
+  assert [entry["step"] for entry in history if "loss" in entry] == [1, 2, 3, 4]
