@@ -111,6 +111,31 @@ def test_ply_leaves_out_gaussians_below_min_opacity(tmp_path):
     export.write_ply(tmp_path / "bad.ply", **g, min_opacity=0.005)
 
 
+def test_ply_leaves_out_gaussians_no_camera_can_see_when_asked(tmp_path):
+  """With `cameras`, the Gaussians the renderer culls in every camera (behind it, off the image)
+  are left out, those it draws kept; without, every one is written; a non-finite one is still
+  refused rather than dropped."""
+  g = _gaussians(6)
+  g["means"] = np.array(
+    [[0, 0, 0], [0.2, -0.1, 0.5], [0, 0, -5], [40, 0, 0], [0, -0.3, 1], [0, 0, 0.1]], np.float64
+  )
+  cameras = {
+    "world_to_camera": np.array([[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3.0], [0, 0, 0, 1]]]),
+    "intrinsics": np.array([[40.0, 40.0, 16.0, 16.0]]),
+    "height": 32,
+    "width": 32,
+  }
+  seen = export.write_ply(tmp_path / "seen.ply", **g, cameras=cameras).read_bytes()
+  # behind the camera (z = -2) and far off the image (x = 40 at depth 3) are left out
+  without = {name: np.delete(values, [2, 3], axis=0) for name, values in g.items()}
+  assert seen == export.write_ply(tmp_path / "without.ply", **without).read_bytes()
+  every = export.write_ply(tmp_path / "every.ply", **g).read_bytes()
+  assert len(export.read_ply(tmp_path / "every.ply")["means"]) == 6 and every != seen
+  g["means"][3, 0] = np.nan
+  with pytest.raises(ValueError, match="non-finite"):
+    export.write_ply(tmp_path / "bad.ply", **g, cameras=cameras)
+
+
 def test_grid_and_png(tmp_path):
   a = np.zeros((8, 10, 3))
   b = np.ones((6, 4, 3))

@@ -233,6 +233,7 @@ def render_targets(
   render_config: splatting.RenderConfig | None = None,
   objective: ObjectiveConfig = ObjectiveConfig(),
   context_images=None,
+  compact: bool = False,
 ) -> Rendered:
   """Renders cameras as training supervises them (the objective's background, near / far).
 
@@ -247,6 +248,9 @@ def render_targets(
     render_config: renderer settings (default `RenderConfig()`).
     objective: background and near / far (default: the official grey background).
     context_images: [B, Vi, H, W, 3] the input views, behind an "input_mean" background.
+    compact: first move out the Gaussians no camera can draw (`splatting.compaction`; the same
+      images, exactly). Off by default: on the shipped defaults it does not pay
+      (docs/benchmarks.md, "Skipping what a scene does not need").
   """
   render_config = splatting.RenderConfig() if render_config is None else render_config
   gaussians = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), gaussians)
@@ -255,6 +259,18 @@ def render_targets(
   per_view = len(gaussians.batch_shape) == world_to_camera.ndim - 2
   if per_view:  # each set seen by its own camera: a batch [B, V] of single-camera renders
     world_to_camera, intrinsics = world_to_camera[..., None, :, :], intrinsics[..., None, :]
+  settings = render_settings(objective, context_images, world_to_camera)
+  if compact:
+    gaussians = splatting.compaction.compact_for_cameras(
+      gaussians,
+      world_to_camera,
+      intrinsics,
+      height=height,
+      width=width,
+      near=settings["near"],
+      far=settings["far"],
+      config=render_config,
+    )
   result = splatting.render_exact(
     gaussians,
     world_to_camera,
@@ -262,7 +278,7 @@ def render_targets(
     height=height,
     width=width,
     config=render_config,
-    **render_settings(objective, context_images, world_to_camera),
+    **settings,
   )
   views = [np.asarray(x) for x in (result.rgb, result.depth, result.alpha)]
   if per_view:

@@ -28,7 +28,14 @@ def _logit(p: np.ndarray, eps: float = 1e-6) -> np.ndarray:
 
 
 def write_ply(
-  path, means, opacities, scales, quats, colors, min_opacity: float = 0.0
+  path,
+  means,
+  opacities,
+  scales,
+  quats,
+  colors,
+  min_opacity: float = 0.0,
+  cameras: dict | None = None,
 ) -> pathlib.Path:
   """Writes Gaussians in the binary PLY layout of the reference 3DGS code (and its viewers).
 
@@ -39,10 +46,19 @@ def write_ply(
   min_opacity: the Gaussians of opacity below it are left out, those of exactly it kept (the
     official `save_ply` drops opacity < `OFFICIAL_MIN_OPACITY`); 0 keeps every one. A NaN
     opacity is never left out: it is refused with the other non-finite values.
+  cameras: None (default) keeps what no camera sees; else also leaves out the Gaussians that no
+    given camera can draw, by the renderer's own culling rule (`splatting.compaction.drawable`,
+    conservative: nothing a render of these cameras shows is dropped). A dict with
+    "world_to_camera" [V, 4, 4], "intrinsics" [V, 4] (pixels), "height", "width" and optionally
+    "near", "far" (the renderer's defaults otherwise).
   """
   means, scales, quats, colors = (np.asarray(a, np.float32) for a in (means, scales, quats, colors))
   opacities = np.asarray(opacities, np.float32).reshape(-1, 1)
   kept = ~(opacities[:, 0] < np.float32(min_opacity))
+  if cameras is not None:  # a non-finite Gaussian stays, to be refused below, not dropped
+    fields = np.concatenate([means, opacities, scales, quats, colors], axis=-1)
+    finite = np.all(np.isfinite(fields), axis=-1)
+    kept &= _seen(means, opacities[:, 0], scales, quats, colors, cameras) | ~finite
   means, opacities, scales, quats, colors = (
     a[kept] for a in (means, opacities, scales, quats, colors)
   )
@@ -75,6 +91,25 @@ def write_ply(
     f.write(header.encode("ascii"))
     f.write(table.tobytes())
   return path
+
+
+def _seen(means, opacities, scales, quats, colors, cameras: dict) -> np.ndarray:
+  """[N] bool: some camera of `cameras` (`write_ply`) may draw the Gaussian (jax, imported here
+  so that the rest of this module stays numpy)."""
+  from tokengs_jax.gaussians import Gaussians
+  from tokengs_jax.splatting import compaction
+
+  gaussians = Gaussians(means=means, opacities=opacities, scales=scales, quats=quats, colors=colors)
+  limits = {k: cameras[k] for k in ("near", "far") if k in cameras}
+  keep = compaction.drawable(
+    gaussians,
+    np.asarray(cameras["world_to_camera"], np.float32),
+    np.asarray(cameras["intrinsics"], np.float32),
+    height=int(cameras["height"]),
+    width=int(cameras["width"]),
+    **limits,
+  )
+  return np.asarray(keep)
 
 
 # PLY scalar types -> numpy (both the spec's names and the sized aliases).

@@ -17,7 +17,8 @@ from tokengs_jax.splatting.config import RenderConfig, RenderResult, RenderStats
 _DEPTH_ALPHA_FLOOR = 1e-10  # gsplat's clamp in D / alpha for "ED" depth
 # Sub-tile lists pay when Gaussians are small against a tile; with many (Gaussian, tile) pairs per
 # Gaussian they reach nearly every sub-tile and the split is pure cost (65k at 256², loaded: -40%
-# CPU fwd+bwd at 2.8 pairs per Gaussian, +25% at 11.3; docs/benchmarks.md, "Renderer").
+# CPU fwd+bwd at 2.8 pairs per Gaussian, +25% at 11.3; docs/benchmarks.md, "Renderer"). Counted
+# per drawn Gaussian: culled ones (and a compaction's padding) do not dilute it (issue 27).
 _SPLIT_MAX_PAIRS_PER_GAUSSIAN = 6
 
 
@@ -131,7 +132,7 @@ def _bin(
   (times the sub-tiles per tile; the compositor never reads the padding).
   Under `jax.vmap(render)` the switch turns into running every size (correct, slower).
   """
-  budget, num = ladder[-1], cameras.attrs.shape[1]
+  budget = ladder[-1]
   tiling = dict(
     tiles_x=-(-width // config.tile_size),
     tiles_y=-(-height // config.tile_size),
@@ -186,8 +187,8 @@ def _bin(
     def run(cameras):
       bins = jax.vmap(bin_one)(cameras)
       if parts > 1:
-        num_pairs, num_gaussians = jnp.sum(cameras.box_pairs), cameras.attrs.shape[0] * num
-        small = num_pairs <= _SPLIT_MAX_PAIRS_PER_GAUSSIAN * num_gaussians
+        drawn = jnp.sum(cameras.proj.cull_code == projection.VISIBLE)
+        small = jnp.sum(cameras.box_pairs) <= _SPLIT_MAX_PAIRS_PER_GAUSSIAN * drawn
         bins = jax.lax.cond(small, jax.vmap(split_one), jax.vmap(share_one), cameras, bins)
       pad = parts * budget - bins.gaussian_ids.shape[-1]
       return dataclasses.replace(bins, gaussian_ids=jnp.pad(bins.gaussian_ids, ((0, 0), (0, pad))))

@@ -62,6 +62,7 @@ def project_gaussians(
   eps2d,
   radius_sigmas,
   alpha_threshold,
+  margin=0.0,
 ) -> Projected:
   """Projects N Gaussians into one camera.
 
@@ -70,6 +71,9 @@ def project_gaussians(
     world_to_camera: [4, 4] (OpenCV); intrinsics: [4] (fx, fy, cx, cy) pixels.
     height, width: image size; near, far: centre-depth culling planes; eps2d, radius_sigmas,
     alpha_threshold: see RenderConfig.
+    margin: pixels the image is widened by on each side for the frustum rule (plus a 1e-3
+      relative share of the centre's coordinates and the radius); 0 (the renderer) is gsplat's
+      rule exactly. `compaction.drawable` widens it to judge conservatively.
 
   Returns:
     Projected. Every value and gradient is finite for finite inputs, culled or not: the maths of a
@@ -96,7 +100,7 @@ def project_gaussians(
   radii, opaque_enough = _pixel_radii(
     a, c, good_det, opacities, radius_sigmas=radius_sigmas, alpha_threshold=alpha_threshold
   )
-  cull_code = _cull_codes(in_depth, good_det, opaque_enough, radii, means2d, height, width)
+  cull_code = _cull_codes(in_depth, good_det, opaque_enough, radii, means2d, height, width, margin)
   visible = cull_code == VISIBLE
   return Projected(
     means2d=means2d,
@@ -149,20 +153,19 @@ def _pixel_radii(a, c, good_det, opacities, *, radius_sigmas, alpha_threshold):
   return radii, opaque_enough
 
 
-def _cull_codes(in_depth, good_det, opaque_enough, radii, means2d, height, width):
+def _cull_codes(in_depth, good_det, opaque_enough, radii, means2d, height, width, margin=0.0):
   """[N] int32: VISIBLE, or the first culling rule that fired, in gsplat's order.
 
   in_depth, good_det, opaque_enough: [N] bool; radii: [N, 2] pixel radii; means2d: [N, 2] (the
-  radius box must overlap the image).
+  radius box must overlap the image, widened by `margin` (`project_gaussians`); 0: exactly).
   """
   nonzero_radius = (radii[:, 0] > 0) | (radii[:, 1] > 0)
   mx, my = jax.lax.stop_gradient(means2d[:, 0]), jax.lax.stop_gradient(means2d[:, 1])
-  in_image = (
-    (mx + radii[:, 0] > 0)
-    & (mx - radii[:, 0] < width)
-    & (my + radii[:, 1] > 0)
-    & (my - radii[:, 1] < height)
-  )
+  rx, ry = radii[:, 0], radii[:, 1]
+  if margin:  # a static float: the renderer's (margin 0) comparisons are untouched
+    rx = rx + margin * (1.0 + 1e-3 * (jnp.abs(mx) + rx))
+    ry = ry + margin * (1.0 + 1e-3 * (jnp.abs(my) + ry))
+  in_image = (mx + rx > 0) & (mx - rx < width) & (my + ry > 0) & (my - ry < height)
   return jnp.select(
     [~in_depth, ~good_det, ~opaque_enough, ~nonzero_radius, ~in_image],
     [CULLED_DEPTH, CULLED_DEGENERATE, CULLED_OPACITY, CULLED_DEGENERATE, CULLED_FRUSTUM],
