@@ -1,16 +1,19 @@
-"""`process`: the settings `setup` applies, and `retain_freed_memory`: a repeated XLA:CPU run stops
-page-faulting its temporaries.
+"""`process`: the settings `setup` applies, where "auto" applies the host memory policy, and
+`retain_freed_memory`: a repeated XLA:CPU run stops page-faulting its temporaries.
 
 Each case runs in a fresh interpreter: the policy is process-wide and must precede the first
 computation, and this test process has long since run many.
 """
 
 import json
+import os
 import subprocess
 import sys
 import textwrap
 
 import pytest
+
+from tokengs_jax import process
 
 _PROBE = textwrap.dedent(
   """
@@ -93,6 +96,7 @@ def test_setup_applies_its_settings_once_and_the_first_call_wins(tmp_path):
   assert seen["first"] == {
     "compile_cache": str(tmp_path),
     "host_memory": "default",
+    "host_memory_reason": "requested",
     "cpu_devices": 3,
   }
   assert seen["again"] == seen["first"]
@@ -104,3 +108,115 @@ def test_setup_rejects_an_unknown_memory_policy():
   script = "from tokengs_jax import process; process.setup(host_memory='keep')"
   done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
   assert done.returncode != 0 and "host_memory must be one of" in done.stderr
+
+
+# `setup` with the policy given on the command line, in a process where glibc's `mallopt` is
+# recorded (and still called) and whose NVIDIA device check answers as told: what was applied.
+_SETUP = textwrap.dedent(
+  """
+  import ctypes, json, sys
+  import jax
+  from jax._src import xla_bridge
+  from tokengs_jax import process
+
+  real = ctypes.CDLL("libc.so.6").mallopt
+  real.argtypes, real.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
+  calls = []
+
+  class Mallopt:
+    def __call__(self, param, value):
+      calls.append([param, value])
+      return real(param, value)
+
+  class LibC:
+    def __init__(self, name):
+      self.mallopt = Mallopt()
+
+  ctypes.CDLL = LibC
+  process.hardware_utils.has_visible_nvidia_gpu = lambda: sys.argv[2] == "gpu"
+  settings = process.setup(host_memory=sys.argv[1])
+  print(json.dumps(dict(
+    settings=settings, mallopt=calls,
+    dispatch=jax.config.read("jax_cpu_enable_async_dispatch"),
+    backends=xla_bridge.backends_are_initialized(),
+  )))
+  """
+)
+_RETAINED = [[process._M_MMAP_MAX, 0], [process._M_TRIM_THRESHOLD, process._NEVER_TRIM]]
+
+
+def _setup(tmp_path, host_memory="auto", gpu=False, platforms=None, plugins=()) -> dict:
+  """Runs `_SETUP` with only the given platform setting and fake plugins (`jax_plugins`
+  namespace modules on the path, which JAX would import and start only at its first
+  computation): none of the host's own platform settings."""
+  env = {
+    key: value
+    for key, value in os.environ.items()
+    if key not in ("JAX_PLATFORMS", "PJRT_NAMES_AND_LIBRARY_PATHS", "TPU_LIBRARY_PATH")
+  }
+  if platforms is not None:
+    env["JAX_PLATFORMS"] = platforms
+  for plugin in plugins:
+    folder = tmp_path / "jax_plugins" / plugin
+    folder.mkdir(parents=True)
+    (folder / "__init__.py").write_text("def initialize():\n  pass\n")
+  env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(tmp_path), env.get("PYTHONPATH")]))
+  argv = [sys.executable, "-c", _SETUP, host_memory, "gpu" if gpu else "none"]
+  done = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=120, check=True)
+  seen = json.loads(done.stdout.strip().splitlines()[-1])
+  assert seen["backends"] is False, "setup created a JAX client"
+  return seen
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt is Linux-only")
+@pytest.mark.skipif(
+  bool(process._installed_plugins()), reason="this host has an accelerator plugin"
+)
+def test_auto_retains_freed_memory_on_a_host_without_accelerator_plugins(tmp_path):
+  seen = _setup(tmp_path)
+  assert seen["settings"]["host_memory"] == "retain"
+  assert seen["settings"]["host_memory_reason"].startswith("auto: cpu")
+  assert seen["mallopt"] == _RETAINED and seen["dispatch"] is False
+
+
+@pytest.mark.parametrize(
+  "case",
+  [
+    dict(platforms="cuda"),
+    dict(platforms="tpu,cpu"),
+    dict(plugins=["xla_fake_accelerator"]),
+    dict(plugins=["xla_cuda12"], gpu=True),
+  ],
+  ids=["jax_platforms=cuda", "jax_platforms=tpu,cpu", "plugin", "cuda-plugin-with-gpu"],
+)
+def test_auto_leaves_the_defaults_where_computations_run_on_an_accelerator(tmp_path, case):
+  seen = _setup(tmp_path, **case)
+  assert seen["settings"]["host_memory"] == "default", seen
+  assert seen["settings"]["host_memory_reason"].startswith("auto: accelerator"), seen
+  assert seen["mallopt"] == [] and seen["dispatch"] is True
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt is Linux-only")
+@pytest.mark.parametrize(
+  "case",
+  [
+    dict(platforms="cpu", plugins=["xla_fake_accelerator"]),
+    dict(plugins=["xla_cuda12"], gpu=False),
+  ],
+  ids=["jax_platforms=cpu-over-a-plugin", "cuda-plugin-without-gpu"],
+)
+def test_auto_retains_where_jax_would_fall_back_to_or_is_told_cpu(tmp_path, case):
+  seen = _setup(tmp_path, **case)
+  assert seen["settings"]["host_memory"] == "retain", seen
+  assert seen["mallopt"] == _RETAINED and seen["dispatch"] is False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt is Linux-only")
+def test_an_explicit_choice_wins_over_the_platform(tmp_path):
+  retained = _setup(tmp_path, "retain", platforms="cuda")
+  assert retained["settings"]["host_memory"] == "retain"
+  assert retained["settings"]["host_memory_reason"] == "requested"
+  assert retained["mallopt"] == _RETAINED and retained["dispatch"] is False
+  left = _setup(tmp_path, "default", platforms="cpu")
+  assert left["settings"]["host_memory"] == "default" and left["mallopt"] == []
+  assert left["dispatch"] is True

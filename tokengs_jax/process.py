@@ -6,7 +6,7 @@ launched it:
 
 - the persistent XLA compilation cache (`$TOKENGS_JAX_CACHE`, default `.jax_cache`): on CPU,
   compiling the training step and the renderer takes longer than a short run itself;
-- the host memory policy below (`retain_freed_memory`);
+- the host memory policy below (`retain_freed_memory`), where the computations run on XLA:CPU;
 - optionally, the number of virtual CPU devices (the tests' sharding cases use 4).
 
 `exit_with_parent` is for the helper processes a run starts (the data pipeline's workers): they
@@ -30,20 +30,41 @@ again: ~15,000 page faults, 15-20 ms of a 65 ms train step on the development CP
 The cost is resident memory (the process keeps its heap's high-water mark) and that Python waits
 for each single-device computation instead of queueing the next (the training loop's data
 pipeline runs in its own threads, so steps are back to back anyway). Multi-device computations are
-still dispatched asynchronously. Accelerators are not affected.
+still dispatched asynchronously.
+
+Where the computations run on an accelerator the policy buys nothing (their temporaries live in
+device memory) and only costs: the process would keep the high-water mark of its host heap (the
+data pipeline's buffers, a checkpoint's arrays) for the life of the run. So `setup(host_memory="auto")`, the default, applies it only for XLA:CPU, decided
+without creating a JAX client (`setup` precedes the first computation, and a client made here
+would be too early for `jax.distributed` and for the dispatch setting itself):
+
+- `jax_platforms` (`$JAX_PLATFORMS`) set: its first platform is the one JAX prefers, so "cpu" there
+  retains and anything else does not;
+- otherwise XLA:CPU unless an accelerator PJRT plugin is installed and its hardware is present,
+  found the way JAX's own discovery (`xla_bridge.discover_pjrt_plugins`) finds plugins, without
+  importing them: modules of the `jax_plugins` namespace package, `jax_plugins` entry points,
+  `$PJRT_NAMES_AND_LIBRARY_PATHS`, `libtpu` or `$TPU_LIBRARY_PATH`, and the CUDA / ROCm plugin
+  packages. A CUDA plugin counts where an NVIDIA device node exists and TPU's where a TPU chip is
+  on the PCI bus (JAX skips them otherwise and falls back to XLA:CPU); any other plugin counts.
+
+"retain" and "default" force either setting; `setup` returns the one in force and why.
 """
 
 from __future__ import annotations
 
 import argparse
 import ctypes
+import importlib.metadata
+import importlib.util
 import os
+import pkgutil
 import sys
 import threading
 import time
 import warnings
 
 import jax
+from jax._src import hardware_utils  # private: the device checks JAX's backend start-up makes
 from jax._src import xla_bridge  # private, as jax.distributed uses it: do JAX's clients exist yet
 
 # glibc <malloc.h> mallopt parameters.
@@ -79,7 +100,71 @@ def retain_freed_memory() -> bool:
   return mallopt(_M_MMAP_MAX, 0) == 1 and mallopt(_M_TRIM_THRESHOLD, _NEVER_TRIM) == 1
 
 
-HOST_MEMORY_POLICIES = ("retain", "default")
+HOST_MEMORY_POLICIES = ("auto", "retain", "default")
+# Accelerator plugin packages that live outside the `jax_plugins` namespace (their PJRT halves live
+# inside it, so these are a second look, not the main one).
+_PLUGIN_PACKAGES = (
+  "jax_cuda12_plugin",
+  "jax_cuda13_plugin",
+  "jax_rocm60_plugin",
+  "jax_rocm7_plugin",
+  "libtpu",
+)
+
+
+def _installed_plugins() -> list[str]:
+  """The accelerator PJRT plugins JAX would load, by module or library name, found as
+  `xla_bridge.discover_pjrt_plugins` finds them but without importing them (an import runs the
+  plugin's start-up; this must leave JAX untouched)."""
+  found = set()
+  namespace = xla_bridge.jax_plugins  # the `jax_plugins` namespace package, None without one
+  if namespace is not None:
+    found |= {name for _, name, _ in pkgutil.iter_modules(namespace.__path__, "jax_plugins.")}
+  found |= {entry.value for entry in importlib.metadata.entry_points(group="jax_plugins")}
+  for pair in filter(None, os.environ.get("PJRT_NAMES_AND_LIBRARY_PATHS", "").split(",")):
+    found.add(pair.split(":" if os.name != "nt" else ";")[0])
+  if os.environ.get("TPU_LIBRARY_PATH"):
+    found.add("libtpu")
+  found |= {name for name in _PLUGIN_PACKAGES if importlib.util.find_spec(name) is not None}
+  return sorted(found)
+
+
+def _has_hardware(plugin: str) -> bool:
+  """Whether JAX would start `plugin`: it skips CUDA without an NVIDIA device node, and TPU's
+  client fails (quietly, falling back to XLA:CPU) without a TPU chip."""
+  if "cuda" in plugin:
+    return hardware_utils.has_visible_nvidia_gpu()
+  if "tpu" in plugin:
+    return hardware_utils.num_available_tpu_chips_and_device_id()[0] > 0
+  return True
+
+
+def computation_platform() -> tuple[str, str]:
+  """Where this process's computations will run, "cpu" or "accelerator", and why; decided
+  without initialising a JAX backend (see the module doc), so it can precede `jax.distributed`.
+
+  A guess only where JAX's own choice depends on more than it reads up front (a plugin that fails
+  to start): then JAX falls back to XLA:CPU and the policy is off where it would have paid.
+  """
+  if platforms := jax.config.jax_platforms:
+    first = platforms.split(",")[0].strip().lower()
+    return ("cpu" if first == "cpu" else "accelerator"), f"jax_platforms={platforms!r}"
+  present = [plugin for plugin in _installed_plugins() if _has_hardware(plugin)]
+  if present:
+    return "accelerator", f"accelerator plugin {', '.join(present)}"
+  return "cpu", "no accelerator plugin with its hardware"
+
+
+def resolve_host_memory(host_memory: str) -> tuple[str, str]:
+  """The policy `setup(host_memory=...)` applies, "retain" or "default", and why."""
+  if host_memory not in HOST_MEMORY_POLICIES:
+    raise ValueError(f"host_memory must be one of {HOST_MEMORY_POLICIES}, got {host_memory!r}")
+  if host_memory != "auto":
+    return host_memory, "requested"
+  platform, why = computation_platform()
+  return ("retain" if platform == "cpu" else "default"), f"auto: {platform} ({why})"
+
+
 _settled: dict | None = None  # the first `setup`'s arguments: later calls keep them
 
 
@@ -87,7 +172,7 @@ def setup(
   *,
   compile_cache: str | os.PathLike | None = None,
   min_compile_seconds: float = 1.0,
-  host_memory: str = "retain",
+  host_memory: str = "auto",
   cpu_devices: int | None = None,
 ) -> dict:
   """Applies this process's JAX settings; call before the first JAX computation.
@@ -100,18 +185,19 @@ def setup(
       `.jax_cache` under the working directory. A folder set earlier by the embedding program is
       kept.
     min_compile_seconds: programs that compile faster than this are not cached.
-    host_memory: "retain" (`retain_freed_memory`, the experiments' policy) or "default" (glibc's
-      and JAX's own settings, for comparisons).
+    host_memory: "auto" (`retain_freed_memory` where the computations run on XLA:CPU, glibc's and
+      JAX's own settings elsewhere; see the module doc), "retain" (always) or "default" (never,
+      for comparisons).
     cpu_devices: virtual CPU devices to create (None: JAX's default, one).
 
   Returns:
-    The settings in force: `compile_cache`, `host_memory`, `cpu_devices`.
+    The settings in force: `compile_cache`, `host_memory` (the policy applied, "retain" or
+    "default"), `host_memory_reason` ("requested", or what "auto" decided from), `cpu_devices`.
   """
   global _settled
   if _settled is not None:
     return dict(_settled)
-  if host_memory not in HOST_MEMORY_POLICIES:
-    raise ValueError(f"host_memory must be one of {HOST_MEMORY_POLICIES}, got {host_memory!r}")
+  host_memory, reason = resolve_host_memory(host_memory)
   if cpu_devices is not None:
     jax.config.update("jax_num_cpu_devices", cpu_devices)
   if not jax.config.jax_compilation_cache_dir:
@@ -123,6 +209,7 @@ def setup(
   _settled = dict(
     compile_cache=jax.config.jax_compilation_cache_dir,
     host_memory=host_memory,
+    host_memory_reason=reason,
     cpu_devices=cpu_devices,
   )
   return dict(_settled)
@@ -133,9 +220,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
   parser.add_argument(
     "--host-memory",
     choices=HOST_MEMORY_POLICIES,
-    default="retain",
-    help="retain: tokengs_jax.process.retain_freed_memory() first, as the experiments do; "
-    "default: glibc's and JAX's own settings",
+    default="auto",
+    help="auto: retain where the computations run on XLA:CPU, as the experiments do; retain: "
+    "tokengs_jax.process.retain_freed_memory() first; default: glibc's and JAX's own settings",
   )
 
 
