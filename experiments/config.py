@@ -249,8 +249,9 @@ class Experiment:
 
   Attributes:
     dataset: `re10k` or `dl3dv` (real-data example preset and translation scale).
-    data_dir: real chunks root holding `train/` and `test/` (pixelSplat layout); None: the
-      synthetic RE10K-format set in `synthetic_dir` (generated when missing).
+    data_dir: real chunks root holding `train/` and `test/` (pixelSplat layout), or DL3DV scene
+      zips as they ship (`experiments.data.data_format`); None: the synthetic RE10K-format set in
+      `synthetic_dir` (generated when missing).
     synthetic_dir: where the synthetic set lives.
     output_dir: the results folder.
     model: the architecture; its `image_size` and `num_input_views` also set the data's.

@@ -27,6 +27,7 @@ from tokengs_jax.data import (
   make_example,
   sample_bounded,
 )
+from tokengs_jax.data import dl3dv
 from tokengs_jax.data.sampler import EvaluationIndexReport, validate_evaluation_index
 from tokengs_jax.data.synthetic.generate import read_true_depths
 
@@ -267,7 +268,25 @@ def held_out_families(experiment: Experiment) -> dict[str, HeldOutSet]:
 
 
 def data_root(experiment: Experiment) -> pathlib.Path:
-  return pathlib.Path(experiment.data_dir) if experiment.data_dir else ensure_synthetic(experiment)
+  """`--data-dir` (its format checked now, before any work: `data_format`) or the synthetic set."""
+  if experiment.data_dir and data_format(experiment):
+    return pathlib.Path(experiment.data_dir)
+  return ensure_synthetic(experiment)
+
+
+def data_format(experiment: Experiment) -> str:
+  """How `--data-dir` is read (`data_folder_format`): "chunks" (also the synthetic set) or
+  "zips" (DL3DV scenes as they ship); ValueError for DL3DV scenes under another dataset's sampler
+  and translation scale (the synthetic presets' `re10k`)."""
+  if not experiment.data_dir:
+    return "chunks"
+  found = dl3dv.data_folder_format(experiment.data_dir, where="--data-dir ")
+  if found == "zips" and experiment.dataset != "dl3dv":
+    raise ValueError(
+      f"--data-dir {experiment.data_dir} holds DL3DV scenes: pass --dataset dl3dv (this preset "
+      f"has {experiment.dataset}'s sampler and translation scale)"
+    )
+  return found
 
 
 def example_config(experiment: Experiment, *, training: bool) -> ExampleConfig:
@@ -309,6 +328,8 @@ class _WithTrueDepths:
   from the files the synthetic writer keeps beside each chunk), for the depth loss."""
 
   def __init__(self, source: ChunkedSceneSource):
+    if not isinstance(source, ChunkedSceneSource):
+      raise ValueError("train.lambda_depth > 0 needs true depths: DL3DV scenes have none")
     self.source = source
     self.rejections = source.rejections
 
@@ -339,7 +360,11 @@ def training_batches(experiment: Experiment) -> InputPipeline:
   """This process's share of the global batch, forever, from `<root>/train` (with the scenes'
   true depths when `train.lambda_depth > 0`)."""
   local = local_batch_size(experiment.train.batch_size)  # before any data is written
-  source = ChunkedSceneSource(data_root(experiment) / "train", skip_bad=bool(experiment.data_dir))
+  root = data_root(experiment)
+  if data_format(experiment) == "zips":  # held-out scenes left out, as test/ is for chunks
+    source = dl3dv.dl3dv_training_source(root, held_out_index=experiment.eval_index, skip_bad=True)
+  else:
+    source = ChunkedSceneSource(root / "train", skip_bad=bool(experiment.data_dir))
   if experiment.train.lambda_depth > 0:
     source = _WithTrueDepths(source)
   return InputPipeline(
@@ -357,7 +382,7 @@ class HeldOutSet:
   """Where a held-out set's scenes are.
 
   Attributes:
-    folder: the chunk folder (`*.torch` + `index.json`).
+    folder: the chunk folder (`*.torch` + `index.json`), or of DL3DV scenes (`data_format`).
     index_path: its evaluation index JSON (fixed views), or None: deterministic views.
     num_scenes: scenes scored (the first ones); 0 = all.
   """
@@ -368,10 +393,12 @@ class HeldOutSet:
 
 
 def held_out_set(experiment: Experiment) -> HeldOutSet:
-  """The experiment's own test split (`<root>/test`, `--eval-index`, `eval.num_scenes`)."""
-  return HeldOutSet(
-    data_root(experiment) / "test", experiment.eval_index, experiment.eval.num_scenes
-  )
+  """The experiment's own test split (`<root>/test`, `--eval-index`, `eval.num_scenes`); DL3DV
+  scenes: `dl3dv_split`'s held-out root, which for one folder of scenes needs the index."""
+  root, index = data_root(experiment), experiment.eval_index
+  zips = data_format(experiment) == "zips"
+  folder = dl3dv.dl3dv_held_out_root(root, indexed=bool(index)) if zips else root / "test"
+  return HeldOutSet(folder, index, experiment.eval.num_scenes)
 
 
 def _test_source(
@@ -381,6 +408,12 @@ def _test_source(
   matches the data (`validate_evaluation_index`: unknown keys listed, an error when none matches
   or a frame is out of range), before any scene is decoded."""
   root = held_out.folder
+  if data_format(experiment) == "zips":  # readable scenes only, counted as they are listed
+    source = dl3dv.DL3DVSceneSource(root, keys=index and list(index), skip_bad=True)
+    available = source.frame_counts() or dl3dv.DL3DVSceneSource(root).keys  # none: name them
+    if index is None:
+      return source, None
+    return source, validate_evaluation_index(index, available, where=str(held_out.index_path))
   if index is None:
     return ChunkedSceneSource(root, skip_bad=bool(experiment.data_dir)), None
   source = ChunkedSceneSource(root, keys=list(index), skip_bad=True)
@@ -392,11 +425,12 @@ def _test_source(
 
 
 def check_evaluation_data(experiment: Experiment) -> dict | None:
-  """Raises before any training or scoring if the evaluation index cannot be used; returns how
-  it matches the data (for metrics.json), None without an index."""
+  """Raises before any training or scoring if the evaluation index cannot be used (or DL3DV
+  scenes have no held-out ones, `held_out_set`); returns how it matches the data (for
+  metrics.json), None without an index."""
+  held_out = held_out_set(experiment) if experiment.data_dir or experiment.eval_index else None
   if not experiment.eval_index:
     return None
-  held_out = held_out_set(experiment)
   return _test_source(experiment, held_out, _load_index(experiment, held_out))[1].as_dict()
 
 
@@ -449,7 +483,8 @@ def evaluation_scenes(
     else:
       context, _ = sample_bounded(config.sampler, len(record["images"]), None, deterministic=True)
       chosen = context, novel_targets(context, config.sampler.num_target_views)
-    depths = read_true_depths(source.entries[position].chunk, record["key"])
+    entries = getattr(source, "entries", None)  # chunks only: DL3DV scenes have no true depth
+    depths = entries and read_true_depths(entries[position].chunk, record["key"])
     if depths is not None:  # synthetic test sets: the evaluation also scores geometry
       record = {**record, "depths": depths}
     example = make_example(

@@ -4,6 +4,19 @@
     python -m experiments.dl3dv eval paper-6view --data-dir /data/dl3dv \\
         --eval-index assets/dl3dv_start_0_distance_50_ctx_6v_tgt_8v.json \\
         --official-checkpoint tokengs_dl3dv_6view.safetensors
+    python -m experiments.dl3dv finetune paper-2view --data-dir /data/dl3dv_zips \\
+        --eval-index dl3dv_start_0_distance_50_ctx_2v_tgt_4v.json --official-checkpoint w.safetensors
+
+Data (`--data-dir D`, the format told from what D holds; a folder of neither is refused):
+- pixelSplat chunks: `D/train`, `D/test` (`*.torch` + `index.json`), as `experiments.re10k`.
+- DL3DV as it ships (the official training's input): scene zips `<scene>.zip` holding
+  `<scene>/transforms.json` + `<scene>/images_4/` (or the same unpacked, benchmark zips with
+  `gaussian_splat/`, subset folders `1K/` ... `11K/`). Either `D/train` and `D/test` (e.g. links
+  to DL3DV-ALL-960P and DL3DV-10K-Benchmark: a scene in both is never trained on), or one folder
+  of scenes whose held-out ones `--eval-index` names (DepthSplat key -> {context, target} JSON or
+  the Long-LRM list; needed to evaluate): those are scored and never trained on.
+  `tokengs_jax.data.dl3dv` reads them. The synthetic presets need `--dataset dl3dv` there (DL3DV's
+  sampler and translation scale).
 
 Presets:
 - `synthetic-{2,4,6}view`: the synthetic RE10K-format rooms (shared with `experiments.re10k`),

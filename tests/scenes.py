@@ -189,3 +189,64 @@ def random_inputs(key, batch, views, height, width):
     jnp.array([width * 1.1, height * 1.1, width / 2, height / 2]), (batch, views, 4)
   )
   return images, c2w, intrinsics
+
+
+# ----- DL3DV scenes as they ship (zips with transforms.json and images_4/) -----------------------
+
+
+def write_dl3dv_scene(path, scene, *, capture_scale=2, benchmark=False):
+  """Writes a rendered scene (`render_re10k_like_scene`: OpenCV c2w, intrinsics in pixels of its
+  images) as one DL3DV scene: `path` ending in `.zip` (the official zip, members under
+  `<key>/`), else a directory. `transforms.json` holds nerfstudio poses and the intrinsics of a
+  capture `capture_scale` times the stored `images_4/` PNGs, as DL3DV's do; `benchmark` nests it
+  under `gaussian_splat/` (DL3DV-10K-Benchmark)."""
+  import io
+  import pathlib
+  import zipfile
+
+  from PIL import Image
+
+  from tokengs_jax.data import opencv_to_nerfstudio_c2w
+
+  path = pathlib.Path(path)
+  height, width = scene["images"].shape[1:3]
+  fx, fy, cx, cy = (float(v) * capture_scale for v in scene["intrinsics"][0])
+  names = [f"frame_{f + 1:05d}.png" for f in range(len(scene["images"]))]
+  poses = opencv_to_nerfstudio_c2w(scene["c2w"])
+  transforms = {
+    **{"w": width * capture_scale, "h": height * capture_scale},
+    **{"fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "camera_model": "OPENCV"},
+    "frames": [
+      {"file_path": f"images/{name}", "transform_matrix": pose.tolist()}
+      for name, pose in zip(names, poses)
+    ],
+  }
+  files = {"transforms.json": json.dumps(transforms).encode()}
+  for name, image in zip(names, scene["images"]):
+    buffer = io.BytesIO()
+    Image.fromarray(image).save(buffer, "PNG")
+    files[f"images_4/{name}"] = buffer.getvalue()
+  prefix = "gaussian_splat/" if benchmark else ""
+  path.parent.mkdir(parents=True, exist_ok=True)
+  if path.suffix == ".zip":
+    with zipfile.ZipFile(path, "w") as archive:
+      for name, payload in files.items():
+        archive.writestr(f"{path.stem}/{prefix}{name}", payload)
+    return
+  for name, payload in files.items():
+    (path / prefix / name).parent.mkdir(parents=True, exist_ok=True)
+    (path / prefix / name).write_bytes(payload)
+
+
+def write_dl3dv_scenes(folder, keys, *, frames=12, size=(36, 64), seed=0):
+  """Renders one synthetic room walk per key (the project's ray tracer) and writes each as
+  `<folder>/<key>.zip` (`write_dl3dv_scene`).  -> {key: the rendered scene}."""
+  import pathlib
+
+  from tokengs_jax.data.synthetic.generate import render_re10k_like_scene
+
+  scenes = {}
+  for index, key in enumerate(keys):
+    scenes[key] = render_re10k_like_scene(seed, "train", index, *size, frames)
+    write_dl3dv_scene(pathlib.Path(folder) / f"{key}.zip", scenes[key])
+  return scenes

@@ -21,6 +21,12 @@ from tokengs_jax.data import (
   nerfstudio_to_opencv_c2w,
   opencv_to_nerfstudio_c2w,
 )
+from tokengs_jax.data.dl3dv import (
+  data_folder_format,
+  dl3dv_held_out_root,
+  dl3dv_split,
+  dl3dv_training_source,
+)
 from tokengs_jax.data.pipeline import _frame
 
 CAPTURE = (72, 128)  # (h, w) the transforms.json intrinsics refer to
@@ -303,3 +309,63 @@ def test_frames_of_another_size_than_the_resolution_are_reported(dl3dv_root):
   config = ExampleConfig((16, 16), BoundedSamplerConfig(2, 1, 1, 5, 0, 0, 1, 5), 0.15)
   with pytest.raises(BadExampleError, match="aaaa.zip scene 'aaaa'.*\\(36, 64\\).*\\(54, 96\\)"):
     make_example(record, config, np.random.default_rng(0), views=(np.array([0, 2]), np.array([1])))
+
+
+def test_scenes_written_in_the_shipped_layout_read_back_as_rendered(tmp_path):
+  """`scenes.write_dl3dv_scene` (the experiments' fixture): zip, directory and benchmark forms
+  give back the rendered cameras (capture intrinsics rescaled to the stored images) and pixels."""
+  from scenes import write_dl3dv_scene
+
+  from tokengs_jax.data.synthetic.generate import render_re10k_like_scene
+
+  scene = render_re10k_like_scene(0, "train", 0, 18, 32, 4)
+  write_dl3dv_scene(tmp_path / "flat" / "z.zip", scene)
+  write_dl3dv_scene(tmp_path / "flat" / "d", scene, capture_scale=3)
+  write_dl3dv_scene(tmp_path / "flat" / "b.zip", scene, benchmark=True)
+  source = DL3DVSceneSource(tmp_path / "flat")
+  assert source.keys == ["b", "d", "z"] and source.frame_counts() == {"b": 4, "d": 4, "z": 4}
+  for index in range(3):
+    record = source[index]
+    np.testing.assert_allclose(record["c2w"], scene["c2w"], atol=1e-6)
+    np.testing.assert_allclose(record["intrinsics"], scene["intrinsics"], rtol=1e-6)
+    np.testing.assert_array_equal(_frame(record, 2), scene["images"][2])
+
+
+def test_a_data_folder_splits_into_training_and_held_out_scenes(tmp_path):
+  files = _scene_files()
+  for key in ("a", "b", "c"):
+    _write_zip(tmp_path / "one" / f"{key}.zip", key, files)
+  index = tmp_path / "index.json"
+  index.write_text(json.dumps([{"scene_name": "b", "fold_8_kmeans_16_input": [0]}]))
+  assert data_folder_format(tmp_path / "one") == "zips"
+  assert dl3dv_split(tmp_path / "one") == (tmp_path / "one", tmp_path / "one")
+  assert dl3dv_training_source(tmp_path / "one", held_out_index=index).keys == ["a", "c"]
+  with pytest.raises(DL3DVError, match="name the held-out ones"):
+    dl3dv_held_out_root(tmp_path / "one", indexed=False)
+  assert dl3dv_held_out_root(tmp_path / "one", indexed=True) == tmp_path / "one"
+  _write_zip(tmp_path / "split" / "train" / "1K" / "a.zip", "a", files)
+  _write_zip(tmp_path / "split" / "train" / "2K" / "b.zip", "b", files)
+  _write_dir(tmp_path / "split" / "test" / "b" / "gaussian_splat", files)  # also a training scene
+  assert dl3dv_training_source(tmp_path / "split").keys == ["a"]
+  with pytest.raises(DL3DVError, match="no training scene left once the 3 held-out"):
+    dl3dv_training_source(tmp_path / "one", held_out_index=_index_of(tmp_path, "a", "b", "c"))
+  (tmp_path / "chunks" / "test").mkdir(parents=True)
+  (tmp_path / "chunks" / "test" / "index.json").write_text("{}")
+  assert data_folder_format(tmp_path / "chunks") == "chunks"
+  with pytest.raises(DL3DVError, match="neither pixelSplat chunks"):
+    data_folder_format(tmp_path / "chunks" / "test")
+
+
+def _index_of(tmp_path, *keys):
+  path = tmp_path / "index_of.json"
+  path.write_text(json.dumps({key: {"context": [0, 2], "target": [1]} for key in keys}))
+  return path
+
+
+def test_frame_counts_drop_an_unreadable_scene_and_count_it(tmp_path):
+  files = _scene_files()
+  _write_zip(tmp_path / "a.zip", "a", files)
+  _write_zip(tmp_path / "b.zip", "b", {**files, "transforms.json": b"{broken"})
+  source = DL3DVSceneSource(tmp_path, skip_bad=True)
+  assert source.frame_counts() == {"a": FRAMES}
+  assert source.keys == ["a"] and source.rejections.counts == {"bad_scene": 1}

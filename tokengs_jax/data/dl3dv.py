@@ -20,7 +20,10 @@ image, or `resolution` when given).
 
 `DL3DVSceneSource` yields the data area's scene records (see `tokengs_jax.data.chunked`), so
 `InputPipeline`, the evaluation indexes and everything after the source are shared with the chunk
-format.
+format. A data folder splits into training and held-out scenes as the chunk format's does
+(`dl3dv_split`, `dl3dv_training_source`): `<root>/train` and `<root>/test` where they exist (e.g.
+links to DL3DV-ALL-960P and DL3DV-10K-Benchmark), else one folder whose held-out scenes an
+evaluation index names; a held-out scene is never a training scene.
 """
 
 from __future__ import annotations
@@ -42,6 +45,12 @@ from tokengs_jax.data.sampler import MissingIndexEntryError
 __all__ = [
   "DL3DVError",
   "DL3DVSceneSource",
+  "data_folder_format",
+  "dl3dv_held_out_root",
+  "dl3dv_split",
+  "dl3dv_training_source",
+  "has_dl3dv_scenes",
+  "index_scene_keys",
   "list_dl3dv_scenes",
   "nerfstudio_to_opencv_c2w",
   "opencv_to_nerfstudio_c2w",
@@ -298,6 +307,23 @@ class DL3DVSceneSource:
     self._cache.move_to_end(key)
     return dict(self._cache[key])
 
+  def frame_counts(self) -> dict[str, int]:
+    """Scene key -> number of frames, reading each `transforms.json` (and one image header) but
+    no pixel, so an evaluation index is checked against the data before any work. A scene that
+    cannot be read is dropped from the source, counted and logged (`rejections`), as the chunk
+    source's `skip_bad` drops a malformed scene when it is listed."""
+    counts, kept = {}, []
+    for index, path in enumerate(self.scenes):
+      try:
+        record = self[index]
+      except DL3DVError as error:
+        self.rejections.add("bad_scene", str(error))
+        continue
+      counts[record["key"]] = len(record["images"])
+      kept.append(path)
+    self.scenes = kept
+    return counts
+
   def _read_scene(self, path: pathlib.Path) -> dict:
     files = _scene_files(path)
     where = f"{files.where('transforms.json')} (scene '{files.key}')"
@@ -329,3 +355,85 @@ class DL3DVSceneSource:
 
   def __getstate__(self):  # workers rebuild their own cache
     return {**self.__dict__, "_cache": collections.OrderedDict()}
+
+
+def has_dl3dv_scenes(root: str | os.PathLike) -> bool:
+  """Whether `root` holds DL3DV scenes (zips or unpacked) in a layout read here: directly, in
+  subset folders (`1K/` ...), or under `train/` and `test/` (`dl3dv_split`)."""
+  root = pathlib.Path(root)
+  folders = [root, root / "train", root / "test"]
+  return any(folder.is_dir() and list_dl3dv_scenes(folder) for folder in folders)
+
+
+def data_folder_format(root: str | os.PathLike, *, where: str = "") -> str:
+  """What a real-data folder holds: "chunks" (pixelSplat `train/`, `test/`: `*.torch` +
+  `index.json`) or "zips" (DL3DV scenes as they ship, zipped or not: `has_dl3dv_scenes`).
+
+  Raises DL3DVError (`where` prefixes the folder in the message) for a folder holding neither.
+  """
+  root = pathlib.Path(root)
+  if not root.is_dir():
+    raise DL3DVError(f"{where}{root}: no such folder")
+  for stage in (root / "train", root / "test"):
+    if (stage / "index.json").is_file() or next(stage.glob("*.torch"), None):
+      return "chunks"
+  if has_dl3dv_scenes(root):
+    return "zips"
+  raise DL3DVError(
+    f"{where}{root}: holds neither pixelSplat chunks (train/ and test/ with *.torch and "
+    "index.json) nor DL3DV scenes (<scene>.zip or <scene>/ with transforms.json: directly, in "
+    "subset folders such as 1K/, or in train/ and test/)"
+  )
+
+
+def dl3dv_split(root: str | os.PathLike) -> tuple[pathlib.Path, pathlib.Path]:
+  """(training root, held-out root) of a DL3DV data folder: `root/train` and `root/test` when
+  either exists (the chunk format's split), else `root` for both (one folder of scenes: the
+  evaluation index names the held-out ones, `dl3dv_training_source` leaves them out)."""
+  root = pathlib.Path(root)
+  if (root / "train").is_dir() or (root / "test").is_dir():
+    return root / "train", root / "test"
+  return root, root
+
+
+def dl3dv_held_out_root(root: str | os.PathLike, *, indexed: bool) -> pathlib.Path:
+  """`dl3dv_split`'s held-out root; DL3DVError where it is the whole folder and no evaluation
+  index (`indexed`) names which of its scenes are held out."""
+  train_root, test_root = dl3dv_split(root)
+  if test_root == train_root and not indexed:
+    raise DL3DVError(
+      f"{root}: one folder of DL3DV scenes: name the held-out ones with an evaluation index "
+      "(--eval-index; they are never trained on), or split them into train/ and test/"
+    )
+  return test_root
+
+
+def index_scene_keys(path: str | os.PathLike) -> set[str]:
+  """Every scene an evaluation index JSON names (null entries too; either format of
+  `load_evaluation_index`), whatever its views."""
+  raw = json.loads(pathlib.Path(path).read_text())
+  if isinstance(raw, dict):
+    return set(raw)
+  return {e["scene_name"] for e in raw if isinstance(e, dict) and "scene_name" in e}
+
+
+def dl3dv_training_source(
+  root: str | os.PathLike, *, held_out_index: str | os.PathLike | None = None, **kwargs
+) -> DL3DVSceneSource:
+  """The training scenes of a DL3DV data folder (`dl3dv_split`), without any held-out scene.
+
+  Held out: the scenes the evaluation index `held_out_index` names (`index_scene_keys`) and, in
+  the split layout, every scene of `root/test` (DL3DV-ALL holds the benchmark's scenes too:
+  DepthSplat's training set leaves them out). Only scene lists are read (no zip is opened).
+  kwargs: `DL3DVSceneSource`'s.
+  """
+  train_root, test_root = dl3dv_split(root)
+  excluded = index_scene_keys(held_out_index) if held_out_index else set()
+  if test_root != train_root and test_root.is_dir():
+    excluded.update(DL3DVSceneSource(test_root).keys)
+  keys = [key for key in DL3DVSceneSource(train_root).keys if key not in excluded]
+  if not keys:
+    raise DL3DVError(
+      f"{train_root}: no training scene left once the {len(excluded)} held-out ones are set aside"
+    )
+  return DL3DVSceneSource(train_root, keys=keys, **kwargs)
