@@ -97,11 +97,13 @@ class Method:
     images: batch -> target-view images [B, Vt, H, W, 3] (image baselines; nothing rendered).
     objective: how the `gaussians` are rendered (background, near / far): the one
       their model was trained with, so that evaluation sees what training supervised.
+    compact: render the `gaussians` with `render_targets(compact=True)` (the same images).
   """
 
   gaussians: Callable[[dict], Gaussians] | None = None
   images: Callable[[dict], np.ndarray] | None = None
   objective: ObjectiveConfig = ObjectiveConfig()
+  compact: bool = False
 
   def __post_init__(self):
     if (self.gaussians is None) == (self.images is None):
@@ -321,12 +323,14 @@ class MethodScores:
     per_view: metric -> [Vt] per-target scores, per scored scene (same order).
     predict_seconds: per scored scene, seconds of the prediction alone (reconstruction and
       tuning, arrays ready; the first call of a shape includes compilation).
+    render_seconds: per scored scene, seconds of the target render (0 for image methods).
     seconds: wall time of predicting, rendering and scoring every scene.
   """
 
   per_scene: list[dict] = dataclasses.field(default_factory=list)
   per_view: list[dict[str, np.ndarray]] = dataclasses.field(default_factory=list)
   predict_seconds: list[float] = dataclasses.field(default_factory=list)
+  render_seconds: list[float] = dataclasses.field(default_factory=list)
   seconds: float = 0.0
 
   def summary(self) -> dict[str, float]:
@@ -355,15 +359,14 @@ class Evaluation:
     return {name: scores.summary() for name, scores in self.scores.items()}
 
 
-def _predict(method: Method, batch: dict, render_config) -> tuple[dict, float]:
-  """({"rgb" [B, Vt, H, W, 3], "depth", "alpha", "gaussians"}, prediction seconds) of one method
-  on one batch."""
+def _predict(method: Method, batch: dict, render_config) -> tuple[dict, float, float]:
+  """({"rgb" [B, Vt, H, W, 3], "depth", "alpha", "gaussians"}, prediction seconds, render
+  seconds) of one method on one batch."""
   start = time.perf_counter()
   if method.images is not None:
     rgb = np.asarray(method.images(batch))
-    return {"rgb": rgb, "depth": None, "alpha": None, "gaussians": None}, (
-      time.perf_counter() - start
-    )
+    seconds = time.perf_counter() - start
+    return {"rgb": rgb, "depth": None, "alpha": None, "gaussians": None}, seconds, 0.0
   gaussians = jax.block_until_ready(method.gaussians(batch))
   seconds = time.perf_counter() - start
   height, width = batch["target_images"].shape[-3:-1]
@@ -376,13 +379,10 @@ def _predict(method: Method, batch: dict, render_config) -> tuple[dict, float]:
     render_config=render_config,
     objective=method.objective,
     context_images=batch["context_images"],
+    compact=method.compact,
   )
-  return {
-    "rgb": rendered.rgb,
-    "depth": rendered.depth,
-    "alpha": rendered.alpha,
-    "gaussians": gaussians,
-  }, seconds
+  views = {"rgb": rendered.rgb, "depth": rendered.depth, "alpha": rendered.alpha}
+  return {**views, "gaussians": gaussians}, seconds, time.perf_counter() - start - seconds
 
 
 def geometry_scores(prediction: dict, batch: dict) -> dict[str, np.ndarray]:
@@ -455,12 +455,13 @@ def evaluate(
     entry = {"key": key, "batch": batch}
     for name, method in methods.items():
       start = time.perf_counter()
-      prediction, predict_seconds = _predict(method, batch, render_config)
+      prediction, predict_seconds, render_seconds = _predict(method, batch, render_config)
       views = scorer(prediction["rgb"][0], batch["target_images"][0])
       views.update(geometry_scores(prediction, batch))
       views.update(motion_scores(prediction, batch))
       scores[name].seconds += time.perf_counter() - start
       scores[name].predict_seconds.append(predict_seconds)
+      scores[name].render_seconds.append(render_seconds)
       scores[name].per_view.append(views)
       scores[name].per_scene.append({"key": key, **_scene_means(views, batch)})
       if position < keep:
