@@ -102,10 +102,9 @@ def transplant_params(
   with one of `token_names` (the Gaussian tokens, static and dynamic, and the scene latents) and
   whose row count differs is resized with `expand_tokens`; the Gaussian head's readout, when the
   model decodes a multiple of the pretrained Gaussians per token, with `split_gaussians`; anything
-  else keeps its fresh
-  initialisation and is reported. With `dynamic_from_static`, a `gs_tokens_dynamic` table that the
-  pretrained (static) model lacks starts from its `gs_tokens` (`dynamic_tokens_from_static`), as
-  the official `init_dynamic_tokens_from_static`. `pretrained` may be partial, e.g. an official
+  else keeps its fresh initialisation and is reported. With `dynamic_from_static`, a
+  `gs_tokens_dynamic` table that the pretrained (static) model lacks starts from its `gs_tokens`
+  (`dynamic_tokens_from_static`), as the official `init_dynamic_tokens_from_static`. `pretrained` may be partial, e.g. an official
   checkpoint read with `load_official_checkpoint(..., strict=False)`.
 
   Returns:
