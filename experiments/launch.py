@@ -14,6 +14,8 @@ surviving process blocked in a collective never hangs the job. A process that ex
 still run is named; the processes of a JAX job end together (`jax.distributed` waits at
 exit for all of them), so those still running `--finish-timeout` seconds later are stopped and the
 job fails (status 1). SIGTERM or SIGINT to the launcher stops the job (status 128 + signal).
+A launcher killed outright (SIGKILL) takes its processes with it on Linux (`_dying_with_launcher`);
+elsewhere they live on.
 
 Stopping a process: SIGTERM to it (the training loop then finishes its step, saves it and exits
 143), SIGKILL to its process group (it and its data workers) after `--grace` seconds, or at once
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import ctypes
 import os
 import signal
 import socket
@@ -76,8 +79,36 @@ _STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 _NOTE_AFTER_S = 5.0
 
 
+_PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+
+
+def _dying_with_launcher():
+  """The `preexec_fn` that makes a started process get SIGKILL when the launcher ends, however it
+  ended (the kernel's `PR_SET_PDEATHSIG`, kept across exec); None where there is no such setting
+  (not Linux: the processes outlive a killed launcher).
+
+  SIGKILL, not the SIGTERM the launcher's own stop starts with: a killed launcher cannot send the
+  SIGKILL that follows it after `--grace`, and with it gone the process's output pipe is broken,
+  so it would fail on its next line, perhaps halfway through saving. A rerun resumes from the
+  last complete checkpoint. The data workers end with their process (`process.exit_with_parent`).
+
+  The signal comes when the thread that started the process ends: `launch` runs in the main one.
+  """
+  if not sys.platform.startswith("linux"):
+    return None
+  prctl = ctypes.CDLL(None).prctl  # looked up before the fork: the child only calls it
+  launcher = os.getpid()
+
+  def die_with_launcher() -> None:
+    prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    if os.getppid() != launcher:  # the launcher ended before the setting took: no signal comes
+      os.kill(os.getpid(), signal.SIGKILL)
+
+  return die_with_launcher
+
+
 def _start(command: list[str], index: int, processes: int, address: str, devices: int | None):
-  """Process `index` of the job, in its own process group, and the thread forwarding its output."""
+  """Process `index` of the job, in its own process group, its output piped."""
   env = {
     **os.environ,
     "TOKENGS_COORDINATOR": address,
@@ -87,14 +118,23 @@ def _start(command: list[str], index: int, processes: int, address: str, devices
   if devices is not None:
     env["JAX_NUM_CPU_DEVICES"] = str(devices)
   # Own process group: killing the group also kills its data workers.
-  child = subprocess.Popen(
-    command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True
+  return subprocess.Popen(
+    command,
+    env=env,
+    stdout=subprocess.PIPE,
+    stderr=subprocess.STDOUT,
+    start_new_session=True,
+    preexec_fn=_dying_with_launcher(),
   )
+
+
+def _forward_output(child: subprocess.Popen, index: int) -> threading.Thread:
+  """The thread copying the output of process `index` to the launcher's, each line prefixed."""
   forwarder = threading.Thread(
     target=_forward, args=(f"[p{index}] ", child.stdout, sys.stdout), daemon=True
   )
   forwarder.start()
-  return child, forwarder
+  return forwarder
 
 
 def _watch(children: list[subprocess.Popen], timeout: float | None, finish_timeout: float) -> int:
@@ -167,10 +207,11 @@ def launch(
   children, forwarders = [], []
   previous = {signum: signal.signal(signum, _interrupt) for signum in _STOP_SIGNALS}
   try:
+    # Every process before the first output thread: `preexec_fn` runs Python in the forked
+    # launcher, which is safe only while it has no other thread (one could hold a lock forever).
     for index in range(processes):
-      child, forwarder = _start(command, index, processes, address, devices_per_process)
-      children.append(child)
-      forwarders.append(forwarder)
+      children.append(_start(command, index, processes, address, devices_per_process))
+    forwarders = [_forward_output(child, index) for index, child in enumerate(children)]
     status = _watch(children, timeout, finish_timeout)
   except _Interrupted as interrupted:
     print(f"[launch] {interrupted}; stopping all processes", flush=True)

@@ -154,12 +154,10 @@ def test_a_refused_write_is_one_line_naming_the_step_and_directory(
   assert Checkpointer(run).all_steps() == [1]  # the refused step never became a checkpoint
 
 
-def test_a_save_that_cannot_fit_is_refused_before_orbax_writes(tmp_path, monkeypatch, caplog):
-  """On a full disk orbax logs a traceback per writer thread (measured: 1,490 lines) before the
-  error: a step that cannot fit (about the size of the latest one) is refused in one line."""
-  run = tmp_path / "run"
-  save_steps(run, (1,))
-  usage = shutil.disk_usage(tmp_path)
+def refused_for_space(run, monkeypatch, caplog):
+  """Saves step 2 into `run` where 0.1 MiB are free; asserts the one-line refusal, with nothing
+  logged as an error on the way."""
+  usage = shutil.disk_usage(run.parent)
   monkeypatch.setattr(shutil, "disk_usage", lambda path: usage._replace(free=100_000))
   with caplog.at_level(logging.WARNING):
     with pytest.raises(CheckpointWriteError) as raised:
@@ -172,7 +170,22 @@ def test_a_save_that_cannot_fit_is_refused_before_orbax_writes(tmp_path, monkeyp
     str(raised.value),
   ), str(raised.value)
   assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
+
+
+def test_a_save_that_cannot_fit_is_refused_before_orbax_writes(tmp_path, monkeypatch, caplog):
+  """On a full disk orbax logs a traceback per writer thread (measured: 1,490 lines) before the
+  error: a step that cannot fit (about the size of the latest one) is refused in one line."""
+  run = tmp_path / "run"
+  save_steps(run, (1,))
+  refused_for_space(run, monkeypatch, caplog)
   assert sorted(p.name for p in run.iterdir()) == ["1"]
+
+
+def test_a_first_save_that_cannot_fit_is_refused_before_orbax_writes(tmp_path, monkeypatch, caplog):
+  """With no step on disk to size it by, the first save is sized from the state it saves."""
+  run = tmp_path / "run"
+  refused_for_space(run, monkeypatch, caplog)
+  assert listing(run) == []
 
 
 def test_an_unwritable_checkpoint_directory_is_one_line(tmp_path, monkeypatch):

@@ -146,3 +146,34 @@ def test_sigterm_to_the_launcher_stops_each_process_cleanly_and_reaps_their_help
     for pid in pids:
       if _alive(pid):
         os.kill(pid, signal.SIGKILL)
+
+
+_SLEEPING = textwrap.dedent(
+  """
+  import os, time
+  print(f"ready {os.getpid()}", flush=True)
+  time.sleep(120)
+  """
+)
+
+
+def test_a_killed_launcher_takes_its_processes_with_it():
+  """Nothing runs in a launcher killed by SIGKILL: the kernel ends its processes
+  (`PR_SET_PDEATHSIG`); they used to sleep on as orphans."""
+  job = _launcher(_SLEEPING)
+  pids = []
+  try:
+    for line in job.stdout:
+      if " ready " in line:
+        pids.append(int(line.split()[2]))
+        if len(pids) == 2:
+          break
+    job.kill()
+    job.wait(timeout=10)
+    assert _wait_gone(pids, 5.0) == [], "orphaned processes"
+  finally:
+    job.kill()
+    job.stdout.close()
+    for pid in pids:
+      if _alive(pid):
+        os.kill(pid, signal.SIGKILL)
