@@ -107,6 +107,7 @@ def reconstruct(
       InputViews(images, invert_rigid(c2w), intrinsics),
       viewers=viewers,
       sharpness=config.viewer_colour_sharpness,
+      occlusion_tolerance=config.input_occlusion_tolerance,
     )
   return Gaussians.from_flat(flat)
 

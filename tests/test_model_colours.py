@@ -7,7 +7,13 @@ import pytest
 
 from tokengs_jax import model
 from tokengs_jax.camera import invert_rigid, project_points
-from tokengs_jax.model.colours import InputViews, bilinear_sample, input_colours, viewer_colours
+from tokengs_jax.model.colours import (
+  InputViews,
+  bilinear_sample,
+  input_colours,
+  viewer_colours,
+  with_input_colours,
+)
 
 H, W = 6, 8
 
@@ -303,3 +309,62 @@ def test_dynamic_gaussians_read_the_views_at_the_views_times():
   np.testing.assert_allclose(rgb[:, :first][still_seen], np.asarray(still)[still_seen], atol=1e-5)
   # the trajectories move, so reading every view at the target-time centres would differ
   assert float(jnp.abs(at[0][:, first:, :3] - at[1][:, first:, :3]).max()) > 1e-4
+
+
+def _occlusion_scene():
+  """Two cameras looking down +z, the second 1.0 along +x, 16x16 images constant 0.2 / 0.8; an
+  opaque Gaussian at z = 1 in front of view 0's centre hides a point at z = 3 from view 0 only
+  (view 1 sees the point at u = 2.7 and has the front Gaussian outside its image)."""
+  c2w = np.tile(np.eye(4, dtype=np.float32), (1, 2, 1, 1))
+  c2w[0, 1, 0, 3] = 1.0
+  intrinsics = np.tile(np.array([16.0, 16.0, 8.0, 8.0], np.float32), (1, 2, 1))
+  images = np.zeros((1, 2, 16, 16, 3), np.float32)
+  images[0, 0], images[0, 1] = 0.2, 0.8
+  views = InputViews(jnp.asarray(images), invert_rigid(jnp.asarray(c2w)), jnp.asarray(intrinsics))
+  front = [0.0, 0.0, 1.0, 0.99, 0.2, 0.2, 0.2, 1.0, 0.0, 0.0, 0.0, 0.5, 0.5, 0.5]
+  back = [0.0, 0.0, 3.0, 0.99, 0.01, 0.01, 0.01, 1.0, 0.0, 0.0, 0.0, 0.5, 0.5, 0.5]
+  return views, jnp.asarray([[front, back]], jnp.float32)
+
+
+def test_a_view_that_hides_a_gaussian_gives_it_no_colour():
+  views, flat = _occlusion_scene()
+  plain = with_input_colours(flat, views)
+  np.testing.assert_allclose(np.asarray(plain[0, :, 11]), [0.2, 0.5], atol=1e-5)
+  tested = with_input_colours(flat, views, occlusion_tolerance=0.1)
+  # the back point is read in view 1 only; the front one, the surface view 0 sees, stays
+  np.testing.assert_allclose(np.asarray(tested[0, :, 11]), [0.2, 0.8], atol=1e-5)
+  np.testing.assert_array_equal(np.asarray(tested[..., :11]), np.asarray(flat[..., :11]))
+  # a tolerance wider than the gap between the two (z 3 against 1) hides nothing
+  loose = with_input_colours(flat, views, occlusion_tolerance=2.5)
+  np.testing.assert_allclose(np.asarray(loose[0, :, 11]), [0.2, 0.5], atol=1e-5)
+  # seen from view 0's camera with viewer weights, the hidden view's colour is not taken either
+  viewers = jnp.zeros((1, 1, 3))
+  sharp = with_input_colours(flat, views, viewers=viewers, sharpness=1e4, occlusion_tolerance=0.1)
+  np.testing.assert_allclose(np.asarray(sharp[0, 0, :, 11]), [0.2, 0.8], atol=1e-5)
+  unhidden = with_input_colours(flat, views, viewers=viewers, sharpness=1e4)
+  np.testing.assert_allclose(np.asarray(unhidden[0, 0, :, 11]), [0.2, 0.2], atol=1e-5)
+  grad = jax.grad(
+    lambda f: jnp.sum(
+      with_input_colours(f, views, viewers=viewers, sharpness=100.0, occlusion_tolerance=0.1)
+    )
+  )(flat)
+  assert bool(jnp.all(jnp.isfinite(grad)))
+
+
+def test_a_gaussian_hidden_in_every_view_keeps_the_views_colours():
+  """Moved so that view 1 does not contain it, the back point is hidden in the only view left:
+  the test would leave it no colour, so it is read as without the test."""
+  views, flat = _occlusion_scene()
+  flat = flat.at[0, 1, 0].set(-0.2)  # view 0 still sees the front Gaussian over it
+  # view 1's principal point moved off the image: u = 16 * -1.2 / 3 - 8 < 0, outside
+  views = views.replace(intrinsics=views.intrinsics.at[0, 1, 2].set(-8.0))
+  tested = with_input_colours(flat, views, occlusion_tolerance=0.1)
+  plain = with_input_colours(flat, views)
+  np.testing.assert_allclose(np.asarray(tested), np.asarray(plain), atol=1e-6)
+  np.testing.assert_allclose(np.asarray(tested[0, 1, 11]), 0.2, atol=1e-5)
+
+
+def test_the_occlusion_tolerance_is_checked():
+  with pytest.raises(ValueError, match="input_occlusion_tolerance"):
+    model.preset("tiny", input_occlusion_tolerance=-0.1)
+  assert model.preset("tiny", input_occlusion_tolerance=0.1).input_occlusion_tolerance == 0.1

@@ -24,6 +24,16 @@ colour of another side of the surface, of an occluder, or of an object that move
 view whose ray nearly coincides with the viewer's shows what the viewer sees. Colours become
 view-dependent, as spherical harmonics are, and the Gaussians of one scene come as one set per
 viewing camera.
+
+Hidden views (`ModelConfig.input_occlusion_tolerance`, not in the paper either): a Gaussian's
+projection into a view is that view's pixel whatever lies in front of the Gaussian, so a surface
+hidden from the view that the weights prefer takes the occluder's colour. In a dynamic scene
+that is the background an object stood on at the view's time: the copy of that view, ghost
+included, is all such colours can render where the object has gone. With a tolerance, each view
+renders the decoded scene (where it was at the view's time) and a view whose render is opaque at
+the projection with an expected depth nearer than the Gaussian's by more than the tolerance gives
+it no colour; a Gaussian hidden in every view that contains it keeps the views' colours as if
+none hid it. The test is a mask without gradient, as the projection's `inside` is.
 """
 
 from __future__ import annotations
@@ -33,10 +43,14 @@ import jax
 import jax.numpy as jnp
 
 from tokengs_jax.camera import invert_rigid, project_points
+from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.math import safe_normalize
+from tokengs_jax.splatting import render
 
 # Camera-z below which a view does not see a Gaussian (the renderer's near plane).
 NEAR = 0.025
+# Render alpha above which a view's expected depth is a surface that can hide what is behind it.
+OPAQUE = 0.5
 
 
 @flax.struct.dataclass
@@ -84,18 +98,59 @@ def bilinear_sample(images: jax.Array, uv: jax.Array) -> jax.Array:
   return top * (1.0 - fy) + bottom * fy
 
 
-def _sampled(means: jax.Array, views: InputViews) -> tuple[jax.Array, jax.Array, jax.Array]:
+@flax.struct.dataclass
+class Occluders:
+  """What each input view sees, to find the Gaussians it hides (module docstring).
+
+  Attributes:
+    scenes: [B, N, 14] the decoded Gaussians, or [B, V, N, 14]: each view's own scene, where
+      the Gaussians were when that view was taken.
+    tolerance: a view hides a Gaussian whose camera z exceeds the view's expected depth at its
+      projection by more than this fraction of that depth.
+  """
+
+  scenes: jax.Array
+  tolerance: float = flax.struct.field(pytree_node=False, default=0.1)
+
+
+def _hidden(occluders: Occluders, views: InputViews, uv: jax.Array, depth: jax.Array) -> jax.Array:
+  """[B, V, N] bool: view v's render of its scene is opaque at the Gaussian's projection `uv`
+  [B, V, N, 2], with an expected depth nearer than its camera z `depth` [B, V, N] by more than the
+  tolerance. A view whose render overflowed its tile budget hides nothing (the rule without the
+  test), rather than a wrong surface."""
+  scenes = jax.lax.stop_gradient(occluders.scenes)
+  if scenes.ndim == 3:
+    scenes = jnp.broadcast_to(scenes[:, None], depth.shape[:2] + scenes.shape[1:])
+  h, w = views.images.shape[-3:-1]
+  seen = render(
+    Gaussians.from_flat(scenes.astype(jnp.float32)),
+    jax.lax.stop_gradient(views.world_to_camera)[:, :, None],
+    jax.lax.stop_gradient(views.intrinsics)[:, :, None],
+    height=h,
+    width=w,
+  )
+  maps = jnp.concatenate([seen.depth, seen.alpha], axis=-1)[:, :, 0]  # [B, V, H, W, 2]
+  surface = bilinear_sample(maps, jax.lax.stop_gradient(uv))
+  behind = depth > surface[..., 0] * (1.0 + occluders.tolerance)
+  exact = ~seen.stats.overflow  # [B, V, 1]
+  return exact & (surface[..., 1] > OPAQUE) & jax.lax.stop_gradient(behind)
+
+
+def _sampled(
+  means: jax.Array, views: InputViews, occluders: Occluders | None = None
+) -> tuple[jax.Array, jax.Array, jax.Array]:
   """Every view's sample at each Gaussian's projection.
 
   Args:
     means: [B, N, 3] world positions, or [B, V, N, 3]: each view's own positions of the N
       Gaussians (where they were when that view was taken).
+    occluders: with them, a view that hides a Gaussian does not contain it (module docstring).
 
   Returns:
     (samples [B, V, N, 3] float32, inside [B, V, N] bool: the view's image contains the
-    projection, positions [B, V, N, 3]: where view v saw the Gaussian, non-finite ones at 0).
-    A non-finite centre is inside no view and gets a zero gradient here, as the renderer culls
-    it (design.md §8), instead of a NaN one.
+    projection (and, with occluders, does not hide it), positions [B, V, N, 3]: where view v saw
+    the Gaussian, non-finite ones at 0). A non-finite centre is inside no view and gets a zero
+    gradient here, as the renderer culls it (design.md §8), instead of a NaN one.
   """
   h, w = views.images.shape[-3:-1]
   finite = jnp.all(jnp.isfinite(means), axis=-1)  # [B, N] or [B, V, N]
@@ -117,22 +172,28 @@ def _sampled(means: jax.Array, views: InputViews) -> tuple[jax.Array, jax.Array,
     & (uv[..., 1] >= 0.0)
     & (uv[..., 1] <= h)
   )
+  if occluders is not None:
+    unhidden = inside & ~_hidden(occluders, views, uv, depth)
+    inside = jnp.where(jnp.any(unhidden, axis=1, keepdims=True), unhidden, inside)
   return bilinear_sample(views.images.astype(jnp.float32), uv), inside, positions
 
 
-def input_colours(means: jax.Array, views: InputViews) -> tuple[jax.Array, jax.Array]:
+def input_colours(
+  means: jax.Array, views: InputViews, occluders: Occluders | None = None
+) -> tuple[jax.Array, jax.Array]:
   """Mean colour of the input pixels each Gaussian centre projects to.
 
   Args:
     means: [B, N, 3] world positions, or [B, V, N, 3]: each view's own positions of the N
       Gaussians (where they were when that view was taken).
     views: the input views.
+    occluders: with them, views that hide a Gaussian are left out (module docstring).
 
   Returns:
     (colours [B, N, 3] float32: the average over the views whose image contains the projection,
     seen [B, N] bool: at least one view does).
   """
-  samples, inside, _ = _sampled(means, views)
+  samples, inside, _ = _sampled(means, views, occluders)
   weights = inside.astype(jnp.float32)[..., None]  # [B, V, N, 1]
   count = jnp.sum(weights, axis=1)  # [B, N, 1]
   colours = jnp.sum(weights * samples, axis=1) / jnp.maximum(count, 1.0)
@@ -140,7 +201,12 @@ def input_colours(means: jax.Array, views: InputViews) -> tuple[jax.Array, jax.A
 
 
 def viewer_colours(
-  means: jax.Array, views: InputViews, present: jax.Array, viewers: jax.Array, sharpness: float
+  means: jax.Array,
+  views: InputViews,
+  present: jax.Array,
+  viewers: jax.Array,
+  sharpness: float,
+  occluders: Occluders | None = None,
 ) -> tuple[jax.Array, jax.Array]:
   """Colours as seen from `viewers`: each view's sample weighted by how close its ray through the
   Gaussian is to the viewer's (the unstructured-lumigraph rule; module docstring).
@@ -155,11 +221,12 @@ def viewer_colours(
     present: [B, N, 3] where the Gaussians are at the time they are rendered.
     viewers: [B, T, 3] centres of the cameras the Gaussians are rendered from.
     sharpness: the softmax's inverse temperature (large: the nearest ray's view alone).
+    occluders: with them, views that hide a Gaussian get no weight (module docstring).
 
   Returns:
     (colours [B, T, N, 3] float32, seen [B, N] bool).
   """
-  samples, inside, positions = _sampled(means, views)
+  samples, inside, positions = _sampled(means, views, occluders)
   centres = invert_rigid(views.world_to_camera)[..., :3, 3]  # [B, V, 3]
   from_views = safe_normalize(positions - centres[:, :, None])  # [B, V, N, 3]
   from_viewers = safe_normalize(present[:, None] - viewers[:, :, None])  # [B, T, N, 3]
@@ -173,27 +240,34 @@ def viewer_colours(
 def with_input_colours(
   flat: jax.Array,
   views: InputViews,
-  dynamic_means: jax.Array | None = None,
+  dynamic_at_view_times: jax.Array | None = None,
   viewers: jax.Array | None = None,
   sharpness: float = 0.0,
+  occlusion_tolerance: float | None = None,
 ) -> jax.Array:
   """flat Gaussians [B, N, 14] -> the same with RGB read from the views where any sees them.
 
-  dynamic_means: [B, V, Nd, 3], the last Nd Gaussians' centres at each view's time (module
-  docstring): each view is read where they were when it was taken. None: where they are now.
+  dynamic_at_view_times: [B, V, Nd, 14], the last Nd Gaussians decoded at each view's time
+  (module docstring): each view is read where they were when it was taken. None: where they
+  are now.
   viewers: [B, T, 3] centres of the cameras the Gaussians will be rendered from: returns one
   set per viewer, [B, T, N, 14], coloured by `viewer_colours` at `sharpness`. None: the views'
   mean (`input_colours`), [B, N, 14].
+  occlusion_tolerance: None reads every view the projection falls in; a fraction: views that
+  hide the Gaussian behind their render of the scene are left out (`Occluders`).
   """
-  means = flat[..., :3]
-  if dynamic_means is not None:
-    num_views, first = dynamic_means.shape[1], flat.shape[1] - dynamic_means.shape[2]
-    still = jnp.broadcast_to(means[:, None, :first], (means.shape[0], num_views, first, 3))
-    means = jnp.concatenate([still, dynamic_means], axis=2)  # [B, V, N, 3]
+  scenes = flat
+  if dynamic_at_view_times is not None:
+    num_views, num_dynamic = dynamic_at_view_times.shape[1:3]
+    first = flat.shape[1] - num_dynamic
+    still = jnp.broadcast_to(flat[:, None, :first], (flat.shape[0], num_views, first, 14))
+    scenes = jnp.concatenate([still, dynamic_at_view_times], axis=2)  # [B, V, N, 14]
+  means = scenes[..., :3]
+  occluders = None if occlusion_tolerance is None else Occluders(scenes, occlusion_tolerance)
   if viewers is None:
-    colours, seen = input_colours(means, views)
+    colours, seen = input_colours(means, views, occluders)
   else:
-    colours, seen = viewer_colours(means, views, flat[..., :3], viewers, sharpness)
+    colours, seen = viewer_colours(means, views, flat[..., :3], viewers, sharpness, occluders)
     flat, seen = flat[:, None], seen[:, None]
     flat = jnp.broadcast_to(flat, colours.shape[:-1] + flat.shape[-1:])
   rgb = jnp.where(seen[..., None], colours, flat[..., 11:14])

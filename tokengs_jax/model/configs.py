@@ -77,6 +77,10 @@ class ModelConfig:
       cameras (export, `predict_gaussians`) they take the mean.
     viewer_colour_sharpness: the "viewer" weights' softmax inverse temperature on the rays'
       cosine (100: a view whose ray is 8 degrees further off gets 1/e the weight).
+    input_occlusion_tolerance: with colours read from the inputs, None reads every view a
+      Gaussian projects into; a fraction leaves out the views that hide it (their render of the
+      decoded scene is opaque at its projection, nearer than its own depth by more than this
+      fraction; `model.colours`, not in the paper). Costs one render per input view.
   """
 
   patch_size: int = 8
@@ -110,6 +114,7 @@ class ModelConfig:
   gaussian_colours: str = "head"
   input_colour_weights: str = "mean"
   viewer_colour_sharpness: float = 100.0
+  input_occlusion_tolerance: float | None = None
 
   def __post_init__(self):
     if self.enc_embed_dim % self.enc_num_heads:
@@ -137,6 +142,10 @@ class ModelConfig:
     if self.input_colour_weights not in ("mean", "viewer"):
       raise ValueError(
         f"input_colour_weights must be 'mean' or 'viewer', got {self.input_colour_weights!r}"
+      )
+    if self.input_occlusion_tolerance is not None and not self.input_occlusion_tolerance >= 0:
+      raise ValueError(
+        f"input_occlusion_tolerance must be None or >= 0, got {self.input_occlusion_tolerance!r}"
       )
     if self.matmul_dtype not in (None, "float32", "bfloat16"):
       raise ValueError(

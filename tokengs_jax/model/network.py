@@ -300,28 +300,29 @@ class TokenGS(nn.Module):
       flat = with_input_colours(
         flat,
         encoded.views,
-        self._dynamic_means_at_input_times(encoded, tokens, target_times),
+        self._dynamic_at_input_times(encoded, tokens, target_times),
         viewers if self.config.viewer_dependent else None,
         self.config.viewer_colour_sharpness,
+        self.config.input_occlusion_tolerance,
       )
     if viewers is not None and flat.ndim == 3:  # the same set for every camera
       flat = jnp.broadcast_to(flat[:, None], (flat.shape[0], viewers.shape[1]) + flat.shape[1:])
     return flat
 
-  def _dynamic_means_at_input_times(
+  def _dynamic_at_input_times(
     self, encoded: EncoderOutput, tokens: jax.Array | None, target_times: jax.Array | None
   ) -> jax.Array | None:
-    """[B, V, Nd, 3]: the dynamic Gaussians' centres decoded at each input view's time, where
-    their colours are read (`colours` module docstring); None without dynamic tokens, a target
-    time or the views' times."""
+    """[B, V, Nd, 14]: the dynamic Gaussians decoded at each input view's time, where their
+    colours are read (`colours` module docstring); None without dynamic tokens, a target time
+    or the views' times."""
     cfg, times = self.config, encoded.views.times
     if not cfg.num_dynamic_gs_tokens or target_times is None or times is None:
       return None
-    means = [
+    at_times = [
       activate(self.activation_head(self.decode_tokens(encoded, tokens, times[:, v])), cfg)
       for v in range(times.shape[1])
     ]
-    return jnp.stack([m[:, cfg.num_static_gaussians :, :3] for m in means], axis=1)
+    return jnp.stack([g[:, cfg.num_static_gaussians :] for g in at_times], axis=1)
 
   def __call__(
     self,
