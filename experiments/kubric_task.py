@@ -66,6 +66,9 @@ class KubricExperiment(Experiment):
       fraction of `train.steps`, then decays linearly to 0 over the next (official 5k / 10k of 50k).
     lambda_motion: the target pixels that moved weigh 1 + this (`losses.LossConfig`; 0: off).
     dyn_aux_on_motion: the auxiliary loss scores the moving pixels only (False: all, official).
+    dyn_aux_on_objects: the auxiliary loss scores the object pixels of the data's segmentations
+      and the dynamic render's alpha against them (`losses.LossConfig.dyn_aux_on_objects`; the
+      training examples then carry `target_objects`).
     background: what every render of training, token tuning and evaluation composites behind the
       Gaussians: "grey" (official `bg_color`, 0.5) or "input_mean" (each example's mean input
       colour: targets from other cameras show regions no input saw; `ObjectiveConfig.background`).
@@ -85,6 +88,7 @@ class KubricExperiment(Experiment):
   dyn_aux_decay_fraction: float = 0.2
   lambda_motion: float = 0.0
   dyn_aux_on_motion: bool = False
+  dyn_aux_on_objects: bool = False
   background: Literal["grey", "input_mean"] = "grey"
   normalization: Literal["mean_cam", "first_cam"] = "mean_cam"
 
@@ -110,13 +114,15 @@ class KubricExperiment(Experiment):
 
 def kubric_example_config(experiment: KubricExperiment, *, training: bool) -> ExampleConfig:
   """The official Kubric example preset (pointmap scale) at the experiment's image size and
-  camera normalisation; random flips only in training."""
+  camera normalisation; random flips only in training, where the targets' object pixels come
+  too when the auxiliary loss scores them."""
   return dataclasses.replace(
     DATASET_PRESETS["kubric"],
     image_shape=tuple(experiment.image_size),
     normalization=experiment.normalization,
     random_flip=training,
     deterministic=not training,
+    target_objects=training and experiment.dyn_aux_on_objects,
   )
 
 
@@ -363,6 +369,7 @@ class KubricTask(Task):
       lambda_dyn_aux=experiment.lambda_dyn_aux,
       lambda_motion=experiment.lambda_motion,
       dyn_aux_on_motion=experiment.dyn_aux_on_motion,
+      dyn_aux_on_objects=experiment.dyn_aux_on_objects,
       dyn_aux_hold_steps=round(experiment.dyn_aux_hold_fraction * steps),
       dyn_aux_decay_steps=max(round(experiment.dyn_aux_decay_fraction * steps), 1),
     )

@@ -88,9 +88,13 @@ class Task:
   def tuning_loss_config(self, experiment: Experiment):
     """Token tuning's loss: the training loss without the LPIPS term (VGG's cost per tuning
     step is not paid at test time), and with the official dynamic auxiliary term: the input
-    views it tunes on are their own nearest views, so no pixel of theirs moved."""
+    views it tunes on are their own nearest views, so no pixel of theirs moved, and carry no
+    segmentation."""
     return dataclasses.replace(
-      self.loss_config(experiment), lambda_lpips=0.0, dyn_aux_on_motion=False
+      self.loss_config(experiment),
+      lambda_lpips=0.0,
+      dyn_aux_on_motion=False,
+      dyn_aux_on_objects=False,
     )
 
   def lpips_params(self, experiment: Experiment):

@@ -174,6 +174,43 @@ def test_make_example_target_depths_are_scaled_and_flipped_with_the_cameras():
   )
 
 
+def test_make_example_target_objects_are_the_segmentations_flipped_with_the_images():
+  import dataclasses
+
+  from tokengs_jax.data import BadExampleError, BoundedSamplerConfig, ExampleConfig, make_example
+
+  rng = np.random.default_rng(0)
+  frames, height, width = 4, 8, 12
+  segmentations = rng.integers(0, 3, (frames, height, width)).astype(np.int32)
+  record = {
+    "key": "k",
+    "height": height,
+    "width": width,
+    "c2w": np.tile(np.eye(4, dtype=np.float32), (frames, 1, 1)),
+    "intrinsics": np.tile(np.array([10.0, 10.0, 6.0, 4.0], np.float32), (frames, 1)),
+    "images": list(rng.integers(0, 255, (frames, height, width, 3), dtype=np.uint8)),
+    "segmentations": list(segmentations),
+  }
+  sampler = BoundedSamplerConfig(2, 1, 1, 3, 0, 0, 1, 3)
+  config = ExampleConfig((height, width), sampler, 0.25, target_objects=True, random_flip=False)
+  views = (np.array([0, 3]), np.array([2]))
+  example = make_example(record, config, rng, views=views)
+  assert example["target_objects"].dtype == np.float32
+  np.testing.assert_array_equal(example["target_objects"], (segmentations[[2]] > 0))
+  flipped = dataclasses.replace(config, random_flip=True)
+  flips = 0
+  for seed in range(8):
+    other = make_example(record, flipped, np.random.default_rng(seed), views=views)
+    mirrored = np.allclose(other["target_images"], example["target_images"][:, :, ::-1])
+    flips += mirrored
+    expected = example["target_objects"][:, :, ::-1] if mirrored else example["target_objects"]
+    np.testing.assert_array_equal(other["target_objects"], expected)
+  assert 0 < flips < 8
+  without = {name: value for name, value in record.items() if name != "segmentations"}
+  with pytest.raises(BadExampleError, match="segmentations"):
+    make_example(without, config, rng, views=views)
+
+
 def test_rigid_inverse_matches_the_jax_camera_inverse():
   rng = np.random.default_rng(0)
   q, _ = np.linalg.qr(rng.normal(size=(5, 3, 3)))

@@ -209,6 +209,82 @@ def test_dynamic_aux_on_motion_scores_the_dynamic_gaussians_on_the_moving_pixels
     )
 
 
+def test_dynamic_aux_on_objects_scores_the_dynamic_render_against_the_object_mask():
+  """The auxiliary term becomes: the dynamic render's error on the object pixels, its alpha
+  against the mask everywhere, and the visibility; the main loss does not change."""
+  params = dynamic_params()
+  batch = dynamic_batch([[0.0, 1.0]], [[0.4, 0.4]])
+  objective = ObjectiveConfig(decode_times="first")
+  official = losses.LossConfig(rgb_loss="l1", lambda_rgb=0.8, lambda_dyn_aux=0.5)
+  on_objects = dataclasses.replace(official, dyn_aux_on_objects=True)
+  height, width = batch["target_images"].shape[2:4]
+  objects = np.zeros(batch["target_images"].shape[:-1], np.float32)
+  objects[..., : height // 2, :] = 1.0  # the top half is an object
+
+  def loss_and_terms(config, objects):
+    return jax.jit(tokengs_loss_fn(DYNAMIC_CONFIG, config, objective=objective))(
+      params, {**batch, "target_objects": objects}, None, 0
+    )
+
+  base_loss, base_terms = loss_and_terms(official, objects)
+  loss, terms = loss_and_terms(on_objects, objects)
+  np.testing.assert_allclose(
+    loss - 0.5 * terms["dyn_aux"], base_loss - 0.5 * base_terms["dyn_aux"], rtol=1e-5
+  )
+  # an empty mask: the alpha term alone asks the dynamic render to be transparent everywhere
+  _, empty = loss_and_terms(on_objects, np.zeros_like(objects))
+  _, full = loss_and_terms(on_objects, np.ones_like(objects))
+  assert float(terms["dyn_aux"]) != pytest.approx(float(empty["dyn_aux"]))
+  assert float(full["dyn_aux"]) != pytest.approx(float(empty["dyn_aux"]))
+  with pytest.raises(ValueError, match="target_objects"):
+    jax.jit(tokengs_loss_fn(DYNAMIC_CONFIG, on_objects, objective=objective))(
+      params, batch, None, 0
+    )
+  with pytest.raises(ValueError, match="two masks"):
+    losses.LossConfig(lambda_motion=1.0, dyn_aux_on_motion=True, dyn_aux_on_objects=True)
+
+
+def test_the_object_terms_are_the_masked_error_and_the_alpha_error():
+  """`_score_at_times` with "objects": objects_rgb is the error on the mask's pixels over all
+  pixels, objects_alpha the render's alpha against the mask, each side averaged on its own."""
+  from tokengs_jax.gaussians import Gaussians
+  from tokengs_jax.objective.model_loss import _score_at_times
+
+  height = width = 16
+  flat = jnp.asarray(
+    [[[[0.0, 0.0, 2.0, 0.99, 0.3, 0.3, 0.3, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0]]]], jnp.float32
+  )
+  gaussians = Gaussians.from_flat(flat)  # [1, 1] one red Gaussian in front of the camera
+  w2c = jnp.eye(4)[None, None]
+  intrinsics = jnp.asarray([[[16.0, 16.0, 8.0, 8.0]]])
+  images = jnp.zeros((1, 1, height, width, 3))
+  objects = jnp.zeros((1, 1, height, width)).at[..., 4:12, 4:12].set(1.0)
+  views = {"world_to_camera": w2c, "intrinsics": intrinsics, "images": images, "objects": objects}
+  config = losses.LossConfig(rgb_loss="l1")
+  _, terms, _ = _score_at_times(
+    gaussians,
+    views,
+    world_to_camera=w2c,
+    intrinsics=intrinsics,
+    loss_config=config,
+    render_config=splatting.RenderConfig(),
+    objective=ObjectiveConfig(background=(0.0, 0.0, 0.0)),
+    lpips_params=None,
+    context_images=None,
+  )
+  rendered = splatting.render(
+    gaussians, w2c[:, :, None], intrinsics[:, :, None], height=16, width=16, background=jnp.zeros(3)
+  )
+  alpha = np.asarray(rendered.alpha)[0, 0, 0, ..., 0]
+  rgb = np.asarray(rendered.rgb)[0, 0, 0]
+  mask = np.asarray(objects)[0, 0]
+  balanced = np.mean((1 - alpha[mask > 0]) ** 2) + np.mean(alpha[mask == 0] ** 2)
+  np.testing.assert_allclose(terms["objects_alpha"], balanced, rtol=1e-5)
+  np.testing.assert_allclose(
+    terms["objects_rgb"], np.mean(mask[..., None] * np.abs(rgb)), rtol=1e-5
+  )
+
+
 @pytest.mark.slow
 def test_chunked_objective_matches_one_shot(tiny):
   config, params = tiny

@@ -63,6 +63,13 @@ class LossConfig:
     dyn_aux_on_motion: the dynamic auxiliary loss scores the dynamic Gaussians' render on the
       moving pixels only (RGB + visibility; needs `lambda_motion > 0`), so they answer for what
       moved and leave the static scene to the static Gaussians. Not official (docs/deviations.md).
+    dyn_aux_on_objects: the dynamic auxiliary loss scores the dynamic Gaussians' render on the
+      target pixels where the data's segmentation shows an object (RGB), its alpha against that
+      mask (squared error toward 1 on the objects and toward 0 elsewhere, each averaged over its
+      own pixels, so that an empty render is not the cheap answer) and their visibility;
+      needs the batch's `target_objects`. The dynamic Gaussians are told where the objects are
+      at the target time instead of finding the split alone. Not official (docs/deviations.md);
+      excludes `dyn_aux_on_motion`.
     motion_threshold: the colour change (max over channels, in [0, 1]) that marks a target pixel
       as moving.
     lambda_coverage: weight of `coverage_loss`, the share of each supervision render left
@@ -92,6 +99,7 @@ class LossConfig:
   lambda_motion: float = 0.0
   motion_threshold: float = 0.1
   dyn_aux_on_motion: bool = False
+  dyn_aux_on_objects: bool = False
   lambda_coverage: float = 0.0
   lambda_opacity: float = 0.0
 
@@ -109,6 +117,8 @@ class LossConfig:
       raise ValueError("visibility_threshold must be > 0: it is also the cost of a hidden centre")
     if self.dyn_aux_on_motion and not self.lambda_motion > 0:
       raise ValueError("dyn_aux_on_motion needs lambda_motion > 0 (the moving pixels' mask)")
+    if self.dyn_aux_on_motion and self.dyn_aux_on_objects:
+      raise ValueError("dyn_aux_on_motion and dyn_aux_on_objects are two masks for one term")
 
 
 def check_weights(weights: dict[str, float]) -> None:

@@ -11,7 +11,8 @@ planar z); `pointmap_scale` unprojects them exactly as the official provider doe
 
 Batches are dicts of numpy arrays (docs/design.md): `context_images [B, Vc, H, W, 3]`,
 `context_c2w [B, Vc, 4, 4]`, `context_intrinsics [B, Vc, 4]`, the same for `target_*`,
-`scene_index [B]`, and for records with `times`: `context_times [B, Vc]`, `target_times [B, Vt]`.
+`scene_index [B]`, and for records with `times`: `context_times [B, Vc]`, `target_times [B, Vt]`;
+`target_depths` / `target_objects [B, Vt, H, W]` where `ExampleConfig` asks for them.
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ from tokengs_jax.data.transforms import (
   normalize_times,
   resize_and_center_crop,
   resize_and_center_crop_depth,
+  resize_and_center_crop_mask,
   translation_scale,
 )
 
@@ -98,6 +100,10 @@ class ExampleConfig:
       target views (`depths`, as `pointmap` reads them; 0 where nothing was hit) resized and
       cropped as the images and scaled as the cameras, so that they compare with rendered depth
       (the evaluation's geometry scores; synthetic test sets record them).
+    target_objects: also return `target_objects [Vt, H, W]` float32, 1 on the target pixels
+      where the record's `segmentations` show an object (instance number > 0), resized and
+      cropped as the images (`resize_and_center_crop_mask`) and flipped with them (the dynamic
+      auxiliary loss on the objects, `losses.LossConfig.dyn_aux_on_objects`).
 
   The last two reproduce pixelSplat/MVSplat's RE10K filters (`src/dataset/dataset_re10k.py`:
   `max_fov: 100.0` and, with `make_baseline_1`, `baseline_epsilon: 1e-3` in
@@ -115,6 +121,7 @@ class ExampleConfig:
   max_fov_degrees: float | None = None
   min_context_baseline: float | None = None
   target_depths: bool = False
+  target_objects: bool = False
 
 
 DATASET_PRESETS = {
@@ -306,7 +313,27 @@ def make_example(
     example["context_times"], example["target_times"] = times[:num_context], times[num_context:]
   if config.target_depths:
     example["target_depths"] = _target_depths(record, target, config, scale, flipped)
+  if config.target_objects:
+    example["target_objects"] = _target_objects(record, target, config, flipped)
   return example
+
+
+def _target_objects(record: dict, target, config: ExampleConfig, flipped: bool) -> np.ndarray:
+  """The targets' object pixels (segmentation > 0) as `make_example` transformed their images.
+  -> float32 [Vt, H, W]."""
+  where = _where(record)
+  if "segmentations" not in record:
+    raise BadExampleError(f"{where}: target_objects needs the record's 'segmentations'")
+  frames = record["segmentations"]
+  missing = [int(i) for i in target if hasattr(frames, "present") and not frames.present(int(i))]
+  if missing:
+    raise BadExampleError(f"{where}: target_objects needs segmentations, none for frames {missing}")
+  try:
+    objects = np.stack([np.asarray(frames[int(i)]) > 0 for i in target])
+  except _DATA_ERRORS as error:
+    raise BadExampleError(f"{where}: {error}") from error
+  objects = resize_and_center_crop_mask(objects, config.image_shape)
+  return (objects[:, :, ::-1] if flipped else objects).astype(np.float32)
 
 
 def _target_depths(record: dict, target, config: ExampleConfig, scale: float, flipped: bool):

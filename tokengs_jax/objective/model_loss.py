@@ -52,6 +52,7 @@ def time_conditioned_loss(
   step: jax.Array | int = 0,
   context_images: jax.Array | None = None,
   moving: jax.Array | None = None,
+  objects: jax.Array | None = None,
 ):
   """Loss of time-conditioned Gaussians against views taken at different times.
 
@@ -82,6 +83,8 @@ def time_conditioned_loss(
     context_images: [B, Vi, H, W, 3] the input views (every "input_mean" background's colour).
     moving: [B, V, H, W] the views' moving pixels (`losses.moving_pixels`), weighted
       `1 + loss_config.lambda_motion` (None or lambda_motion 0: no motion term).
+    objects: [B, V, H, W] the views' object pixels (the batch's `target_objects`), which the
+      auxiliary loss scores under `loss_config.dyn_aux_on_objects`.
 
   Returns:
     `(loss, terms)`: as `supervision_loss`, plus "dyn_aux" (the auxiliary loss, 0 while its
@@ -97,6 +100,10 @@ def time_conditioned_loss(
   )
   if moving is not None and loss_config.lambda_motion > 0:
     views["moving"] = moving
+  if loss_config.dyn_aux_on_objects and num_static_gaussians is not None:
+    if objects is None:
+      raise ValueError("dyn_aux_on_objects needs the views' object pixels (`target_objects`)")
+    views["objects"] = objects.astype(jnp.float32)
   scored = functools.partial(
     _score_at_times,
     world_to_camera=world_to_camera,
@@ -156,7 +163,8 @@ def _score_at_times(
   """Loss of Gaussians [B, Vc or 1, N] (one set per view time) rendered into a chunk's views.
 
   views: the chunk's "world_to_camera" [B, Vc, 4, 4], "intrinsics" [B, Vc, 4], "images"
-  [B, Vc, H, W, 3] and, for the motion term, "moving" [B, Vc, H, W]; world_to_camera
+  [B, Vc, H, W, 3] and, for the motion term, "moving" [B, Vc, H, W] (for the auxiliary loss
+  on the objects, "objects" [B, Vc, H, W]: terms "objects_rgb" and "objects_alpha"); world_to_camera
   [B, V, 4, 4] / intrinsics [B, V, 4]: all the views, which the visibility term projects every
   time's Gaussians into; context_images: the input views [B, Vi, H, W, 3] behind an
   "input_mean" background, or None; coverage: add the coverage term (`add_coverage`), which a
@@ -183,6 +191,18 @@ def _score_at_times(
     )
     loss = loss + loss_config.lambda_rgb * loss_config.lambda_motion * terms["motion"]
     terms["loss"] = loss
+  if "objects" in views:
+    objects = views["objects"]
+    terms["objects_rgb"] = losses.motion_loss(
+      rendered.rgb[:, :, 0], views["images"], objects, loss_config.rgb_loss
+    )
+    alpha = rendered.alpha[:, :, 0, ..., 0]
+    # balanced: the objects are a small share of the pixels, and a mean over all of them is
+    # least where the dynamic render is empty everywhere (measured: the Gaussians vanished)
+    on_objects = jnp.sum(objects * jnp.square(1.0 - alpha)) / jnp.maximum(jnp.sum(objects), 1.0)
+    background = 1.0 - objects
+    off_objects = jnp.sum(background * jnp.square(alpha)) / jnp.maximum(jnp.sum(background), 1.0)
+    terms["objects_alpha"] = on_objects + off_objects
   if coverage:
     loss, terms = add_coverage(loss, terms, rendered.alpha[:, :, 0], loss_config)
   # the Gaussians of each time against every view: [B, Vc or 1]
@@ -213,7 +233,8 @@ def _scored_with_dynamic_aux(
 
   The auxiliary loss (`losses.add_dynamic_aux`, and "dyn_aux_psnr") scores the Gaussians
   [B, Vc or 1, num_static_gaussians:] alone (with `loss_config.dyn_aux_on_motion`, on the views'
-  moving pixels only); it is on when `num_static_gaussians` is set and
+  moving pixels only; with `dyn_aux_on_objects`, on their object pixels, its alpha against
+  them); it is on when `num_static_gaussians` is set and
   `loss_config.lambda_dyn_aux > 0`. Its render only runs while `aux_weight` ([] float) is
   positive: once the schedule has decayed to 0 the second render is skipped, as official.
   """
@@ -232,6 +253,13 @@ def _scored_with_dynamic_aux(
         raise ValueError("dyn_aux_on_motion needs the views' moving pixels (`moving`)")
       # the dynamic Gaussians answer for the moving pixels only; the rest is the static ones'
       loss = loss_config.lambda_rgb * terms["motion"] + loss_config.lambda_vis * terms["visibility"]
+    elif loss_config.dyn_aux_on_objects:
+      # the objects' colours where the segmentation shows them, and nothing elsewhere
+      loss = (
+        loss_config.lambda_rgb * terms["objects_rgb"]
+        + terms["objects_alpha"]
+        + loss_config.lambda_vis * terms["visibility"]
+      )
     return loss, terms["psnr"]
 
   zero = jnp.zeros((), jnp.float32)
@@ -251,6 +279,10 @@ def supervised_views(batch: dict, objective: ObjectiveConfig) -> dict:
   """
   if not objective.use_input_supervision:
     return batch
+  if "target_objects" in batch:
+    raise ValueError(
+      "the input views carry no object pixels: target_objects with input supervision"
+    )
   views = dict(batch)
   for name in ("images", "c2w", "intrinsics", "times"):
     if f"target_{name}" in batch:
@@ -371,6 +403,7 @@ def dynamic_model_loss(
     step=step,
     context_images=batch["context_images"],
     moving=moving,
+    objects=batch.get("target_objects"),
   )
 
 
