@@ -90,20 +90,11 @@ def time_conditioned_loss(
     `(loss, terms)`: as `supervision_loss`, plus "dyn_aux" (the auxiliary loss, 0 while its
     weight is 0), "dyn_aux_weight" and "dyn_aux_psnr" when the auxiliary loss is on.
   """
-  from tokengs_jax import losses
-
   world_to_camera, intrinsics = world_to_camera.astype(jnp.float32), intrinsics.astype(jnp.float32)
-  aux_weight = losses.dynamic_aux_weight(step, loss_config)
-
   views, shared = _chunked_views(
     gaussians_at, times, images, world_to_camera, intrinsics, objective.decode_times
   )
-  if moving is not None and loss_config.lambda_motion > 0:
-    views["moving"] = moving
-  if loss_config.dyn_aux_on_objects and num_static_gaussians is not None:
-    if objects is None:
-      raise ValueError("dyn_aux_on_objects needs the views' object pixels (`target_objects`)")
-    views["objects"] = objects.astype(jnp.float32)
+  views.update(_pixel_masks(moving, objects, loss_config, num_static_gaussians))
   scored = functools.partial(
     _score_at_times,
     world_to_camera=world_to_camera,
@@ -120,10 +111,24 @@ def time_conditioned_loss(
     if gaussians is None:
       gaussians = gaussians_in_float32(gaussians_at(views["times"], views["world_to_camera"]))
     return _scored_with_dynamic_aux(
-      scored, gaussians, views, num_static_gaussians, aux_weight, step, loss_config
+      scored, gaussians, views, num_static_gaussians, step, loss_config
     )
 
   return mean_over_view_chunks(chunk_loss, views, objective.view_chunk_size)
+
+
+def _pixel_masks(moving, objects, loss_config, num_static_gaussians) -> dict:
+  """The per-pixel masks the time-conditioned loss chunks with its views: "moving" (the motion
+  term's weights) when `loss_config.lambda_motion > 0`, "objects" (float32) when the dynamic
+  auxiliary loss scores the object pixels."""
+  masks = {}
+  if moving is not None and loss_config.lambda_motion > 0:
+    masks["moving"] = moving
+  if loss_config.dyn_aux_on_objects and num_static_gaussians is not None:
+    if objects is None:
+      raise ValueError("dyn_aux_on_objects needs the views' object pixels (`target_objects`)")
+    masks["objects"] = objects.astype(jnp.float32)
+  return masks
 
 
 def _chunked_views(gaussians_at, times, images, world_to_camera, intrinsics, decode_times):
@@ -221,13 +226,7 @@ def _score_at_times(
 
 
 def _scored_with_dynamic_aux(
-  scored: Callable,
-  gaussians: Gaussians,
-  views: dict,
-  num_static_gaussians,
-  aux_weight,
-  step,
-  loss_config,
+  scored: Callable, gaussians: Gaussians, views: dict, num_static_gaussians, step, loss_config
 ):
   """`scored(gaussians, views)` with `render_diagnostics`, plus the dynamic auxiliary loss.
 
@@ -235,8 +234,9 @@ def _scored_with_dynamic_aux(
   [B, Vc or 1, num_static_gaussians:] alone (with `loss_config.dyn_aux_on_motion`, on the views'
   moving pixels only; with `dyn_aux_on_objects`, on their object pixels, its alpha against
   them); it is on when `num_static_gaussians` is set and
-  `loss_config.lambda_dyn_aux > 0`. Its render only runs while `aux_weight` ([] float) is
-  positive: once the schedule has decayed to 0 the second render is skipped, as official.
+  `loss_config.lambda_dyn_aux > 0`. Its render only runs while its weight at `step`
+  (`losses.dynamic_aux_weight`) is positive: once the schedule has decayed to 0 the second render
+  is skipped, as official.
   """
   from tokengs_jax import losses
 
@@ -263,6 +263,7 @@ def _scored_with_dynamic_aux(
     return loss, terms["psnr"]
 
   zero = jnp.zeros((), jnp.float32)
+  aux_weight = losses.dynamic_aux_weight(step, loss_config)
   dyn_loss, dyn_psnr = jax.lax.cond(aux_weight > 0, dynamic_loss, lambda: (zero, zero))
   loss, terms = losses.add_dynamic_aux(loss, terms, dyn_loss, step, loss_config)
   terms["dyn_aux_psnr"] = dyn_psnr
