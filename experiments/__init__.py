@@ -1,9 +1,19 @@
 """What a researcher runs: the RE10K / DL3DV / Kubric entry points and the paper's studies.
 
-Modules: `config` (typed settings and presets), `data` (synthetic set, batches, held-out scenes),
-`weights`, `training`, `tasks` (the commands and the per-dataset `Task`), `results` (the results
-folder), `pictures` (readable grids), `dynamic_pictures` (Kubric's dynamic pictures and scene-flow
-scores), `pretrained/` (shipped weights), `cli` (tyro). Scoring is `tokengs_jax.evaluation`.
+Laid out by role (`docs/design.md` has a line per module):
+- entry points, thin (presets + `main`, their docstring the `--help`): `re10k`, `dl3dv`,
+  `kubric`; `studies/` (one script per study); `view` (the browser viewer, `viewer/`);
+  `launch` (N local processes of one job); `weights` (`ship`: weights into `pretrained/`).
+- what the entry points share: `cli` (tyro), `config` (typed settings and presets), `data`
+  (synthetic sets, batches, held-out scenes), `tasks` (the commands and the static datasets'
+  `Task`), `training` (the library loop with a progress bar and TensorBoard), `results` (the
+  results folder), `weights` (params on disk, a command's starting weights).
+- per dataset: `kubric_task` (Kubric's settings and `Task`).
+- figures: `figures` (picture grids and charts, PIL), `dynamic_pictures` (Kubric's dynamic
+  pictures and scene-flow scores).
+- baselines: `pixel_baseline` (the pixel-aligned model); the copy baselines and every score are
+  `tokengs_jax.evaluation`'s.
+- data: `pretrained/` (the shipped weights, with provenance).
 
     python -m experiments.re10k                  # synthetic default: generate, evaluate the shipped weights
     python -m experiments.re10k eval paper --data-dir /data/re10k \\

@@ -112,3 +112,54 @@ def test_every_entry_point_sets_the_process_up():
     and "from experiments.cli import main" not in text
   }
   assert not skipping, f"entry points without process.setup: {skipping}"
+
+
+def _design_tree() -> dict[str, str]:
+  """The layout block of docs/design.md (its first code block) as entry -> its text:
+  "tokengs_jax/math.py", "tokengs_jax/model/" (a package: the modules it names), "experiments/"."""
+  block = (REPO / "docs" / "design.md").read_text().split("```")[1]
+  entries, top, key = {}, None, None
+  for line in block.splitlines():
+    if not line.strip():
+      continue
+    name = line.split()[0]
+    if line.startswith("  ") and not line.startswith("   "):
+      key = top + name
+    elif not line.startswith(" "):
+      top = key = name
+    else:  # a continuation line of the entry above
+      entries[key] += " " + line.strip()
+      continue
+    entries[key] = line.strip()[len(name) :]
+  return entries
+
+
+def test_design_and_the_experiments_docstring_name_every_module():
+  """docs/design.md's layout describes the tree as it is: every module of `tokengs_jax/` has its
+  line (a package's modules are named on the package's line) and every module of
+  `experiments/` is named on its line; `experiments/__init__.py` names each of its modules."""
+  entries = _design_tree()
+  assert {"tokengs_jax/math.py", "tokengs_jax/model/", "experiments/"} <= entries.keys()
+  unnamed = []
+  for package in ("tokengs_jax", "experiments"):
+    for path in sorted((REPO / package).rglob("*.py")):
+      if path.name in ("__init__.py", "__main__.py"):
+        continue
+      parts = path.relative_to(REPO).parts
+      if package == "tokengs_jax" and len(parts) == 2:
+        named = "/".join(parts) in entries
+      else:
+        entry = entries.get(
+          f"{package}/{parts[1]}/" if package == "tokengs_jax" else "experiments/"
+        )
+        named = entry is not None and re.search(rf"\b{path.stem}\b", entry) is not None
+      if not named:
+        unnamed.append(str(path.relative_to(REPO)))
+  assert not unnamed, f"modules docs/design.md's layout does not name: {unnamed}"
+  doc = ast.get_docstring(ast.parse((REPO / "experiments" / "__init__.py").read_text()))
+  children = [p for p in (REPO / "experiments").iterdir() if not p.name.startswith("__")]
+  names = [
+    p.stem if p.suffix == ".py" else f"{p.name}/" for p in children if p.suffix in (".py", "")
+  ]
+  missing = sorted(n for n in names if f"`{n}`" not in doc)
+  assert not missing, f"experiments/__init__.py does not name: {missing}"
