@@ -1,4 +1,7 @@
-"""experiments/: command line, data, results writing, pictures, plots, and the entry point end to end."""
+"""experiments.tasks and experiments.data through the entry points: evaluation runs and their
+results folders, synthetic sets, held-out scenes and batches, the presets' settings, and each entry
+point end to end (RE10K, Kubric, DL3DV). Command line: test_cli; results: test_results; figures:
+test_figures."""
 
 import dataclasses
 import json
@@ -13,170 +16,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from PIL import Image
 
-from experiments import cli, data, figures, re10k, results, tasks
+from experiments import cli, data, re10k, results, tasks
 from tokengs_jax import evaluation, export, model
 from tokengs_jax.gaussians import Gaussians
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
-
-
-def test_parse_defaults_to_run_with_default_preset():
-  command, experiment = cli.parse([], re10k.PRESETS, "synthetic-tiny", "prog")
-  assert command == "run"
-  assert experiment == re10k.PRESETS["synthetic-tiny"]
-  command, experiment = cli.parse(["--train.steps", "9"], re10k.PRESETS, "synthetic-tiny", "prog")
-  assert command == "run" and experiment.train.steps == 9
-  assert experiment.model == re10k.PRESETS["synthetic-tiny"].model
-
-
-def test_parse_command_preset_and_typed_overrides():
-  command, experiment = cli.parse(
-    [
-      "eval",
-      "paper",
-      "--data-dir",
-      "/x",
-      "--train.steps",
-      "7",
-      "--official-checkpoint",
-      "w.safetensors",
-      "--model.enc-depth",
-      "1",
-    ],
-    re10k.PRESETS,
-    "synthetic-tiny",
-    "prog",
-  )
-  assert command == "eval"
-  assert experiment.data_dir == "/x" and experiment.train.steps == 7
-  assert experiment.official_checkpoint == "w.safetensors"
-  paper = re10k.PRESETS["paper"]
-  assert experiment.model == paper.model.replace(enc_depth=1)  # the preset's model, one field set
-  assert experiment.image_size == (256, 256) and experiment.num_context_views == 2
-
-
-def test_parse_rejects_unknown_preset():
-  with pytest.raises(SystemExit):
-    cli.parse(["run", "nope"], re10k.PRESETS, "synthetic-tiny", "prog")
-
-
-def _evaluation(per_scene: dict[str, list[dict]]) -> evaluation.Evaluation:
-  return evaluation.Evaluation(
-    {name: evaluation.MethodScores(per_scene=rows) for name, rows in per_scene.items()}, kept=[]
-  )
-
-
-def test_write_metrics_means_over_scenes_markdown_and_checks(tmp_path):
-  primary = _evaluation(
-    {
-      "mean_colour": [
-        {"key": "a", "psnr": 8.0, "ssim": 0.1},
-        {"key": "b", "psnr": 9.0, "ssim": 0.2},
-      ],
-      "nearest_view": [
-        {"key": "a", "psnr": 16.0, "ssim": 0.5},
-        {"key": "b", "psnr": 17.0, "ssim": 0.5},
-      ],
-      "trained": [{"key": "a", "psnr": 10.0, "ssim": 0.5}, {"key": "b", "psnr": 20.0, "ssim": 0.7}],
-    }
-  )
-  other = _evaluation(
-    {
-      "nearest_view": [{"key": "c", "psnr": 12.0, "ssim": 0.3}],
-      "trained": [{"key": "c", "psnr": 14.0, "ssim": 0.4}],
-    }
-  )
-  payload = results.write_metrics(tmp_path, {"test": primary, "ood": other}, {"title": "t"})
-  assert payload["test_sets"] == ["test", "ood"]
-  assert payload["metrics"]["trained"]["mean"]["psnr"] == pytest.approx(15.0)
-  written = json.loads((tmp_path / "metrics.json").read_text())
-  assert written["metrics"]["mean_colour"]["mean"]["ssim"] == pytest.approx(0.15)
-  assert written["other_test_sets"]["ood"]["metrics"]["trained"]["mean"]["psnr"] == 14.0
-  assert written["checks"]["trained beats nearest_view"].startswith("False (PSNR margin -1.500")
-  assert written["other_test_sets"]["ood"]["checks"]["trained beats nearest_view"].startswith(
-    "True"
-  )
-  text = (tmp_path / "metrics.md").read_text()
-  assert "| trained | 15.0000 | 0.6000 |" in text
-  assert "trained beats mean_colour: True (PSNR margin +6.500 dB)" in text
-  assert "## Test set `ood`" in text and "| trained | 14.0000 | 0.4000 |" in text
-
-
-def test_write_metrics_survives_a_method_that_scored_no_scene(tmp_path):
-  """An evaluation that matched nothing for a method says so instead of crashing."""
-  scored = _evaluation({"trained": [], "nearest_view": [{"key": "a", "psnr": 9.0}]})
-  payload = results.write_metrics(tmp_path, {"test": scored}, {"title": "t"})
-  assert payload["metrics"]["trained"]["mean"] == {}
-  assert payload["checks"] == {}
-  assert "Scored no scene: trained." in (tmp_path / "metrics.md").read_text()
-  assert "Scored no scene" in results.summary_text({"test": scored})
-
-
-def test_only_process_zero_writes_results(tmp_path, monkeypatch):
-  monkeypatch.setattr(jax, "process_index", lambda: 1)
-  scored = _evaluation({"trained": [{"key": "a", "psnr": 9.0}]})
-  payload = results.write_metrics(tmp_path / "out", {"test": scored}, {"title": "t"})
-  assert payload["metrics"]["trained"]["mean"]["psnr"] == 9.0  # computed everywhere
-  assert results.tensorboard_writer(tmp_path / "out") is None
-  entry = {
-    "key": "s",
-    "batch": {
-      "context_images": np.zeros((1, 2, 16, 16, 3)),
-      "target_images": np.zeros((1, 1, 16, 16, 3)),
-    },
-    "trained": {"rgb": np.zeros((1, 16, 16, 3)), "depth": None, "alpha": None},
-  }
-  assert results.write_grids(tmp_path / "out" / "grids", [entry], ["trained"]) == []
-  assert not (tmp_path / "out").exists()
-
-
-def test_scene_grid_is_readable_upscaled_labelled_with_a_depth_colour_bar():
-  rng = np.random.default_rng(0)
-  depth = rng.uniform(1.0, 3.0, size=(2, 16, 16, 1)).astype(np.float32)
-  entry = {
-    "key": "s",
-    "batch": {
-      "context_images": rng.uniform(size=(1, 2, 16, 16, 3)),
-      "target_images": rng.uniform(size=(1, 2, 16, 16, 3)),
-    },
-    "nearest_view": {"rgb": rng.uniform(size=(2, 16, 16, 3)), "depth": None, "alpha": None},
-    "trained": {
-      "rgb": rng.uniform(size=(2, 16, 16, 3)),
-      "depth": depth,
-      "alpha": np.ones_like(depth),
-    },
-  }
-  grid = results.scene_grid(entry, ["nearest_view", "trained"])
-  # five rows (inputs, targets, two methods, depth) of 16-px views upscaled 8x to 128 px
-  assert grid.dtype == np.uint8 and grid.shape[0] >= 5 * 128
-  no_labels = figures.labelled_grid([("", [np.zeros((16, 16, 3))])])
-  labels = figures.labelled_grid([("nearest_view", [np.zeros((16, 16, 3))])])
-  assert labels.shape[1] > no_labels.shape[1]  # the label column holds the text
-  assert (labels[:, :40] < 128).any()  # dark text left of the cells
-  # the depth row carries a colour bar: the ramp from near (top, t = 1) to far (bottom, t = 0)
-  rows = [("depth", [export.colorize_depth(depth[0])])]
-  assert (
-    figures.labelled_grid(rows, depth_range=(1.0, 3.0)).shape[1]
-    > figures.labelled_grid(rows).shape[1]
-  )
-  bar = np.asarray(figures._colour_bar(128, (1.0, 3.0), figures._font()))
-  np.testing.assert_array_equal(bar[0, 0], export.to_uint8(export.depth_ramp(1.0)))
-  np.testing.assert_array_equal(bar[-1, 0], export.to_uint8(export.depth_ramp(0.0)))
-
-
-def test_names_from_data_become_safe_distinct_file_names_inside_their_folder(tmp_path):
-  keys = ["scene-01.v2", "/abs/x", "../../x", "..", "", "a b", "a_b", ".hidden", "é" * 300]
-  names = [results.safe_file_name(key) for key in keys]
-  assert names[0] == "scene-01.v2"  # a plain key is its own name
-  assert len(set(names)) == len(keys)  # "a b" and "a_b" too
-  assert all(re.fullmatch(r"[A-Za-z0-9_+-][A-Za-z0-9._+-]{0,140}", name) for name in names)
-  assert results.data_path(tmp_path / "grids", "../../x", ".png").parent == tmp_path / "grids"
-  (tmp_path / "grids").mkdir()
-  (tmp_path / "grids" / "s.png").symlink_to(tmp_path / "elsewhere.png")
-  with pytest.raises(ValueError, match="outside"):
-    results.data_path(tmp_path / "grids", "s", ".png")
 
 
 def _view_batch(seed: int) -> dict:
@@ -380,37 +225,6 @@ def test_eval_from_run_takes_the_recorded_settings_and_flags_override_them(tmp_p
   (run / "metrics.json").write_text(json.dumps(kubric_run, default=str))
   with pytest.raises(SystemExit, match="records no Experiment.*another entry point"):
     parse("eval", "--from-run", str(run))
-
-
-def test_upscale_is_nearest_neighbour_to_at_least_the_minimum():
-  image = np.arange(2 * 3 * 3).reshape(2, 3, 3).astype(np.uint8)
-  big = figures.upscale(image, 128)
-  assert big.shape == (128, 192, 3)
-  np.testing.assert_array_equal(big[::64, ::64], image)
-  assert figures.upscale(np.zeros((200, 300, 3))).shape == (200, 300, 3)
-
-
-def test_line_plot_draws_every_series(tmp_path):
-  path = figures.line_plot(
-    tmp_path / "p.png",
-    {"a": ([1, 2, 4], [1.0, 2.0, 1.5]), "b": ([1, 2, 4], [0.5, float("nan"), 3.0])},
-    title="t",
-    xlabel="x",
-    ylabel="y",
-    log_x=True,
-    dashed=("b",),
-  )
-  image = np.asarray(Image.open(path))
-  for color in figures.PALETTE[:2]:
-    assert np.any(np.all(image == np.array(color, np.uint8), axis=-1)), color
-
-
-def test_trajectory_plot_on_background(tmp_path):
-  tracks = np.stack([np.linspace([2, 2], [20, 10], 5), np.linspace([30, 5], [5, 30], 5)])
-  path = figures.trajectory_plot(
-    tmp_path / "t.png", tracks, title="flow", background=np.zeros((32, 32, 3)), size=64
-  )
-  assert Image.open(path).size == (64, 64)
 
 
 # The `smoke` preset's sizes as flags, to run another preset at its scale.
@@ -737,12 +551,6 @@ def test_kubric_presets_keep_their_loss_and_honour_the_common_train_flags(capsys
   old["train"].update(rgb_loss="l2", lambda_rgb=1.0, lambda_ssim=0.2, lambda_opacity=0.3)
   read = config.from_fields(KubricExperiment, old)
   assert KubricTask().loss_config(read) == dataclasses.replace(expected["pretrain"], rgb_loss="l2")
-
-
-def test_tick_labels_keep_significant_zeros():
-  ticks = np.array([0.0, 10.0, 25.0, 50.0])
-  assert [figures._label(v, ticks) for v in ticks] == ["0", "10", "25", "50"]
-  assert figures._label(19.0, np.array([18.5, 19.0, 19.5])) == "19"
 
 
 def test_evaluation_scenes_read_a_list_format_index(tmp_path):

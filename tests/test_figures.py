@@ -1,0 +1,43 @@
+"""experiments.figures: upscaled grids, line and trajectory plots, tick labels (PIL)."""
+
+import numpy as np
+from PIL import Image
+
+from experiments import figures
+
+
+def test_upscale_is_nearest_neighbour_to_at_least_the_minimum():
+  image = np.arange(2 * 3 * 3).reshape(2, 3, 3).astype(np.uint8)
+  big = figures.upscale(image, 128)
+  assert big.shape == (128, 192, 3)
+  np.testing.assert_array_equal(big[::64, ::64], image)
+  assert figures.upscale(np.zeros((200, 300, 3))).shape == (200, 300, 3)
+
+
+def test_line_plot_draws_every_series(tmp_path):
+  path = figures.line_plot(
+    tmp_path / "p.png",
+    {"a": ([1, 2, 4], [1.0, 2.0, 1.5]), "b": ([1, 2, 4], [0.5, float("nan"), 3.0])},
+    title="t",
+    xlabel="x",
+    ylabel="y",
+    log_x=True,
+    dashed=("b",),
+  )
+  image = np.asarray(Image.open(path))
+  for color in figures.PALETTE[:2]:
+    assert np.any(np.all(image == np.array(color, np.uint8), axis=-1)), color
+
+
+def test_trajectory_plot_on_background(tmp_path):
+  tracks = np.stack([np.linspace([2, 2], [20, 10], 5), np.linspace([30, 5], [5, 30], 5)])
+  path = figures.trajectory_plot(
+    tmp_path / "t.png", tracks, title="flow", background=np.zeros((32, 32, 3)), size=64
+  )
+  assert Image.open(path).size == (64, 64)
+
+
+def test_tick_labels_keep_significant_zeros():
+  ticks = np.array([0.0, 10.0, 25.0, 50.0])
+  assert [figures._label(v, ticks) for v in ticks] == ["0", "10", "25", "50"]
+  assert figures._label(19.0, np.array([18.5, 19.0, 19.5])) == "19"
