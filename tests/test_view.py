@@ -13,6 +13,7 @@ from PIL import Image
 
 from experiments import data, kubric, re10k, weights
 from experiments.kubric_task import KubricExperiment, KubricTask
+from experiments.tasks import Task
 from experiments.viewer import browser, scenes
 from experiments.viewer import server as viewer_server
 from experiments.viewer.app import READY_TEXT, novel_target, vertical_fov
@@ -177,6 +178,21 @@ def test_opening_a_results_folder_writes_no_data_unless_asked(results, tmp_path)
   assert len(source.keys) == len(data.evaluation_scenes(experiment)) and absent.is_dir()
 
 
+def test_the_target_render_uses_the_runs_background():
+  """What the viewer shows beside a target is what the evaluation scored: an empty scene renders
+  the objective's background, the inputs' mean colour under "input_mean"."""
+  empty = scenes.masked(_gaussians(4), np.zeros(4, bool))
+  c2w, intrinsics = np.eye(4, dtype=np.float32), np.float32([8.0, 8.0, 4.0, 4.0])
+  grey = scenes.render(empty, c2w, intrinsics, 8, 8)
+  np.testing.assert_allclose(grey, np.broadcast_to(ObjectiveConfig().background, grey.shape))
+  inputs = np.zeros((2, 8, 8, 3), np.float32)
+  inputs[0] = (1.0, 0.2, 0.0)  # mean (0.5, 0.1, 0.0)
+  mean = scenes.render(
+    empty, c2w, intrinsics, 8, 8, ObjectiveConfig(background="input_mean"), context_images=inputs
+  )
+  np.testing.assert_allclose(mean, np.broadcast_to((0.5, 0.1, 0.0), mean.shape), atol=1e-6)
+
+
 def _free_port() -> int:
   with socket.socket() as s:
     s.bind(("127.0.0.1", 0))
@@ -229,6 +245,7 @@ def test_viewer_state_follows_the_controls(viewer):
   _, app = viewer
   scene = app.scene
   assert app.image.image.shape == (64, 64 + 2 * 1 + 64, 3)  # target | gap | render, 2x upscaled
+  assert app.source.objective == Task().objective(app.source.experiment)
   assert "PSNR" in app.scores.content
   assert f"**{scene.num_gaussians:,} / {scene.num_gaussians:,}**" in app.census.content
   threshold = round(float(np.median(scene.gaussians.opacities)), 2)

@@ -5,6 +5,8 @@ slider for Kubric models."""
 
 from __future__ import annotations
 
+import functools
+
 import threading
 
 import jax
@@ -73,8 +75,9 @@ class ViewerApp:
     render_size: longer side (pixels) of the target-view render shown in the panel.
     pull_back: a new browser starts this many scene depths behind the rendered target camera, so
       that the input cameras are in view (0: at the target camera).
-    background: RGB in [0, 1] behind the splats; default the training background, which the
-      target render beside uses too.
+    background: RGB in [0, 1] behind the splats in the 3D view; default the official training
+      background. The target render beside it uses the run's own (`source.objective`, as the
+      evaluation scored it: for "input_mean" each scene's mean input colour).
   """
 
   def __init__(
@@ -337,9 +340,12 @@ class ViewerApp:
     target, c2w = scene.targets.images[view], scene.targets.c2w[view]
     intrinsics = scene.targets.intrinsics[view]
     height, width = target.shape[:2]
+    as_scored = functools.partial(  # as the evaluation rendered it: the run's background
+      scenes_lib.render, objective=self.source.objective, context_images=scene.inputs.images
+    )
     shown = scenes_lib.masked(scene.gaussians, visible)
-    native = scenes_lib.render(shown, c2w, intrinsics, height, width)
-    everything = scenes_lib.render(
+    native = as_scored(shown, c2w, intrinsics, height, width)
+    everything = as_scored(
       scenes_lib.masked(scene.gaussians, scenes_lib.finite(scene.gaussians)),
       c2w,
       intrinsics,
@@ -347,7 +353,7 @@ class ViewerApp:
       width,
     )
     factor = max(1, self.render_size // max(height, width))
-    large = scenes_lib.render(
+    large = as_scored(
       shown, c2w, scenes_lib.scaled_intrinsics(intrinsics, factor), height * factor, width * factor
     )
     gap = np.ones((height * factor, max(2, factor), 3), np.float32)

@@ -24,6 +24,7 @@ from experiments.tasks import Task
 from tokengs_jax import evaluation, export, metrics
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.math import quat_to_rotmat
+from tokengs_jax.objective import ObjectiveConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,10 +128,17 @@ def scaled_intrinsics(intrinsics: np.ndarray, factor: float) -> np.ndarray:
 
 
 def render(
-  gaussians: Gaussians, c2w: np.ndarray, intrinsics: np.ndarray, height: int, width: int
+  gaussians: Gaussians,
+  c2w: np.ndarray,
+  intrinsics: np.ndarray,
+  height: int,
+  width: int,
+  objective: ObjectiveConfig = ObjectiveConfig(),
+  context_images: np.ndarray | None = None,
 ) -> np.ndarray:
-  """One view as the evaluation renders it (`evaluation.render_targets`: exact, the training
-  background).  c2w: [4, 4], intrinsics: [4] -> rgb [H, W, 3] numpy."""
+  """One view as the evaluation renders it (`evaluation.render_targets`: exact, with the run's
+  objective: its background, near and far; an "input_mean" background is the mean colour of
+  `context_images` [Vi, H, W, 3]).  c2w: [4, 4], intrinsics: [4] -> rgb [H, W, 3] numpy."""
   batched = jax.tree.map(lambda x: np.asarray(x)[None], gaussians)
   return evaluation.render_targets(
     batched,
@@ -138,6 +146,8 @@ def render(
     np.asarray(intrinsics)[None, None],
     height=height,
     width=width,
+    objective=objective,
+    context_images=None if context_images is None else np.asarray(context_images)[None],
   ).rgb[0, 0]
 
 
@@ -208,6 +218,7 @@ class ResultsSource:
     with data.refusing_generation(_MISSING_DATA):
       self.evaluation_scenes = task.evaluation_scenes(experiment)
     self.folder, self.experiment, self.config = folder, experiment, experiment.model
+    self.objective = task.objective(experiment)  # the render settings the run was scored with
     self.params = weights.initial_params(experiment, finetune=False)
     self.title = saved.get("title", str(folder))
     self._scenes: dict[tuple[int, float | None], ViewScene] = {}
@@ -258,6 +269,7 @@ class PlySource:
   """A bare PLY (e.g. `gaussians.ply` of a results folder): one scene, no cameras, no renders."""
 
   time_conditioned = False
+  objective = ObjectiveConfig()  # no run: the official grey background
 
   def __init__(self, path):
     path = pathlib.Path(path)
