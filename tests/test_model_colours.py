@@ -273,11 +273,10 @@ def test_per_view_positions_read_each_view_where_the_point_was_then():
   np.testing.assert_allclose(np.asarray(colours[0, 0]), 1.0, atol=1e-6)
 
 
-def test_dynamic_gaussians_read_the_views_at_the_views_times():
-  """With the input times, each dynamic Gaussian's colour is read in view v at its centre decoded
-  at view v's time; static Gaussians are read where they are."""
-  config = model.preset(
-    "tiny",
+def _dynamic_inputs_model(**overrides):
+  """(config, params) of a tiny dynamic model reading its colours from the views, with a random
+  target-time embedding (it starts at zero, as the official one: time would move nothing)."""
+  fields = dict(
     image_size=(32, 32),
     num_gs_tokens=8,
     num_dynamic_gs_tokens=4,
@@ -287,10 +286,17 @@ def test_dynamic_gaussians_read_the_views_at_the_views_times():
     clip_head_readout_std=0.3,
     gaussian_colours="inputs",
   )
+  config = model.preset("tiny", **{**fields, **overrides})
   params = model.init_params(jax.random.key(1), config)
-  # the target-time embedding starts at zero (official): give it a value, so time moves them
   embed = params["patch_time_embed_tgt"]["proj"]
   embed["kernel"] = jax.random.normal(jax.random.key(2), embed["kernel"].shape)
+  return config, params
+
+
+def test_dynamic_gaussians_read_the_views_at_the_views_times():
+  """With the input times, each dynamic Gaussian's colour is read in view v at its centre decoded
+  at view v's time; static Gaussians are read where they are."""
+  config, params = _dynamic_inputs_model()
   views = _plane_views(size=(32, 32))
   c2w = invert_rigid(views.world_to_camera)
   times = jnp.array([[0.0, 1.0]])
@@ -309,6 +315,60 @@ def test_dynamic_gaussians_read_the_views_at_the_views_times():
   np.testing.assert_allclose(rgb[:, :first][still_seen], np.asarray(still)[still_seen], atol=1e-5)
   # the trajectories move, so reading every view at the target-time centres would differ
   assert float(jnp.abs(at[0][:, first:, :3] - at[1][:, first:, :3]).max()) > 1e-4
+
+
+@pytest.mark.parametrize("tuned", [False, True])
+def test_decoding_only_the_dynamic_tokens_at_the_views_times_changes_nothing(tuned):
+  """`decode` decodes the dynamic tokens alone at each view's time, against the static tokens'
+  keys/values of the decode at the target time: its Gaussians and their gradients equal those of
+  decoding every token at each view's time (the reference below), for the learnt tokens and for
+  tuned ones, with the occlusion test on (it renders the scene at each view's time)."""
+  # a smaller readout than the helper's keeps the centres within ~50 (at 0.3 they reach 1e24 and
+  # their gradients 1e26, where float32 cannot compare two summation orders)
+  config, params = _dynamic_inputs_model(clip_head_readout_std=0.02, input_occlusion_tolerance=0.1)
+  head = config.replace(gaussian_colours="head")  # the same parameters, no colours read
+  # noise images: a colour read anywhere else differs
+  views = _plane_views(size=(32, 32))
+  views = views.replace(images=jax.random.uniform(jax.random.key(5), views.images.shape))
+  c2w = invert_rigid(views.world_to_camera)
+  times, target = jnp.array([[0.0, 1.0]]), jnp.array([0.4])
+  first = config.num_static_gaussians
+  tokens = None
+  if tuned:
+    learnt = model.initial_tokens(params, config, 1)
+    tokens = learnt + 0.3 * jax.random.normal(jax.random.key(3), learnt.shape)
+
+  def encoded(params):
+    return model.encode_views(params, views.images, c2w, views.intrinsics, config, times=times)
+
+  def decoded(params, tokens):
+    return model.decode(params, encoded(params), config, tokens, target)
+
+  def reference(params, tokens, dynamic_at_view_times=True):
+    flat = model.decode(params, encoded(params), head, tokens, target)
+    at = None
+    if dynamic_at_view_times:
+      each = [model.decode(params, encoded(params), head, tokens, times[:, v]) for v in range(2)]
+      at = jnp.stack([f[:, first:] for f in each], axis=1)
+    return with_input_colours(flat, views, at, occlusion_tolerance=0.1)
+
+  got, expected = jax.jit(decoded)(params, tokens), jax.jit(reference)(params, tokens)
+  np.testing.assert_allclose(np.asarray(got), np.asarray(expected), rtol=0, atol=1e-5)
+  # the dynamic Gaussians' colours do depend on where they were at the views' times
+  at_target = reference(params, tokens, dynamic_at_view_times=False)
+  assert float(jnp.abs(expected[:, first:, 11:] - at_target[:, first:, 11:]).max()) > 1e-3
+
+  weights = jax.random.normal(jax.random.key(4), got.shape)
+  grads = [
+    jax.jit(jax.grad(lambda p, t, f=f: jnp.sum(f(p, t) * weights), argnums=(0, 1)))(params, tokens)
+    for f in (decoded, reference)
+  ]
+  for new, old in zip(jax.tree.leaves(grads[0]), jax.tree.leaves(grads[1]), strict=True):
+    np.testing.assert_allclose(
+      np.asarray(new), np.asarray(old), rtol=0, atol=1e-5 * max(1.0, float(jnp.abs(old).max()))
+    )
+  time_kernel = grads[0][0]["patch_time_embed_tgt"]["proj"]["kernel"]
+  assert float(jnp.abs(time_kernel).max()) > 0
 
 
 def _occlusion_scene():

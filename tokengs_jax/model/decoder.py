@@ -54,10 +54,13 @@ class _NormedSelfAttention(nn.Module):
   matmul_dtype: jax.typing.DTypeLike | None = None
 
   @nn.compact
-  def __call__(self, tokens: jax.Array, mask: jax.Array | None) -> jax.Array:
+  def __call__(
+    self, tokens: jax.Array, mask: jax.Array | None, context: tuple[jax.Array, jax.Array] | None
+  ) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
+    """-> (output, the tokens' own (keys, values)); see `SelfAttention`."""
     normed = layer_norm(self.dtype, "norm")(tokens)
     attention = SelfAttention(self.num_heads, self.dtype, self.matmul_dtype, name="gs_self_attn")
-    return attention(normed, mask)
+    return attention(normed, mask, context, return_kv=True)
 
 
 class _NormedMlp(nn.Module):
@@ -92,20 +95,35 @@ class DecoderBlock(nn.Module):
 
   @nn.compact
   def __call__(
-    self, tokens: jax.Array, keys: jax.Array, values: jax.Array, mask: jax.Array | None = None
-  ) -> jax.Array:
-    """tokens: [B, T, C]; keys, values: [B, heads, N, d]; mask: bool [T, T] -> [B, T, C]."""
+    self,
+    tokens: jax.Array,
+    keys: jax.Array,
+    values: jax.Array,
+    mask: jax.Array | None = None,
+    context: tuple[jax.Array, jax.Array] | None = None,
+  ) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
+    """One block.
+
+    Args:
+      tokens: [B, T, C].
+      keys, values: [B, heads, N, d] shared cross-attention keys/values.
+      mask: optional bool [T, M + T] self-attention mask (M = 0 without `context`).
+      context: optional (keys, values) [B, heads, M, d] that this block returned for M other
+        tokens: the tokens' self-attention also attends to those, placed before their own.
+
+    Returns:
+      [B, T, C], and the tokens' self-attention (keys, values) [B, heads, T, d].
+    """
     c, dtype, matmul_dtype = tokens.shape[-1], self.dtype, self.matmul_dtype
     cross = CrossAttention(self.num_heads, dtype, matmul_dtype, name="gs_cross_attn")
     tokens = tokens + maybe_layer_scale(c, self.layer_scale, "gs_cross_attn_scale")(
       cross(tokens, keys, values)
     )
     attn = _NormedSelfAttention(self.num_heads, dtype, matmul_dtype, name="gs_self_attn")
-    tokens = tokens + maybe_layer_scale(c, self.layer_scale, "gs_self_attn_scale")(
-      attn(tokens, mask)
-    )
+    attended, self_kv = attn(tokens, mask, context)
+    tokens = tokens + maybe_layer_scale(c, self.layer_scale, "gs_self_attn_scale")(attended)
     mlp = _NormedMlp(self.mlp_hidden_dim, dtype, matmul_dtype, name="mlp")(tokens)
-    return tokens + maybe_layer_scale(c, self.layer_scale, "mlp_scale")(mlp)
+    return tokens + maybe_layer_scale(c, self.layer_scale, "mlp_scale")(mlp), self_kv
 
 
 def block_causal_mask(num_static: int, num_dynamic: int) -> np.ndarray | None:
@@ -113,7 +131,9 @@ def block_causal_mask(num_static: int, num_dynamic: int) -> np.ndarray | None:
 
   Tokens are ordered [static, dynamic]. Attention is allowed within a block and from a later
   block to an earlier one: dynamic tokens see the static ones, static tokens never see dynamic
-  ones, so the static Gaussians do not depend on the target time or the dynamic tokens.
+  ones, so the static Gaussians do not depend on the target time or the dynamic tokens, and
+  neither do the static tokens' states at any block: the dynamic tokens can be decoded again at
+  other times alone, attending to those states (`EncDecBackbone.decode_dynamic`).
 
   Returns:
     bool [T, T] (query, key), True where attention is allowed, T = num_static + num_dynamic.

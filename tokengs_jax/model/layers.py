@@ -372,16 +372,38 @@ class SelfAttention(nn.Module):
   matmul_dtype: jnp.dtype | None = None  # see `dense` and `attend`
 
   @nn.compact
-  def __call__(self, x: jax.Array, mask: jax.Array | None = None) -> jax.Array:
-    """x: [B, N, C]; mask: optional bool [N, N] -> [B, N, C]."""
+  def __call__(
+    self,
+    x: jax.Array,
+    mask: jax.Array | None = None,
+    context: tuple[jax.Array, jax.Array] | None = None,
+    return_kv: bool = False,
+  ) -> jax.Array | tuple[jax.Array, tuple[jax.Array, jax.Array]]:
+    """x's tokens attend to each other and, with `context`, to M other tokens before them.
+
+    Args:
+      x: [B, N, C].
+      mask: optional bool [N, M + N] (M = 0 without `context`), True where attention is allowed.
+      context: optional (keys, values) [B, heads, M, d] of the other tokens, as `return_kv`
+        returned them from this module: attending to them needs no pass over those tokens.
+      return_kv: also return x's own (keys, values) [B, heads, N, d].
+
+    Returns:
+      [B, N, C], and x's (keys, values) with `return_kv`.
+    """
     c = x.shape[-1]
     qkv = dense(3 * c, self.dtype, "qkv", matmul_dtype=self.matmul_dtype)(x)
     # Official channel order of qkv: (3, heads, head_dim).
     qkv = einops.rearrange(qkv, "b n (three h d) -> three b h n d", three=3, h=self.num_heads)
     queries = layer_norm(self.dtype, "q_norm")(qkv[0])
     keys = layer_norm(self.dtype, "k_norm")(qkv[1])
-    out = attend(queries, keys, qkv[2], mask, matmul_dtype=self.matmul_dtype)
-    return dense(c, self.dtype, "proj", matmul_dtype=self.matmul_dtype)(merge_heads(out))
+    all_keys, all_values = keys, qkv[2]
+    if context is not None:
+      all_keys = jnp.concatenate([context[0], keys], axis=2)
+      all_values = jnp.concatenate([context[1], qkv[2]], axis=2)
+    out = attend(queries, all_keys, all_values, mask, matmul_dtype=self.matmul_dtype)
+    out = dense(c, self.dtype, "proj", matmul_dtype=self.matmul_dtype)(merge_heads(out))
+    return (out, (keys, qkv[2])) if return_kv else out
 
 
 class PatchEmbed(nn.Module):

@@ -140,7 +140,7 @@ class EncDecBackbone(nn.Module):
       self.latents.astype(cfg.compute_dtype), (features.shape[0], *self.latents.shape)
     )
     for block in self.latent_blocks:
-      latents = block(latents, keys, values, None)
+      latents, _ = block(latents, keys, values)
     return latents
 
   def latents_to_kv(self, latents: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -153,14 +153,54 @@ class EncDecBackbone(nn.Module):
     keys, values = _split_kv(self.kv_proj(features), self.config.enc_num_heads)
     return self.k_proj_norm(keys), values
 
-  def decode(self, tokens: jax.Array, keys: jax.Array, values: jax.Array) -> jax.Array:
-    """Decoder blocks. tokens: [B, T, C] -> [B, T, C] (the head's input)."""
-    mask = block_causal_mask(self.config.num_gs_tokens, self.config.num_dynamic_gs_tokens)
+  def decode(
+    self, tokens: jax.Array, keys: jax.Array, values: jax.Array
+  ) -> tuple[jax.Array, list[tuple[jax.Array, jax.Array]]]:
+    """Decoder blocks.
+
+    Args:
+      tokens: [B, T, C], static then dynamic.
+      keys, values: [B, heads, N, d] shared keys/values.
+
+    Returns:
+      [B, T, C] (the head's input), and per block the static tokens' self-attention
+      (keys, values) [B, heads, num_gs_tokens, d], for `decode_dynamic`.
+    """
+    num_static = self.config.num_gs_tokens
+    mask = block_causal_mask(num_static, self.config.num_dynamic_gs_tokens)
     if mask is not None:
       mask = jnp.asarray(mask)
+    static_kv = []
     for block in self.decoder_blocks:
-      tokens = block(tokens, keys, values, mask)
-    return tokens
+      tokens, (block_keys, block_values) = block(tokens, keys, values, mask)
+      static_kv.append((block_keys[:, :, :num_static], block_values[:, :, :num_static]))
+    return tokens, static_kv
+
+  def decode_dynamic(
+    self,
+    dynamic_tokens: jax.Array,
+    static_kv: list[tuple[jax.Array, jax.Array]],
+    keys: jax.Array,
+    values: jax.Array,
+  ) -> jax.Array:
+    """`decode`'s dynamic rows, the static tokens' part taken from an earlier `decode`.
+
+    Static tokens never attend to dynamic ones (`block_causal_mask`), so their states at every
+    block, and the keys/values they offer the dynamic tokens, are the same whatever the dynamic
+    tokens and the target time: decoding the dynamic tokens alone against them gives what
+    decoding all tokens would, at a fraction of the cost.
+
+    Args:
+      dynamic_tokens: [B, Nd, C].
+      static_kv: `decode`'s per-block static (keys, values).
+      keys, values: [B, heads, N, d] shared keys/values.
+
+    Returns:
+      [B, Nd, C].
+    """
+    for block, context in zip(self.decoder_blocks, static_kv, strict=True):
+      dynamic_tokens, _ = block(dynamic_tokens, keys, values, context=context)
+    return dynamic_tokens
 
 
 class TokenGS(nn.Module):
@@ -265,18 +305,32 @@ class TokenGS(nn.Module):
     Returns:
       [B, T, C].
     """
+    return self._decode_tokens(encoded, tokens, target_times)[0]
+
+  def _decode_tokens(
+    self, encoded: EncoderOutput, tokens: jax.Array | None, target_times: jax.Array | None
+  ) -> tuple[jax.Array, list[tuple[jax.Array, jax.Array]]]:
+    """`decode_tokens`, and the static tokens' per-block keys/values (`EncDecBackbone.decode`)."""
     cfg = self.config
-    if tokens is None:
-      tokens = self.initial_tokens(encoded.keys.shape[0])
-    tokens = tokens.astype(cfg.compute_dtype)
+    tokens = self._input_tokens(encoded, tokens)
     if cfg.time_embedding and target_times is not None:
-      time_token = self.patch_time_embed_tgt(self._time_patch(target_times))  # [B, 1, C]
+      time_token = self._target_time_token(target_times)
       if cfg.num_dynamic_gs_tokens:
         # Only the dynamic tokens see the target time; the static part stays time-invariant.
         tokens = tokens.at[:, cfg.num_gs_tokens :].add(time_token)
       else:
         tokens = tokens + time_token
     return self.enc_dec_backbone.decode(tokens, encoded.keys, encoded.values)
+
+  def _input_tokens(self, encoded: EncoderOutput, tokens: jax.Array | None) -> jax.Array:
+    """The tokens to decode, [B, T, C] in the compute dtype (None: the learnt ones)."""
+    if tokens is None:
+      tokens = self.initial_tokens(encoded.keys.shape[0])
+    return tokens.astype(self.config.compute_dtype)
+
+  def _target_time_token(self, target_times: jax.Array) -> jax.Array:
+    """[B] -> [B, 1, C]: what conditioning a token on the target time adds to it."""
+    return self.patch_time_embed_tgt(self._time_patch(target_times))
 
   def decode(
     self,
@@ -289,8 +343,8 @@ class TokenGS(nn.Module):
     [B, Vr, 3] (centres of the cameras they will be rendered from) one set per camera,
     [B, Vr, T * p², 14]: coloured for that camera under `input_colour_weights="viewer"`, else
     the same set repeated."""
-    raw = self.activation_head(self.decode_tokens(encoded, tokens, target_times))
-    flat = activate(raw, self.config)
+    decoded, static_kv = self._decode_tokens(encoded, tokens, target_times)
+    flat = activate(self.activation_head(decoded), self.config)
     if self.config.gaussian_colours == "inputs":
       if encoded.views is None:
         raise ValueError(
@@ -300,7 +354,7 @@ class TokenGS(nn.Module):
       flat = with_input_colours(
         flat,
         encoded.views,
-        self._dynamic_at_input_times(encoded, tokens, target_times),
+        self._dynamic_at_input_times(encoded, tokens, target_times, static_kv),
         viewers if self.config.viewer_dependent else None,
         self.config.viewer_colour_sharpness,
         self.config.input_occlusion_tolerance,
@@ -310,19 +364,35 @@ class TokenGS(nn.Module):
     return flat
 
   def _dynamic_at_input_times(
-    self, encoded: EncoderOutput, tokens: jax.Array | None, target_times: jax.Array | None
+    self,
+    encoded: EncoderOutput,
+    tokens: jax.Array | None,
+    target_times: jax.Array | None,
+    static_kv: list[tuple[jax.Array, jax.Array]],
   ) -> jax.Array | None:
     """[B, V, Nd, 14]: the dynamic Gaussians decoded at each input view's time, where their
     colours are read (`colours` module docstring); None without dynamic tokens, a target time
-    or the views' times."""
+    or the views' times.
+
+    Only the dynamic tokens are decoded again, against `static_kv`, the static tokens'
+    keys/values of the decode at the target time (`EncDecBackbone.decode_dynamic`): the same
+    Gaussians as decoding every token at each time, with Nd tokens per time instead of T (the
+    Kubric default's train step: 203 -> 128 CPU ms; docs/benchmarks.md, "Dynamic Gaussians at
+    the input times")."""
     cfg, times = self.config, encoded.views.times
     if not cfg.num_dynamic_gs_tokens or target_times is None or times is None:
       return None
+    dynamic = self._input_tokens(encoded, tokens)[:, cfg.num_gs_tokens :]
+    backbone = self.enc_dec_backbone
     at_times = [
-      activate(self.activation_head(self.decode_tokens(encoded, tokens, times[:, v])), cfg)
+      self.activation_head(
+        backbone.decode_dynamic(
+          dynamic + self._target_time_token(times[:, v]), static_kv, encoded.keys, encoded.values
+        )
+      )
       for v in range(times.shape[1])
     ]
-    return jnp.stack([g[:, cfg.num_static_gaussians :] for g in at_times], axis=1)
+    return activate(jnp.stack(at_times, axis=1), cfg)
 
   def __call__(
     self,

@@ -1,0 +1,97 @@
+"""Milliseconds per training step of the Kubric default (`python -m experiments.kubric`).
+
+Builds the `synthetic-tiny` preset's model (its shipped weights), objective, optimiser (the
+`pretrain` preset's schedule: synthetic-tiny trains 0 steps) and sharded step, compiles the step
+once, then times `--rounds` steps cycling 4 real batches: wall and process-CPU milliseconds per
+step (CPU time is the steadier figure on a shared machine). The data are a few scenes of the
+preset's own generator (`--scenes` training scenes at its size, frames and cameras), written under
+`--data` when missing; fewer scenes than the preset's change which examples are drawn, not their
+shapes.
+
+    python benchmarks/kubric_step.py                           # this checkout
+    git worktree add /tmp/old HEAD && python benchmarks/kubric_step.py --checkout /tmp/old
+        # another checkout's code on the same data (alternate the two for an A/B)
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import tempfile
+import time
+
+import jax
+import numpy as np
+from default_step import this_checkouts_process, use_checkout
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
+
+
+def kubric_training(data_dir: str, num_scenes: int):
+  """(params, loss_fn, optimiser config, batch iterator) of the Kubric default."""
+  # Imported here, not at the top, so that `--checkout` can choose where they come from.
+  from experiments import kubric, weights
+  from experiments.config import optim_config
+
+  preset = kubric.PRESETS["synthetic-tiny"]
+  experiment = dataclasses.replace(
+    preset,
+    synthetic_dir=data_dir,
+    output_dir=tempfile.mkdtemp(),
+    synthetic=dataclasses.replace(preset.synthetic, num_train=num_scenes, num_test=1, num_ood=0),
+    train=kubric.PRESETS["pretrain"].train,  # synthetic-tiny trains 0 steps: no schedule
+  )
+  task = kubric.KubricTask()
+  task.prepare(experiment)
+  params = weights.initial_params(experiment, finetune=False)
+  batches = iter(task.training_batches(experiment))
+  return params, task.loss_fn(experiment, experiment.model), optim_config(experiment), batches
+
+
+def main() -> None:
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument("--data", default="outputs/kubric_step")
+  parser.add_argument("--scenes", type=int, default=8)
+  parser.add_argument("--rounds", type=int, default=20)
+  parser.add_argument("--checkout", default=None, help="time the code of this git checkout")
+  process = this_checkouts_process()
+  process.add_arguments(parser)
+  args = parser.parse_args()
+  process.setup(host_memory=args.host_memory)
+  if args.checkout:
+    use_checkout(args.checkout)
+  from tokengs_jax.train import (
+    Precision,
+    create_train_state,
+    make_mesh,
+    make_optimizer,
+    make_train_step,
+    replicate,
+    shard_batch,
+  )
+
+  params, loss_fn, optim, batches = kubric_training(args.data, args.scenes)
+  optimizer, mesh = make_optimizer(optim), make_mesh()
+  state = jax.jit(
+    lambda p: create_train_state(p, optimizer, 0), out_shardings=NamedSharding(mesh, P())
+  )(replicate(params, mesh))
+  step = make_train_step(loss_fn, optimizer, mesh, precision=Precision())
+  examples = [shard_batch(next(batches), mesh) for _ in range(4)]
+  key = jax.random.key(0)
+  compiled = step.lower(state, examples[0], key).compile()
+  wall, cpu = [], []
+  for r in range(5 + args.rounds):  # the first 5 warm up
+    start, start_cpu = time.perf_counter(), time.process_time()
+    state, _ = compiled(state, examples[r % len(examples)], key)
+    jax.block_until_ready(state)
+    wall.append(time.perf_counter() - start)
+    cpu.append(time.process_time() - start_cpu)
+  wall, cpu = 1e3 * np.asarray(wall[5:]), 1e3 * np.asarray(cpu[5:])
+  print(
+    f"kubric train step: wall ms min {wall.min():.1f} median {np.median(wall):.1f} | "
+    f"CPU ms min {cpu.min():.1f} median {np.median(cpu):.1f}"
+  )
+
+
+if __name__ == "__main__":
+  main()
