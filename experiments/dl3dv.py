@@ -27,6 +27,11 @@ Presets:
   the paper (10k steps, lr 4e-5, 400 warm-up). Eval JSONs: pass the benchmark's index with
   `--eval-index` (the key -> {context, target} format; see docs/experiments.md for the list format).
   Loss: the official default (MSE + 0.2 SSIM), as the official `finetune_dl3dv_<N>view`.
+- `paper-base`: the official base training (`train_dl3dv_base`), run with `train` (or `run`):
+  the official `Options` model (3 / 12 layers, 1024 tokens, 256x256), 4 inputs + 4 targets
+  (official `num_views` 8), 150k steps (300 epochs x 500 iterations) at lr 4e-4 after 2000
+  warm-up steps, batch 64 (8 per GPU x 8), MSE + 0.2 SSIM. The `paper-{2,4,6}view` finetunes start
+  from its weights.
 - `paper-latent-{2,4,6}view-{ssim,lpips}`: the official 2026.6 latent-bottleneck release
   (`finetune_dl3dv_latent_<N>view_<loss>` under `finetune`, `eval_dl3dv_latent_<N>view_<loss>`
   under `eval`): the `dl3dv_latent_<N>view` model, 6 / 4 / 4 targets (official 8 / 8 / 10
@@ -88,6 +93,22 @@ for _views in (2, 4, 6):
       ),
       eval=dataclasses.replace(_paper.eval, tuning_target="latents", tuning_learning_rate=1e-2),
     )
+
+# Official `train_dl3dv_base`: the `Options` defaults (model, loss, 4 of 8 views, lr 4e-4) with
+# 300 epochs x 500 iterations and 2000 warm-up steps; the global batch of 8 GPUs x 8.
+PRESETS["paper-base"] = dataclasses.replace(
+  PRESETS["paper-4view"],
+  output_dir="outputs/dl3dv/paper_base",
+  model=model.ModelConfig(num_input_views=4),
+  train=dataclasses.replace(
+    PRESETS["paper-4view"].train,
+    steps=300 * 500,
+    num_target_views=4,
+    learning_rate=4e-4,
+    warmup_steps=2_000,
+    checkpoint_every=5_000,
+  ),
+)
 
 if __name__ == "__main__":
   main(PRESETS, "synthetic-4view", "python -m experiments.dl3dv")

@@ -1,8 +1,41 @@
-"""experiments.cli: `[command] [preset] [--field value ...]` parsed into typed settings."""
+"""experiments.cli: `[command] [preset] [--field value ...]` parsed into typed settings, and
+presets that reproduce official ones resolving to the official values (issue 26)."""
+
+import dataclasses
+import importlib.util
+import pathlib
+import sys
 
 import pytest
 
-from experiments import cli, re10k
+from experiments import cli, data, dl3dv, re10k, tasks
+from tokengs_jax import model
+
+OFFICIAL_OPTIONS = (
+  pathlib.Path(__file__).resolve().parents[2]
+  / "shared"
+  / "reference"
+  / "tokengs-official"
+  / "tokengs"
+  / "options.py"
+)
+
+
+@pytest.fixture(scope="module")
+def official():
+  """The official `tokengs/options.py` module (skips where the reference is absent)."""
+  if not OFFICIAL_OPTIONS.exists():
+    pytest.skip(f"the official options {OFFICIAL_OPTIONS} are absent (no ../shared/reference)")
+  spec = importlib.util.spec_from_file_location("official_tokengs_options_cli", OFFICIAL_OPTIONS)
+  module = importlib.util.module_from_spec(spec)
+  sys.modules[spec.name] = module  # dataclasses look their module up while building
+  spec.loader.exec_module(module)
+  return module
+
+
+def _official_steps(options) -> int:
+  """Optimiser steps of an official preset: epochs x iterations per epoch / accumulation."""
+  return options.num_epochs * options.max_iters_per_epoch // options.gradient_accumulation_steps
 
 
 def test_parse_defaults_to_run_with_default_preset():
@@ -43,3 +76,37 @@ def test_parse_command_preset_and_typed_overrides():
 def test_parse_rejects_unknown_preset():
   with pytest.raises(SystemExit):
     cli.parse(["run", "nope"], re10k.PRESETS, "synthetic-tiny", "prog")
+
+
+def test_dl3dv_base_preset_is_the_official_train_dl3dv_base(official):
+  options = official.config_defaults["train_dl3dv_base"]
+  command, experiment = cli.parse(["train", "paper-base"], dl3dv.PRESETS, "synthetic-4view", "p")
+  assert command == "train" and experiment == dl3dv.PRESETS["paper-base"]
+  # the whole architecture, image size and input views as the official Options read them
+  assert experiment.model == model.config_from_official(dataclasses.asdict(options))
+  assert (experiment.model.enc_depth, experiment.model.dec_depth) == (3, 12)
+  assert (experiment.model.num_gs_tokens, experiment.image_size) == (1024, (256, 256))
+  t = experiment.train
+  assert t.steps == _official_steps(options) == 150_000
+  assert t.warmup_steps == options.pct_start_steps == 2000
+  assert t.learning_rate == options.lr == 4e-4
+  assert experiment.num_context_views == options.num_input_views == 4
+  assert t.num_target_views == options.num_views - options.num_input_views == 4
+  assert t.batch_size == options.batch_size * 8  # global: 8 per GPU x 8 GPUs
+  assert t.grad_accum_steps == options.gradient_accumulation_steps
+  loss = tasks.Task().loss_config(experiment)
+  assert (loss.rgb_loss, loss.lambda_rgb, loss.lambda_ssim, loss.lambda_lpips) == (
+    options.rgb_loss_type,
+    options.lambda_rgb,
+    options.lambda_ssim,
+    options.lambda_lpips,
+  )
+  assert loss.lambda_opacity == options.lambda_opacity and not t.use_input_supervision
+  # DL3DV data: `dl3dv_scaled_0.15`, first_cam, the data at the model's size
+  ((mode, _),) = options.data_mode
+  example = data.example_config(experiment, training=True)
+  assert experiment.dataset == "dl3dv" and mode == f"dl3dv_scaled_{example.translation_scale}"
+  assert example.normalization == options.camera_normalization_method
+  assert example.scale_method == options.camera_scale_method
+  assert example.image_shape == tuple(options.img_size)
+  assert (example.sampler.num_context_views, example.sampler.num_target_views) == (4, 4)
