@@ -428,3 +428,18 @@ def test_the_occlusion_tolerance_is_checked():
   with pytest.raises(ValueError, match="input_occlusion_tolerance"):
     model.preset("tiny", input_occlusion_tolerance=-0.1)
   assert model.preset("tiny", input_occlusion_tolerance=0.1).input_occlusion_tolerance == 0.1
+
+
+def test_the_dynamic_gaussians_can_average_the_views_while_the_static_ones_follow_the_viewer():
+  """`dynamic_sharpness=0`: a dynamic Gaussian takes the mean of the views that see it (read
+  where it was at each view's time), a static one the view nearest the viewer."""
+  views = _two_views()
+  point = [0.1, 0.0, 2.0, 0.9, 0.1, 0.1, 0.1, 1.0, 0.0, 0.0, 0.0, 0.5, 0.5, 0.5]
+  flat = jnp.asarray([[point, point]], jnp.float32)  # static, dynamic
+  at_view_times = jnp.broadcast_to(flat[:, None, 1:], (1, 2, 1, 14))
+  viewers = jnp.zeros((1, 1, 3))  # view 0's centre
+  kwargs = dict(viewers=viewers, sharpness=1e4)
+  same = with_input_colours(flat, views, at_view_times, **kwargs)
+  np.testing.assert_allclose(np.asarray(same[0, 0, :, 11]), [0.2, 0.2], atol=1e-5)
+  mixed = with_input_colours(flat, views, at_view_times, dynamic_sharpness=0.0, **kwargs)
+  np.testing.assert_allclose(np.asarray(mixed[0, 0, :, 11]), [0.2, 0.5], atol=1e-5)

@@ -220,7 +220,8 @@ def viewer_colours(
     views: the input views.
     present: [B, N, 3] where the Gaussians are at the time they are rendered.
     viewers: [B, T, 3] centres of the cameras the Gaussians are rendered from.
-    sharpness: the softmax's inverse temperature (large: the nearest ray's view alone).
+    sharpness: the softmax's inverse temperature (large: the nearest ray's view alone); a
+      scalar, or [N] one per Gaussian.
     occluders: with them, views that hide a Gaussian get no weight (module docstring).
 
   Returns:
@@ -244,6 +245,7 @@ def with_input_colours(
   viewers: jax.Array | None = None,
   sharpness: float = 0.0,
   occlusion_tolerance: float | None = None,
+  dynamic_sharpness: float | None = None,
 ) -> jax.Array:
   """flat Gaussians [B, N, 14] -> the same with RGB read from the views where any sees them.
 
@@ -255,6 +257,7 @@ def with_input_colours(
   mean (`input_colours`), [B, N, 14].
   occlusion_tolerance: None reads every view the projection falls in; a fraction: views that
   hide the Gaussian behind their render of the scene are left out (`Occluders`).
+  dynamic_sharpness: the viewer weights' sharpness for the dynamic Gaussians (None: `sharpness`).
   """
   scenes = flat
   if dynamic_at_view_times is not None:
@@ -267,6 +270,10 @@ def with_input_colours(
   if viewers is None:
     colours, seen = input_colours(means, views, occluders)
   else:
+    if dynamic_at_view_times is not None and dynamic_sharpness is not None:
+      sharpness = jnp.concatenate(
+        [jnp.full((first,), sharpness), jnp.full((num_dynamic,), dynamic_sharpness)]
+      )  # [N]: per Gaussian
     colours, seen = viewer_colours(means, views, flat[..., :3], viewers, sharpness, occluders)
     flat, seen = flat[:, None], seen[:, None]
     flat = jnp.broadcast_to(flat, colours.shape[:-1] + flat.shape[-1:])

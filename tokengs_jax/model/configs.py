@@ -81,6 +81,10 @@ class ModelConfig:
       Gaussian projects into; a fraction leaves out the views that hide it (their render of the
       decoded scene is opaque at its projection, nearer than its own depth by more than this
       fraction; `model.colours`, not in the paper). Costs one render per input view.
+    dynamic_colour_sharpness: the "viewer" weights' sharpness for the dynamic Gaussians (None:
+      `viewer_colour_sharpness`). 0 averages the views, each read where the Gaussian was at its
+      time: the colour then agrees across views only on a trajectory that follows what they saw
+      (not in the paper; measured without a gain, docs/experiments.md "Session 16").
   """
 
   patch_size: int = 8
@@ -115,6 +119,7 @@ class ModelConfig:
   input_colour_weights: str = "mean"
   viewer_colour_sharpness: float = 100.0
   input_occlusion_tolerance: float | None = None
+  dynamic_colour_sharpness: float | None = None
 
   def __post_init__(self):
     if self.enc_embed_dim % self.enc_num_heads:

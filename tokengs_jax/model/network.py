@@ -358,6 +358,7 @@ class TokenGS(nn.Module):
         viewers if self.config.viewer_dependent else None,
         self.config.viewer_colour_sharpness,
         self.config.input_occlusion_tolerance,
+        self.config.dynamic_colour_sharpness,
       )
     if viewers is not None and flat.ndim == 3:  # the same set for every camera
       flat = jnp.broadcast_to(flat[:, None], (flat.shape[0], viewers.shape[1]) + flat.shape[1:])
