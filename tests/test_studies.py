@@ -1,7 +1,10 @@
-"""experiments/studies: the pure pieces of every study, and token_assignment end to end.
+"""experiments/studies: the pure pieces of every study, the report of `all` (verdict rule,
+aggregation over seeds, writer, every claim on constructed per-seed rows), and token_assignment,
+visibility and distribution end to end.
 
-The end-to-end run uses the `smoke` preset on a two-scene synthetic test split with freshly
-initialised weights saved where the study looks for trained ones, so nothing is trained.
+The end-to-end runs use the `smoke` preset on a two-scene synthetic test split with freshly
+initialised weights saved where the study looks for trained ones, so nothing is trained (but the
+variable-view loop, three steps of the smoke model).
 """
 
 import dataclasses
@@ -15,18 +18,25 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from experiments import data, re10k, weights
+from experiments import data, pixel_baseline, re10k, weights
 from experiments.studies import (
+  PIXEL_ALIGNED,
   StudySettings,
   camera_noise,
+  context_extension,
+  distribution,
+  in_views,
   psnr_of,
+  report,
   test_time_scaling,
   token_assignment,
   token_count,
   trained_tokengs,
   view_extrapolation,
+  visibility,
   write_table,
 )
+from experiments.studies import __main__ as run_all
 from tokengs_jax import evaluation, model
 from tokengs_jax.gaussians import Gaussians
 
@@ -378,3 +388,329 @@ def test_token_assignment_names_pictures_inside_its_folder(smoke_study, monkeypa
   assert [p.name for p in scenes_folder.iterdir()] == [
     results.safe_file_name("../../../escaped") + ".png"
   ]
+
+
+# ----------------------------------------------------------------------------------------------
+# report: the verdict rule, aggregation over seeds, the writer
+
+
+def test_verdict_holds_fails_or_is_not_shown_by_the_spread():
+  # difference 1.0; spread = the larger sample std (0.1 / 0.5 / 2.0)
+  assert report.verdict([10.9, 11.0, 11.1], [10.0, 10.0, 10.0]) == report.HOLDS
+  assert report.verdict([10.0, 10.0, 10.0], [10.9, 11.0, 11.1]) == report.FAILS
+  assert report.verdict([10.5, 11.0, 11.5], [9.0, 10.0, 11.0]) == report.NOT_SHOWN  # std 1.0
+  assert report.verdict([11.0, 11.5], [10.0, 10.4]) == report.HOLDS  # stds 0.35, 0.28 < 1.05
+  assert report.verdict([10.0, 13.0], [10.0, 10.0]) == report.NOT_SHOWN  # std 2.12 > 1.5
+  # lower is better (a share, a Gini): the sign turns
+  assert report.verdict([0.1, 0.11], [0.4, 0.41], higher_is_better=False) == report.HOLDS
+  assert report.verdict([0.4, 0.41], [0.1, 0.11], higher_is_better=False) == report.FAILS
+  # no spread to compare with: one seed, or equal values with no difference
+  assert report.verdict([12.0], [10.0]) == report.NOT_SHOWN
+  assert report.verdict([10.0, 10.0], [10.0, 10.0]) == report.NOT_SHOWN
+  assert report.verdict([float("nan"), 1.0], [0.0, 0.0]) == report.NOT_SHOWN
+  # a claim of parts; a "no loss" part
+  assert report.all_of([report.HOLDS, report.HOLDS]) == report.HOLDS
+  assert report.all_of([report.HOLDS, report.NOT_SHOWN]) == report.NOT_SHOWN
+  assert report.all_of([report.NOT_SHOWN, report.FAILS]) == report.FAILS
+  assert report.no_worse([10.0, 10.1], [10.0, 10.1]) == report.HOLDS
+  assert report.no_worse([9.0, 9.1], [10.0, 10.1]) == report.FAILS
+
+
+def test_aggregate_gives_mean_and_sample_std_per_key():
+  per_seed = [
+    [{"angle": 0, "psnr": 20.0, "drop": 0.0}, {"angle": 5, "psnr": 18.0, "drop": -2.0}],
+    [{"angle": 0, "psnr": 22.0, "drop": 0.0}, {"angle": 5, "psnr": 19.0, "drop": -3.0}],
+  ]
+  rows = report.aggregate(per_seed, ["angle"], ["psnr", "drop"])
+  assert [row["angle"] for row in rows] == [0, 5]
+  assert rows[0]["psnr"] == "21.00 ± 1.41" and rows[1]["drop"] == "-2.50 ± 0.71"
+  assert rows[1]["psnr_seeds"] == [18.0, 19.0] and rows[1]["psnr_mean"] == 18.5
+  assert report.means(rows) == [
+    {"angle": 0, "psnr": 21.0, "drop": 0.0},
+    {"angle": 5, "psnr": 18.5, "drop": -2.5},
+  ]
+  assert report.mean_std([3.0]) == "3.00" and report.mean_std([1.0, 2.0], 1) == "1.5 ± 0.7"
+
+
+def _fake_claim(key: str, verdict: str) -> report.Claim:
+  rows = report.aggregate([[{"x": 1, "y": 2.0}], [{"x": 1, "y": 3.0}]], ["x"], ["y"])
+  plot = report.Plot(f"plot_{key}", "A plot", report.series(report.means(rows), "x", ["y"]), "x")
+  return report.Claim(
+    key, f"claim {key}", "What the paper says.", rows, ["x", "y"], verdict, "n", plot
+  )
+
+
+def test_write_report_has_the_verdict_table_a_section_per_claim_and_its_plots(tmp_path):
+  claims = [_fake_claim("a", report.HOLDS), _fake_claim("b", report.NOT_SHOWN)]
+  path = report.write_report(tmp_path / "out" / "studies.md", claims, ["header line"], quick=True)
+  text = path.read_text()
+  lines = text.splitlines()
+  assert lines[0].startswith("# ") and lines[2] == report.QUICK_BANNER
+  assert "verdicts are a smoke test, not findings" in report.QUICK_BANNER
+  assert "header line" in lines and any(line.startswith("Verdict rule: ") for line in lines)
+  table = lines[lines.index("| claim | verdict | evidence |") :]
+  assert table[2] == "| (a) claim a | **holds** | n |"
+  assert table[3] == "| (b) claim b | **not shown at this scale** | n |"
+  for claim in claims:
+    section = text[text.index(f"## ({claim.key}) claim {claim.key}") :]
+    assert "| x | y |" in section and "| 1 | 2.50 ± 0.71 |" in section
+    assert f"**Verdict: {claim.verdict}.** n" in section
+    link = f"studies/plot_{claim.key}.png"
+    assert f"![claim {claim.key}]({link})" in section
+    assert (path.parent / link).stat().st_size > 0  # the link resolves beside the report
+  assert text.count("**Verdict: ") == 2
+  full = report.write_report(tmp_path / "full.md", claims[:1], [], quick=False).read_text()
+  assert report.QUICK_BANNER not in full
+
+
+def _per_seed_rows(seed: int) -> dict:
+  """Constructed rows of one seed for every study of `all`, each making its claim hold."""
+  jitter = 0.01 * seed
+  p = PIXEL_ALIGNED
+  tuning = [
+    {
+      "axis": f"{target} tuning steps",
+      "value": n,
+      "psnr": 20 + n * gain + jitter,
+      "seconds_per_scene": n * cost,
+    }
+    for target, gain, cost in (("tokens", 0.1, 0.02), ("gaussians", 0.05, 0.005))
+    for n in (5, 10)
+  ]
+  return {
+    camera_noise: [
+      {
+        "angle_deg": a,
+        "TokenGS": 20 - a * 0.1,
+        p: 22 - a,
+        "TokenGS drop": -a * 0.1 + jitter,
+        f"{p} drop": -a,
+      }
+      for a in (0.0, 5.0)
+    ],
+    view_extrapolation: [
+      {
+        "target": t,
+        "frames_outside_span": d,
+        "scenes": 2,
+        "TokenGS": 18 - d * 0.1,
+        p: 18 - d + jitter,
+      }
+      for t, d in (("inside", 0), ("+2", 2), ("-2", 2))
+    ],
+    context_extension: [
+      {"views": v, "trained with 2 views": 20.0, "trained with 2-4 views": 20 + v * 0.1 + jitter}
+      for v in (2, 3, 4)
+    ],
+    test_time_scaling: [
+      {"axis": "input views", "value": 2, "psnr": 20.0, "seconds_per_scene": 0.01},
+      {"axis": "no tuning (2 views)", "value": 0, "psnr": 20.0, "seconds_per_scene": 0.01},
+      *tuning,
+    ],
+    token_count: [
+      {
+        "tokens": k,
+        "gaussians": 16 * k,
+        "tuning_steps": 0,
+        "psnr": 19 + k / 64 + jitter,
+        "seconds_per_scene": 0.01,
+      }
+      for k in (128, 64)
+    ],
+    visibility: [
+      {"visibility loss": "on", "psnr": 20.0 + jitter, "outside_share": 0.01},
+      {"visibility loss": "off", "psnr": 20.0 - jitter, "outside_share": 0.2 + jitter},
+    ],
+    distribution: [
+      *(
+        {"bin": b, "depth_from": b, "depth_to": b + 1, "TokenGS": 1.0, p: 2.0 - b / 2}
+        for b in (1, 2, 3)
+      ),
+      {"bin": distribution.GINI, "TokenGS": 0.1 + jitter, p: 0.4},
+    ],
+  }
+
+
+def test_every_claim_of_all_builds_from_per_seed_rows(tmp_path):
+  seeds = [_per_seed_rows(seed) for seed in range(3)]
+  claims = [study.claim([rows[study] for rows in seeds]) for study in run_all.STUDIES]
+  assert [claim.key for claim in claims] == list("abcdefg")
+  assert [claim.verdict for claim in claims] == [report.HOLDS] * 7
+  path = report.write_report(tmp_path / "studies.md", claims, [], quick=False)
+  for claim in claims:
+    assert (tmp_path / report.FIGURES / f"{claim.plot.name}.png").exists()
+    assert set(claim.columns) <= set(claim.rows[0])
+  assert path.read_text().count("**Verdict: holds.**") == 7
+  # the same rows with TokenGS's drop the larger: (a) fails
+  # (a) with TokenGS's drop twice the baseline's (-10 vs -5 dB at 5 degrees): fails; with seeds
+  # 10 dB apart (-10 and 0: spread 7.1 > 0 difference) it is not shown
+  worse = [
+    {**row, "TokenGS drop": row[f"{PIXEL_ALIGNED} drop"] * 2} for row in seeds[0][camera_noise]
+  ]
+  assert camera_noise.claim([worse, worse]).verdict == report.FAILS
+  spread = [{**row, "TokenGS drop": 0.0} for row in worse]
+  assert camera_noise.claim([worse, spread]).verdict == report.NOT_SHOWN
+
+
+# ----------------------------------------------------------------------------------------------
+# the pure pieces of the new studies
+
+
+def test_gini_relative_density_and_per_bin_counts():
+  assert distribution.gini(np.ones(4), np.ones(4)) == pytest.approx(0.0)
+  assert distribution.gini(np.array([0, 0, 0, 4.0]), np.ones(4)) == pytest.approx(0.75)
+  # weights count as repeated values: (0, 0, 0, 4) == values (0, 4) with weights (3, 1)
+  assert distribution.gini(np.array([0, 4.0]), np.array([3.0, 1.0])) == pytest.approx(0.75)
+  density = distribution.relative_density(np.array([2.0, 2.0, 0.0]), np.array([1.0, 3.0, 0.0]))
+  np.testing.assert_allclose(density, [2.0, 2.0 / 3.0, 0.0])  # 4 Gaussians over area 4: 1 / unit
+  edges = np.array([0.5, 1.5, 3.0])
+  depths = np.array([[[1.0, 2.0], [0.0, 2.0]]])  # one view, one pixel without a surface
+  np.testing.assert_allclose(
+    distribution.area_per_bin(depths, np.array([[2.0, 0.5, 1.0, 1.0]]), edges), [1.0, 8.0]
+  )
+  inside = np.array([[True, True, False], [True, False, True]])
+  depth = np.array([[1.0, 2.0, 1.0], [1.0, 9.0, 2.0]])
+  counts = distribution.gaussians_per_bin(inside, depth, np.array([0.5, 1.0, 0.25]), edges)
+  np.testing.assert_allclose(counts, [1.0, 1.25])  # view 0: 0.5 | 1.0; view 1: 0.5 | 0.25
+
+
+def test_in_views_marks_centres_in_front_and_inside_each_image():
+  c2w = np.stack([np.eye(4), np.eye(4)]).astype(np.float32)
+  c2w[1, 0, 3] = 2.0  # the second camera 2 to the right
+  intrinsics = np.array([[10.0, 10.0, 8.0, 8.0]] * 2, np.float32)
+  means = np.array([[0, 0, 1], [0, 0, -1], [2, 0, 1], [0, 0, 0.01]], np.float32)
+  inside, depth = in_views(means, c2w, intrinsics, 16, 16, near=0.025)
+  np.testing.assert_array_equal(inside, [[True, False, False, False], [False, False, True, False]])
+  np.testing.assert_allclose(depth[0], [1, -1, 1, 0.01])
+
+
+def test_outside_share_counts_centres_in_no_input_view():
+  batch = {
+    "context_images": np.zeros((1, 2, 16, 16, 3), np.float32),
+    "context_c2w": np.eye(4, dtype=np.float32)[None, None].repeat(2, axis=1),
+    "context_intrinsics": np.array([[[10.0, 10.0, 8.0, 8.0]] * 2], np.float32),
+  }
+  means = np.array([[[0, 0, 1], [0, 0, -1], [5, 0, 1], [0, 0.1, 2]]], np.float32)
+  method = evaluation.Method(
+    gaussians=lambda b: Gaussians(
+      means=means,
+      opacities=np.ones((1, 4), np.float32),
+      scales=np.ones((1, 4, 3), np.float32),
+      quats=np.ones((1, 4, 4), np.float32),
+      colors=np.ones((1, 4, 3), np.float32),
+    )
+  )
+  assert visibility.outside_share(method, [("s", batch)], near=0.025) == pytest.approx(0.5)
+
+
+def test_view_schedule_tuning_time_and_distance_rows():
+  schedule = context_extension.view_schedule(0, 300, (2, 3, 4))
+  assert set(schedule.tolist()) == {2, 3, 4} and len(schedule) == 300
+  np.testing.assert_array_equal(schedule, context_extension.view_schedule(0, 300, (2, 3, 4)))
+  assert not np.array_equal(schedule, context_extension.view_schedule(1, 300, (2, 3, 4)))
+  curve = [{"seconds_per_scene": 0.2, "psnr": 12.0}, {"seconds_per_scene": 0.1, "psnr": 10.0}]
+  assert test_time_scaling.psnr_at_time(curve, 0.15) == pytest.approx(11.0)
+  assert test_time_scaling.psnr_at_time(curve, 1.0) == pytest.approx(12.0)  # its end value
+  rows = [
+    {"frames_outside_span": 0, "m": 3.0},
+    {"frames_outside_span": 2, "m": 1.0},
+    {"frames_outside_span": 2, "m": 2.0},
+  ]
+  assert view_extrapolation.by_distance(rows, ["m"]) == [
+    {"frames": 0, "m": 3.0},
+    {"frames": 2, "m": 1.5},
+  ]
+
+
+# ----------------------------------------------------------------------------------------------
+# all: scale, per-seed experiments, the work folder, the command line
+
+
+def test_all_scales_seed_experiments_and_command_line(tmp_path):
+  quick = run_all.All(quick=True).scale()
+  assert quick.seeds == 2 and quick.steps < run_all.FULL.steps
+  assert run_all.All(seeds=5, steps=7).scale() == dataclasses.replace(
+    run_all.FULL, seeds=5, steps=7
+  )
+  default = re10k.PRESETS["synthetic-tiny"]
+  experiments = [run_all.seed_experiment(quick, seed, tmp_path) for seed in (0, 1)]
+  for seed, experiment in enumerate(experiments):
+    assert experiment.seed == seed and experiment.checkpoint is None  # from scratch
+    assert experiment.model == default.model and experiment.train.steps == quick.steps
+    assert experiment.train.learning_rate == re10k.PRESETS["pretrain"].train.learning_rate
+    assert experiment.synthetic.num_train == quick.train_scenes
+  assert experiments[0].synthetic_dir != experiments[1].synthetic_dir
+  assert experiments[0].output_dir != experiments[1].output_dir
+  settings = run_all.study_settings(quick, experiments[0])
+  assert list(settings) == list(run_all.STUDIES)
+  assert all(s.experiment is experiments[0] for s in settings.values())
+  assert settings[token_count].retrain and settings[token_count].tokens == quick.tokens
+  run_all.check_work_dir(tmp_path / "work", quick)
+  run_all.check_work_dir(tmp_path / "work", quick)  # the same scale: reused
+  with pytest.raises(SystemExit, match="another scale"):
+    run_all.check_work_dir(tmp_path / "work", run_all.FULL)
+  import tyro
+
+  parsed = tyro.extras.subcommand_cli_from_dict(
+    {"all": run_all.All}, args=["all", "--quick", "--seeds", "3", "--output-dir", "x"]
+  )
+  assert parsed == run_all.All(quick=True, seeds=3, output_dir="x")
+  assert parsed.work() == pathlib.Path("outputs/studies/all_quick")
+
+
+# ----------------------------------------------------------------------------------------------
+# the new studies end to end (smoke preset, fresh weights)
+
+
+def _with_fresh_baseline(smoke_study, smoke_model, tmp_path):
+  """smoke_study's settings with a saved, freshly initialised pixel-aligned baseline."""
+  path = weights.save_params(
+    tmp_path / "baseline.msgpack", pixel_baseline.init_params(jax.random.key(1), smoke_model[0])
+  )
+  return dict(
+    experiment=smoke_study.experiment,
+    params=smoke_study.params,
+    baseline_params=str(path),
+    output_dir=str(tmp_path / "studies"),
+  )
+
+
+def test_distribution_main_end_to_end(smoke_study, smoke_model, tmp_path):
+  settings = distribution.Distribution(
+    **_with_fresh_baseline(smoke_study, smoke_model, tmp_path), bins=3
+  )
+  rows = distribution.main(settings)
+  assert [row["bin"] for row in rows] == [1, 2, 3, distribution.GINI]
+  for name in distribution.METHODS:
+    densities = np.array([row[name] for row in rows[:3]])
+    assert np.all(np.isfinite(densities)) and np.all(densities >= 0)
+    assert 0 <= rows[-1][name] < 1
+  assert rows[0]["depth_from"] < rows[0]["depth_to"] <= rows[1]["depth_from"]
+  out = pathlib.Path(settings.output_dir) / "distribution"
+  assert json.loads((out / "distribution.json").read_text())["rows"] == rows
+  assert (out / "distribution.png").stat().st_size > 0
+
+
+def test_visibility_main_end_to_end(smoke_study, smoke_model, tmp_path):
+  ablation = weights.save_params(
+    tmp_path / "off.msgpack", model.init_params(jax.random.key(2), smoke_model[0])
+  )
+  settings = visibility.Visibility(
+    **_with_fresh_baseline(smoke_study, smoke_model, tmp_path), ablation_params=str(ablation)
+  )
+  rows = visibility.main(settings)
+  assert [row["visibility loss"] for row in rows] == ["on", "off"]
+  for row in rows:
+    assert math.isfinite(row["psnr"]) and 0 <= row["outside_share"] <= 1
+  assert (pathlib.Path(settings.output_dir) / "visibility" / "visibility.png").exists()
+
+
+def test_train_variable_views_changes_the_weights(smoke_study, smoke_model):
+  experiment = dataclasses.replace(  # a batch of 4: one example per (virtual) device
+    smoke_study.experiment,
+    train=dataclasses.replace(smoke_study.experiment.train, steps=3, batch_size=4),
+  )
+  trained = context_extension.train_variable_views(experiment, smoke_model[1], (2, 3))
+  changed = jax.tree.map(lambda a, b: not np.array_equal(a, b), trained, smoke_model[1])
+  assert any(jax.tree.leaves(changed))
+  assert all(np.all(np.isfinite(leaf)) for leaf in jax.tree.leaves(trained))

@@ -15,14 +15,25 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
+from collections.abc import Sequence
 
 import numpy as np
 import tyro
 
-from experiments import data, figures
-from experiments.studies import StudySettings, psnr_of, trained_tokengs, write_table
+from experiments import data
+from experiments.config import Experiment
+from experiments.studies import StudySettings, psnr_of, report, trained_tokengs, write_table
 from tokengs_jax import evaluation, process
 from tokengs_jax.tuning import TuningConfig
+
+
+VIEWS, UNTUNED = "input views", "no tuning (2 views)"  # the axes of the rows without tuning
+TITLE = "Token tuning vs Gaussian tuning"
+CLAIM = (
+  "Paper: tuning the Gaussian tokens on the input views beats tuning the Gaussians themselves, at "
+  "equal steps and at equal wall time. Compared: PSNR after the most steps run, and token "
+  "tuning's PSNR against Gaussian tuning's read (linearly) at the same seconds per scene."
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,16 +87,20 @@ def _curve(rows: list[dict]) -> tuple[list, list]:
 
 
 def context_extension_rows(
-  settings: TestTimeScaling, method, scorer: evaluation.Scorer, targets: np.ndarray
+  experiment: Experiment,
+  view_counts: Sequence[int],
+  method,
+  scorer: evaluation.Scorer,
+  targets: np.ndarray,
 ) -> list[dict]:
-  """One row per context size in `settings.views`: the method scored on the same `targets`."""
-  gap = settings.experiment.eval.context_gap
+  """One row per context size in `view_counts`: the method scored on the same `targets`."""
+  gap = experiment.eval.context_gap
   rows = []
-  for count in settings.views:
+  for count in view_counts:
     examples = data.evaluation_scenes(
-      settings.experiment.with_views(count), views=spaced_views(count, gap, targets)
+      experiment.with_views(count), views=spaced_views(count, gap, targets)
     )
-    rows.append(_row("input views", count, *psnr_of(method, examples, scorer)))
+    rows.append(_row(VIEWS, count, *psnr_of(method, examples, scorer)))
   return rows
 
 
@@ -105,24 +120,24 @@ def tuning_rows(
   return by_target
 
 
-def plot_curves(
-  out: pathlib.Path, view_rows: list[dict], base: dict, by_target: dict[str, list[dict]]
-) -> None:
-  """`views.png` (PSNR vs input views) and `tuning_steps.png` (each target's curve, from the
-  untuned 2-view score at step 0)."""
-  figures.line_plot(
-    out / "views.png",
-    {"TokenGS (feed-forward)": _curve(view_rows)},
-    title="Context extension",
-    xlabel="input views",
-    ylabel="PSNR (dB)",
+def views_plot(rows: list[dict]) -> report.Plot:
+  """`views.png`: PSNR vs input views."""
+  return report.Plot(
+    "views",
+    "Context extension",
+    {"TokenGS (feed-forward)": _curve([r for r in rows if r["axis"] == VIEWS])},
+    "input views",
   )
-  figures.line_plot(
-    out / "tuning_steps.png",
-    {target: _curve([base, *rows]) for target, rows in by_target.items()},
-    title="Test-time tuning",
-    xlabel="tuning steps",
-    ylabel="PSNR (dB)",
+
+
+def tuning_plot(rows: list[dict], targets: Sequence[str]) -> report.Plot:
+  """`tuning_steps.png`: each target's curve, from the untuned 2-view score at step 0."""
+  start = [r for r in rows if r["axis"] == UNTUNED]
+  return report.Plot(
+    "tuning_steps",
+    "Test-time tuning",
+    {t: _curve(start + [r for r in rows if r["axis"] == f"{t} tuning steps"]) for t in targets},
+    "tuning steps",
     dashed=("gaussians",),
   )
 
@@ -134,11 +149,13 @@ def main(settings: TestTimeScaling) -> list[dict]:
   scorer = evaluation.Scorer(lpips=False)
   feed_forward = evaluation.feed_forward(params, config)
   targets = shared_targets(settings.views, e.context_gap, e.num_target_views)
-  view_rows = context_extension_rows(settings, feed_forward, scorer, targets)
+  view_rows = context_extension_rows(
+    settings.experiment, settings.views, feed_forward, scorer, targets
+  )
   examples = data.evaluation_scenes(
     settings.experiment, views=spaced_views(2, e.context_gap, targets)
   )
-  base = _row("no tuning (2 views)", 0, *psnr_of(feed_forward, examples, scorer))
+  base = _row(UNTUNED, 0, *psnr_of(feed_forward, examples, scorer))
   by_target = tuning_rows(settings, params, config, examples, scorer)
   rows = [*view_rows, base, *(row for target_rows in by_target.values() for row in target_rows)]
   write_table(
@@ -155,8 +172,53 @@ def main(settings: TestTimeScaling) -> list[dict]:
       )
     ],
   )
-  plot_curves(out, view_rows, base, by_target)
+  views_plot(rows).draw(out)
+  tuning_plot(rows, settings.targets).draw(out)
   return rows
+
+
+def psnr_at_time(rows: Sequence[dict], seconds: float) -> float:
+  """A tuning curve's PSNR at `seconds` per scene: linear between its points (rows with
+  "seconds_per_scene" and "psnr"), its end values outside them."""
+  ordered = sorted(rows, key=lambda row: row["seconds_per_scene"])
+  return float(
+    np.interp(seconds, [r["seconds_per_scene"] for r in ordered], [r["psnr"] for r in ordered])
+  )
+
+
+def claim(per_seed: Sequence[list[dict]]) -> report.Claim:
+  """(d): token tuning beats Gaussian tuning at equal steps (the most steps run) and at equal
+  wall time (the Gaussian curve read at the token run's seconds per scene)."""
+  tokens, gaussians = "tokens tuning steps", "gaussians tuning steps"
+  rows = report.aggregate(
+    [[r for r in seed_rows if r["axis"] != VIEWS] for seed_rows in per_seed],
+    ["axis", "value"],
+    ["psnr", "seconds_per_scene"],
+    digits=3,
+  )
+
+  def most_steps(axis, table):
+    return max((r for r in table if r["axis"] == axis), key=lambda r: r["value"])
+
+  last = {axis: most_steps(axis, rows) for axis in (tokens, gaussians)}
+  timed = [  # per seed: Gaussian tuning's PSNR at the time token tuning took for its most steps
+    psnr_at_time(
+      [r for r in seed_rows if r["axis"] == gaussians],
+      most_steps(tokens, seed_rows)["seconds_per_scene"],
+    )
+    for seed_rows in per_seed
+  ]
+  steps = report.verdict(last[tokens]["psnr_seeds"], last[gaussians]["psnr_seeds"])
+  time = report.verdict(last[tokens]["psnr_seeds"], timed)
+  evidence = (
+    f"{last[tokens]['value']} steps: {last[tokens]['psnr']} dB (tokens) vs "
+    f"{last[gaussians]['psnr']} dB (Gaussians): {steps}; at the token run's time, Gaussian "
+    f"tuning {report.mean_std(timed, 3)} dB: {time}."
+  )
+  figure = tuning_plot(report.means(rows), ("tokens", "gaussians"))
+  columns = ["axis", "value", "psnr", "seconds_per_scene"]
+  verdict = report.all_of([steps, time])
+  return report.Claim("d", TITLE, CLAIM, rows, columns, verdict, evidence, figure)
 
 
 if __name__ == "__main__":

@@ -19,15 +19,30 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
+from collections.abc import Sequence
 
 import jax
 import numpy as np
 import tyro
 
-from experiments import data, figures, weights
-from experiments.studies import StudySettings, psnr_of, train, trained_tokengs, write_table
+from experiments import data
+from experiments.studies import (
+  StudySettings,
+  psnr_of,
+  report,
+  saved_or_trained,
+  train,
+  trained_tokengs,
+  write_table,
+)
 from tokengs_jax import evaluation, model, process
 from tokengs_jax.tuning import TuningConfig
+
+
+CLAIM = (
+  "Paper: more Gaussian tokens reconstruct better. Compared: one model trained per token count "
+  "(same data, steps, seeds), feed-forward PSNR of the most tokens vs the fewest."
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,22 +53,44 @@ class TokenCount(StudySettings):
 
 
 def model_for(settings: TokenCount, config, params, count: int, out: pathlib.Path):
-  """(config, params) of a K-token model (resampled or retrained)."""
+  """(config, params) of a K-token model (resampled or retrained; retrained at the trained
+  model's own count: that model, trained with the same settings and seed)."""
   config_k = config.replace(num_gs_tokens=count)
   fresh = model.init_params(jax.random.key(settings.experiment.seed), config_k)
   if not settings.retrain:
     from tokengs_jax.train import transplant_params
 
     return config_k, transplant_params(jax.random.key(count), params, fresh)[0]
-  path = out / f"tokens_{count}.msgpack"
-  if path.exists():
-    return config_k, weights.load_params(path)
+  if count == config.num_gs_tokens:
+    return config_k, params
   experiment = dataclasses.replace(
     settings.experiment, model=config_k, output_dir=str(out / f"tokens_{count}")
   )
-  trained = train(experiment, fresh)
-  weights.save_params(path, trained)
-  return config_k, trained
+  return config_k, saved_or_trained(
+    out / f"tokens_{count}.msgpack", f"the {count}-token model", lambda: train(experiment, fresh)
+  )
+
+
+def by_tuning_steps(rows: list[dict], x: str) -> dict[str, tuple[list, list]]:
+  """Chart series, one per tuning step count: (the rows' `x`, their PSNR)."""
+  steps = dict.fromkeys(row["tuning_steps"] for row in rows)
+  return {
+    f"{s} tuning steps": report.series([r for r in rows if r["tuning_steps"] == s], x, ["psnr"])[
+      "psnr"
+    ]
+    for s in steps
+  }
+
+
+def psnr_plot(rows: list[dict]) -> report.Plot:
+  """`psnr_vs_tokens.png`: PSNR vs tokens, a line per tuning step count."""
+  return report.Plot(
+    "psnr_vs_tokens",
+    "PSNR vs Gaussian tokens",
+    by_tuning_steps(rows, "tokens"),
+    "Gaussian tokens",
+    log_x=True,
+  )
 
 
 def main(settings: TokenCount) -> list[dict]:
@@ -63,8 +100,6 @@ def main(settings: TokenCount) -> list[dict]:
   scorer = evaluation.Scorer(lpips=False)
   lr = settings.experiment.eval.tuning_learning_rate
   rows = []
-  psnr_curves = {f"{s} tuning steps": ([], []) for s in settings.tuning_steps}
-  runtime_curves = {f"{s} tuning steps": ([], []) for s in settings.tuning_steps}
   for count in settings.tokens:
     config_k, params_k = model_for(settings, config, params, count, out)
     for steps in settings.tuning_steps:
@@ -74,21 +109,15 @@ def main(settings: TokenCount) -> list[dict]:
         else evaluation.tuned(params_k, config_k, TuningConfig(steps=steps, learning_rate=lr))
       )
       scores, seconds = psnr_of(method, examples, scorer)
-      psnr = float(np.mean(scores))
       rows.append(
         {
           "tokens": count,
           "gaussians": config_k.num_gaussians,
           "tuning_steps": steps,
-          "psnr": psnr,
+          "psnr": float(np.mean(scores)),
           "seconds_per_scene": seconds,
         }
       )
-      name = f"{steps} tuning steps"
-      psnr_curves[name][0].append(count)
-      psnr_curves[name][1].append(psnr)
-      runtime_curves[name][0].append(seconds)
-      runtime_curves[name][1].append(psnr)
   how = (
     f"one model trained {settings.experiment.train.steps} steps per count"
     if settings.retrain
@@ -104,22 +133,33 @@ def main(settings: TokenCount) -> list[dict]:
       (f"{len(examples)} held-out scenes; models: {how}; run time on {jax.devices()[0].platform}.")
     ],
   )
-  figures.line_plot(
-    out / "psnr_vs_tokens.png",
-    psnr_curves,
-    title="PSNR vs Gaussian tokens",
-    xlabel="Gaussian tokens",
-    ylabel="PSNR (dB)",
-    log_x=True,
-  )
-  figures.line_plot(
-    out / "runtime_vs_psnr.png",
-    runtime_curves,
-    title="Run time vs PSNR",
-    xlabel="seconds per scene",
-    ylabel="PSNR (dB)",
-  )
+  psnr_plot(rows).draw(out)
+  report.Plot(
+    "runtime_vs_psnr",
+    "Run time vs PSNR",
+    by_tuning_steps(rows, "seconds_per_scene"),
+    "seconds per scene",
+  ).draw(out)
   return rows
+
+
+def claim(per_seed: Sequence[list[dict]]) -> report.Claim:
+  """(e): with models retrained per count, the most tokens beat the fewest (feed-forward)."""
+  rows = report.aggregate(
+    [[r for r in seed_rows if r["tuning_steps"] == 0] for seed_rows in per_seed],
+    ["tokens", "gaussians", "tuning_steps"],
+    ["psnr", "seconds_per_scene"],
+    digits=3,
+  )
+  fewest, most = (f(rows, key=lambda row: row["tokens"]) for f in (min, max))
+  evidence = (
+    f"{most['tokens']} tokens: {most['psnr']} dB vs {fewest['tokens']} tokens: {fewest['psnr']} dB."
+  )
+  verdict = report.verdict(most["psnr_seeds"], fewest["psnr_seeds"])
+  columns = ["tokens", "gaussians", "psnr", "seconds_per_scene"]
+  return report.Claim(
+    "e", "Token count", CLAIM, rows, columns, verdict, evidence, psnr_plot(report.means(rows))
+  )
 
 
 if __name__ == "__main__":
