@@ -47,6 +47,10 @@ Presets:
 - `paper`: the official `kubric_dyn` architecture (latent bottleneck, 1024 static + 256 dynamic
   tokens, 4 input views, 256x256), 50k finetuning steps; the last `eval.num_scenes` (16, as the
   paper) scenes of the listing are held out.
+- `paper-static`: the official `finetune_dl3dv_kubric_static` (stage 1 of the two-stage variant:
+  `paper` then finetunes from its weights, growing the dynamic tokens from its static ones): the
+  `kubric_static` model (latent architecture, 1024 static tokens, no dynamic tokens, no time
+  embedding), the same data, views and loss as `paper`, no auxiliary loss, 2500 warm-up steps.
 
 Training uses the library's dynamic objective (`tokengs_loss_fn` of a time-conditioned model)
 with the official Kubric release weights (`finetune_dl3dv_kubric_dyn_release`): L1 x 0.8 + SSIM
@@ -56,6 +60,11 @@ steps and decayed linearly to 0 over the next 20% (official 5k hold / 10k decay 
 (`--train.rgb-loss l2`, `--train.lambda-ssim`, `--train.lambda-lpips`, `--train.lambda-coverage`,
 `--train.lambda-opacity`, `--train.use-input-supervision`); the dynamic terms are top-level flags
 (`--lambda-dyn-aux`, `--lambda-motion`, `--dyn-aux-hold-fraction`, ...).
+A model without time embedding (`paper-static`, or `--model.no-time-embedding` with
+`--model.num-dynamic-gs-tokens 0`) trains with the static objective on the target views, their
+times ignored, and is scored with the same protocol and baselines (no `dynamic/` pictures); the
+dynamic-only settings (`--lambda-motion`, `--dyn-aux-on-motion`, `--dyn-aux-on-objects`,
+`--eval.static-baseline`) are refused for it.
 One decode per example at the targets' time (`decode_times="first"`, official). Token tuning
 (`trained+token_tuning`) tunes on the input views at their own times with the same loss (the
 auxiliary term at its base weight, as the official tuning) and renders the targets at theirs.
@@ -140,6 +149,15 @@ PRESETS = {
     eval=EvalSettings(num_scenes=16, num_target_views=4, grid_scenes=8, video_frames=96),
   ),
 }
+# Official `finetune_dl3dv_kubric_static`: `finetune_dl3dv_kubric_dyn` without dynamic tokens or
+# time embedding (its auxiliary weight the official default, 0; its warm-up the official 2500).
+PRESETS["paper-static"] = dataclasses.replace(
+  PRESETS["paper"],
+  output_dir="outputs/kubric/paper_static",
+  model=model.preset("kubric_static"),
+  lambda_dyn_aux=0.0,
+  train=dataclasses.replace(PRESETS["paper"].train, warmup_steps=2_500),
+)
 
 if __name__ == "__main__":
   main(PRESETS, "synthetic-tiny", "python -m experiments.kubric", task=KubricTask())

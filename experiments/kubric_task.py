@@ -16,7 +16,7 @@ import numpy as np
 from experiments import data, dynamic_pictures, weights
 from experiments.config import SSIM_LOSS, Experiment, TrainSettings
 from experiments.tasks import Task, TrainedBaseline
-from tokengs_jax import evaluation, losses, model
+from tokengs_jax import evaluation, losses
 from tokengs_jax.data import (
   DATASET_PRESETS,
   EvaluationIndexReport,
@@ -98,6 +98,37 @@ class KubricExperiment(Experiment):
         "train.lambda_depth must be 0 on Kubric: its examples carry no true depth to supervise"
       )
     KubricTask().loss_config(self)  # the dynamic terms' checks, at parse time
+    self._check_static_model()
+
+  def _check_static_model(self) -> None:
+    """A model without time embedding (official `finetune_dl3dv_kubric_static`) trains with the
+    static loss on the target views, times ignored: refuses the settings that would then be
+    dropped unsaid (dynamic tokens, the motion-weighted and object terms, the static-only twin).
+    The auxiliary weight needs dynamic tokens and is unused without them, as officially."""
+    config = self.model
+    if config.time_embedding:
+      if self.eval.static_baseline and config.num_dynamic_gs_tokens == 0:
+        raise ValueError(
+          "eval.static_baseline trains the static-only twin of a dynamic model; this model has "
+          "no dynamic tokens (it is static already)"
+        )
+      return
+    dropped = [
+      f"--{flag}"
+      for flag, used in (
+        ("model.num-dynamic-gs-tokens", config.num_dynamic_gs_tokens > 0),
+        ("lambda-motion", self.lambda_motion > 0),
+        ("dyn-aux-on-motion", self.dyn_aux_on_motion),
+        ("dyn-aux-on-objects", self.dyn_aux_on_objects),
+        ("eval.static-baseline", self.eval.static_baseline),
+      )
+      if used
+    ]
+    if dropped:
+      raise ValueError(
+        f"a static Kubric model (no --model.time-embedding) trains with the static loss, times "
+        f"ignored; {', '.join(dropped)} need a time-conditioned model with dynamic tokens"
+      )
 
   @staticmethod
   def upgrade_record(fields: dict) -> dict:
@@ -134,7 +165,9 @@ def kubric_views(experiment: KubricExperiment, num_targets: int):
 
 
 class KubricTask(Task):
-  """Kubric data (generated when synthetic), the dynamic loss and the dynamic pictures."""
+  """Kubric data (generated when synthetic), the dynamic loss and the dynamic pictures; a model
+  without time embedding trains with the library's static loss on the same examples (the common
+  `Task.loss_fn`, as the static-only baseline's), its pictures the common ones only."""
 
   name = "kubric"
 
@@ -385,14 +418,13 @@ class KubricTask(Task):
       return dataclasses.replace(objective, background="input_mean")
     return objective
 
-  def loss_fn(self, experiment: KubricExperiment, config: model.ModelConfig):
-    if not config.time_embedding:
-      raise ValueError("Kubric training needs a time-conditioned model (time_embedding=True)")
-    return super().loss_fn(experiment, config)
-
   def extra_visuals(
     self, experiment: KubricExperiment, config, params, examples, writer, step
   ) -> dict:
+    """`dynamic/`'s pictures and the scene-flow scores; none for a static model (no time
+    embedding: its Gaussians do not move)."""
+    if not config.time_embedding:
+      return {}
     out = pathlib.Path(experiment.output_dir) / "dynamic"
     return {
       "dynamic": dynamic_pictures.write_pictures(

@@ -3,6 +3,7 @@ presets that reproduce official ones resolving to the official values (issue 26)
 
 import dataclasses
 import importlib.util
+import inspect
 import pathlib
 import sys
 
@@ -10,6 +11,7 @@ import pytest
 
 from experiments import cli, data, dl3dv, re10k, tasks
 from tokengs_jax import model
+from tokengs_jax.data.kubric import kubric_view_selector
 
 OFFICIAL_OPTIONS = (
   pathlib.Path(__file__).resolve().parents[2]
@@ -110,3 +112,71 @@ def test_dl3dv_base_preset_is_the_official_train_dl3dv_base(official):
   assert example.scale_method == options.camera_scale_method
   assert example.image_shape == tuple(options.img_size)
   assert (example.sampler.num_context_views, example.sampler.num_target_views) == (4, 4)
+
+
+def test_kubric_static_preset_is_the_official_finetune_dl3dv_kubric_static(official):
+  from experiments import kubric
+  from experiments.kubric_task import KubricTask, kubric_example_config, kubric_views
+
+  options = official.config_defaults["finetune_dl3dv_kubric_static"]
+  command, experiment = cli.parse(["finetune", "paper-static"], kubric.PRESETS, "paper", "p")
+  assert command == "finetune" and experiment == kubric.PRESETS["paper-static"]
+  assert experiment.model == model.config_from_official(dataclasses.asdict(options))
+  assert not experiment.model.time_embedding and experiment.model.num_dynamic_gs_tokens == 0
+  t = experiment.train
+  assert t.steps == _official_steps(options) == 50_000
+  assert (t.warmup_steps, t.learning_rate) == (options.pct_start_steps, options.lr)
+  assert t.num_target_views == options.num_views - options.num_input_views == 4
+  assert t.batch_size == options.batch_size * 8
+  loss = KubricTask().loss_config(experiment)
+  assert (loss.rgb_loss, loss.lambda_rgb, loss.lambda_ssim, loss.lambda_lpips) == (
+    options.rgb_loss_type,
+    options.lambda_rgb,
+    options.lambda_ssim,
+    options.lambda_lpips,
+  )
+  assert (loss.lambda_vis, loss.lambda_dyn_aux) == (
+    options.lambda_visibility,
+    options.lambda_dyn_aux,
+  )
+  assert not t.use_input_supervision and loss.lambda_opacity == options.lambda_opacity
+  ((mode, _),) = options.data_mode
+  example = kubric_example_config(experiment, training=True)
+  assert mode == f"kubric_scaled_{example.translation_scale}"
+  assert (example.normalization, example.scale_method) == (
+    options.camera_normalization_method,
+    options.camera_scale_method,
+  )
+  assert example.image_shape == tuple(options.img_size)
+  # targets at an in-between time: `kubric_views` leaves the selector's default on
+  assert options.use_interp_target
+  assert inspect.signature(kubric_view_selector).parameters["interp_target"].default is True
+  assert callable(kubric_views(experiment, t.num_target_views))
+
+
+@pytest.mark.parametrize(
+  "flag",
+  [
+    ["--lambda-motion", "1"],
+    ["--dyn-aux-on-motion", "--lambda-motion", "1"],
+    ["--dyn-aux-on-objects"],
+    ["--eval.static-baseline"],
+    ["--model.num-dynamic-gs-tokens", "8"],
+  ],
+)
+def test_a_static_kubric_model_refuses_the_dynamic_only_settings(flag, capsys, monkeypatch):
+  from experiments import kubric
+
+  monkeypatch.setenv("COLUMNS", "400")  # tyro's error box on one line
+  with pytest.raises((SystemExit, ValueError)) as error:
+    cli.parse(["finetune", "paper-static", *flag], kubric.PRESETS, "paper", "p")
+  said = str(error.value) + capsys.readouterr().err
+  assert "static Kubric model" in said and flag[0] in said
+  with pytest.raises((SystemExit, ValueError)) as error:  # static already: no static-only twin
+    cli.parse(
+      ["run", "paper", "--model.num-dynamic-gs-tokens", "0", "--eval.static-baseline"],
+      kubric.PRESETS,
+      "paper",
+      "p",
+    )
+  assert "no dynamic tokens" in str(error.value) + capsys.readouterr().err

@@ -443,3 +443,114 @@ def test_worker_processes_give_the_same_kubric_batches(kubric_root):
   for a, b in zip(inline, workers):
     for key in a:
       np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+# ---- a static model on Kubric (official `finetune_dl3dv_kubric_static`, issue 26)
+
+
+def _tiny_static_kubric(tmp_path, **changes):
+  """`paper-static` at toy size: a 1-block static model (no time embedding, no dynamic tokens)
+  at 16x16 on one generated training and one test scene of 2 cameras x 4 frames."""
+  from experiments import kubric as kubric_cli
+  from experiments.config import EvalSettings, SyntheticSettings
+
+  static = kubric_cli.PRESETS["paper-static"]
+  tiny = kubric_cli.PRESETS["synthetic-tiny"].model.replace(
+    num_dynamic_gs_tokens=0,
+    time_embedding=False,
+    enc_depth=1,
+    dec_depth=1,
+    enc_embed_dim=32,
+    enc_num_heads=2,
+    num_gs_tokens=4,
+    image_size=(H, W),
+    dec_patch_size=4,
+    num_input_views=2,
+  )
+  return dataclasses.replace(
+    static,
+    data_dir=None,
+    synthetic_dir=str(tmp_path / "data"),
+    output_dir=str(tmp_path / "out"),
+    model=tiny,
+    num_cameras=2,
+    min_gap=1,
+    max_gap=3,
+    synthetic=SyntheticSettings(num_train=1, num_test=1, frames=4, num_ood=0, workers=1),
+    train=dataclasses.replace(
+      static.train,
+      steps=3,
+      batch_size=4,  # the tests' 4 CPU devices
+      num_target_views=2,
+      learning_rate=1e-2,
+      warmup_steps=1,
+      log_every=1,
+      checkpoint_every=0,
+      num_workers=0,
+    ),
+    eval=EvalSettings(
+      num_scenes=1, num_target_views=2, tuning_steps=2, lpips=False, grid_scenes=1, video_frames=2
+    ),
+    **changes,
+  )
+
+
+def test_a_static_model_trains_on_kubric_targets_with_their_times_ignored(kubric_root, tmp_path):
+  """The Kubric entry point's loss for a model without time embedding is the static objective
+  on the target views: the same whatever the views' times, or without them."""
+  import jax
+
+  from experiments.kubric_task import KubricTask
+  from tokengs_jax import model
+
+  root, _ = kubric_root
+  experiment = _tiny_static_kubric(tmp_path)
+  example = _example(root, 0, seed=2)
+  batch = {k: jnp.asarray(v[None]) for k, v in example.items()}
+  params = model.init_params(jax.random.key(0), experiment.model)
+  loss_fn = jax.jit(KubricTask().loss_fn(experiment, experiment.model))
+  key, step = jax.random.key(1), jnp.asarray(0)
+  loss, terms = loss_fn(params, batch, key, step)
+  assert np.isfinite(float(loss)) and {"rgb", "ssim", "visibility"} <= set(terms)
+  assert "dyn_aux" not in terms
+  reversed_times = {**batch, "target_times": 1.0 - batch["target_times"]}
+  timeless = {k: v for k, v in batch.items() if not k.endswith("_times")}
+  for other in (reversed_times, timeless):
+    np.testing.assert_allclose(float(loss_fn(params, other, key, step)[0]), float(loss))
+  # no dynamic pictures: its Gaussians do not move
+  assert KubricTask().extra_visuals(experiment, experiment.model, params, [], None, 0) == {}
+
+
+@pytest.mark.slow
+def test_a_static_model_runs_through_the_kubric_entry_point(tmp_path):
+  """`paper-static` at toy size: a few training steps, then the Kubric protocol scores it (its
+  baselines, the trained model and its token tuning; `psnr_moving` too)."""
+  import json
+  import math
+
+  from experiments import tasks
+  from experiments.kubric_task import KubricTask
+
+  experiment = _tiny_static_kubric(tmp_path)
+  payload = tasks.execute("run", experiment, KubricTask())
+  metrics = payload["metrics"]
+  assert set(metrics) == {
+    "mean_colour",
+    "input_average",
+    "nearest_view",
+    "same_camera",
+    "nearest_time",
+    "untrained",
+    "trained",
+    "trained+token_tuning",
+  }
+  for method in ("trained", "trained+token_tuning"):
+    assert math.isfinite(metrics[method]["mean"]["psnr"])
+    assert math.isfinite(metrics[method]["mean"]["psnr_moving"])
+  assert metrics["trained"]["mean"]["psnr"] != metrics["untrained"]["mean"]["psnr"]  # it trained
+  out = tmp_path / "out"
+  history = json.loads((out / "train_history.json").read_text())
+  assert len(history) == 3 and all(math.isfinite(h["loss"]) for h in history)
+  assert not any("dyn_aux_weight" in h for h in history)
+  assert (out / "params.msgpack").stat().st_size > 0 and not (out / "dynamic").exists()
+  assert "dynamic" not in payload and "scene_flow" not in payload
