@@ -394,26 +394,32 @@ def test_token_assignment_names_pictures_inside_its_folder(smoke_study, monkeypa
 # report: the verdict rule, aggregation over seeds, the writer
 
 
-def test_verdict_holds_fails_or_is_not_shown_by_the_spread():
-  # difference 1.0; spread = the larger sample std (0.1 / 0.5 / 2.0)
-  assert report.verdict([10.9, 11.0, 11.1], [10.0, 10.0, 10.0]) == report.HOLDS
-  assert report.verdict([10.0, 10.0, 10.0], [10.9, 11.0, 11.1]) == report.FAILS
-  assert report.verdict([10.5, 11.0, 11.5], [9.0, 10.0, 11.0]) == report.NOT_SHOWN  # std 1.0
-  assert report.verdict([11.0, 11.5], [10.0, 10.4]) == report.HOLDS  # stds 0.35, 0.28 < 1.05
-  assert report.verdict([10.0, 13.0], [10.0, 10.0]) == report.NOT_SHOWN  # std 2.12 > 1.5
+def test_verdict_holds_fails_or_is_not_shown_by_the_spread_of_paired_differences():
+  # per-seed differences (1.0, 1.1, 0.9): mean 1.0 > their sample std 0.1
+  assert report.verdict([11.0, 11.2, 10.9], [10.0, 10.1, 10.0]) == report.HOLDS
+  assert report.verdict([10.0, 10.1, 10.0], [11.0, 11.2, 10.9]) == report.FAILS
+  # differences (1.0, -0.5, 2.0): mean 0.83 < std 1.26
+  assert report.verdict([11.0, 9.5, 12.0], [10.0, 10.0, 10.0]) == report.NOT_SHOWN
+  # paired: the seeds' scenes move both sides by 10 dB, the difference is 1 dB on each
+  assert report.verdict([21.0, 11.0], [20.0, 10.0]) == report.HOLDS
+  assert report.difference([21.0, 11.0], [20.0, 10.0]) == "+1.00 ± 0.00"
+  assert report.difference([1.0, 2.0], [2.0, 4.0], 1) == "-1.5 ± 0.7"
   # lower is better (a share, a Gini): the sign turns
-  assert report.verdict([0.1, 0.11], [0.4, 0.41], higher_is_better=False) == report.HOLDS
-  assert report.verdict([0.4, 0.41], [0.1, 0.11], higher_is_better=False) == report.FAILS
-  # no spread to compare with: one seed, or equal values with no difference
+  assert report.verdict([0.1, 0.11], [0.4, 0.45], higher_is_better=False) == report.HOLDS
+  assert report.verdict([0.4, 0.45], [0.1, 0.11], higher_is_better=False) == report.FAILS
+  # no spread to compare with: one seed; no difference; a NaN
   assert report.verdict([12.0], [10.0]) == report.NOT_SHOWN
   assert report.verdict([10.0, 10.0], [10.0, 10.0]) == report.NOT_SHOWN
   assert report.verdict([float("nan"), 1.0], [0.0, 0.0]) == report.NOT_SHOWN
+  with pytest.raises(ValueError, match="unpaired"):
+    report.verdict([1.0, 2.0, 3.0], [1.0, 2.0])
   # a claim of parts; a "no loss" part
   assert report.all_of([report.HOLDS, report.HOLDS]) == report.HOLDS
   assert report.all_of([report.HOLDS, report.NOT_SHOWN]) == report.NOT_SHOWN
   assert report.all_of([report.NOT_SHOWN, report.FAILS]) == report.FAILS
   assert report.no_worse([10.0, 10.1], [10.0, 10.1]) == report.HOLDS
-  assert report.no_worse([9.0, 9.1], [10.0, 10.1]) == report.FAILS
+  assert report.no_worse([10.5, 9.0], [10.0, 10.1]) == report.HOLDS  # (+0.5, -1.1): not shown
+  assert report.no_worse([9.0, 9.2], [10.0, 10.1]) == report.FAILS
 
 
 def test_aggregate_gives_mean_and_sample_std_per_key():
@@ -542,8 +548,8 @@ def test_every_claim_of_all_builds_from_per_seed_rows(tmp_path):
     assert set(claim.columns) <= set(claim.rows[0])
   assert path.read_text().count("**Verdict: holds.**") == 7
   # the same rows with TokenGS's drop the larger: (a) fails
-  # (a) with TokenGS's drop twice the baseline's (-10 vs -5 dB at 5 degrees): fails; with seeds
-  # 10 dB apart (-10 and 0: spread 7.1 > 0 difference) it is not shown
+  # (a) with TokenGS's drop twice the baseline's (-10 vs -5 dB at 5 degrees): fails; with
+  # differences -5 and +5 dB over the seeds (mean 0, spread 7.1) it is not shown
   worse = [
     {**row, "TokenGS drop": row[f"{PIXEL_ALIGNED} drop"] * 2} for row in seeds[0][camera_noise]
   ]

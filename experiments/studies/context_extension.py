@@ -144,9 +144,10 @@ def claim(per_seed: Sequence[list[dict]]) -> report.Claim:
     f"{CLAIM} Compared: PSNR with {most['views']} input views vs with {fewest['views']} (the "
     f"same targets) of the model {variable}; the model trained with 2 views for reference."
   )
+  gain = report.difference(most[f"{variable}_seeds"], fewest[f"{variable}_seeds"])
   evidence = (
     f"{variable}: {most[variable]} dB with {most['views']} views vs {fewest[variable]} dB "
-    f"with {fewest['views']}."
+    f"with {fewest['views']}; difference {gain} dB."
   )
   figure = plot(report.means(rows), models)
   return report.Claim("c", TITLE, statement, rows, ["views", *models], verdict, evidence, figure)

@@ -158,10 +158,12 @@ def claim(per_seed: Sequence[list[dict]]) -> report.Claim:
   """(g): TokenGS's density is more even (lower Gini) than the pixel-aligned model's."""
   rows = report.aggregate(per_seed, ["bin"], ["depth_from", "depth_to", *METHODS])
   gini_row = next(r for r in rows if r["bin"] == GINI)
-  verdict = report.verdict(
-    gini_row["TokenGS_seeds"], gini_row[f"{PIXEL_ALIGNED}_seeds"], higher_is_better=False
+  tokengs, baseline = gini_row["TokenGS_seeds"], gini_row[f"{PIXEL_ALIGNED}_seeds"]
+  verdict = report.verdict(tokengs, baseline, higher_is_better=False)
+  evidence = (
+    f"Gini {gini_row['TokenGS']} (TokenGS) vs {gini_row[PIXEL_ALIGNED]} (pixel-aligned); "
+    f"difference {report.difference(tokengs, baseline)}."
   )
-  evidence = f"Gini {gini_row['TokenGS']} (TokenGS) vs {gini_row[PIXEL_ALIGNED]} (pixel-aligned)."
   columns = ["bin", "depth_from", "depth_to", *METHODS]
   return report.Claim("g", TITLE, CLAIM, rows, columns, verdict, evidence, plot(report.means(rows)))
 

@@ -3,12 +3,15 @@
 Pure pieces, no JAX: `verdict` (the rule), `aggregate` (per-seed rows -> mean ± std rows),
 `Plot`, `Claim` (one section) and `write_report`.
 
-The verdict rule: a claim compares two quantities measured once per seed (e.g. TokenGS's PSNR
-drop and the pixel-aligned baseline's). It "holds" where the claimed side is better by more than
-the spread, the larger of the two sample standard deviations over seeds; it "fails" where it is
-worse by more than that; otherwise (or with fewer than two seeds, where there is no spread) it is
-"not shown at this scale". A difference inside one seed-to-seed standard deviation is what
-another seed could undo.
+The verdict rule: a claim compares two quantities measured on the same seeds (e.g. TokenGS's
+PSNR drop and the pixel-aligned baseline's, each trained and scored on one seed's scenes). Per
+seed, the difference claimed - other (sign turned where lower is better). The claim "holds"
+where the mean difference exceeds the spread, the differences' sample standard deviation over
+seeds; it "fails" where it is below minus the spread; otherwise (or with fewer than two seeds,
+where there is no spread) it is "not shown at this scale": a difference inside one seed-to-seed
+standard deviation is what another seed could undo. Paired, because a seed draws its own scenes:
+their difficulty moves both sides of a comparison alike, so the tables' ± (of each side alone)
+hold that variation and the differences do not.
 """
 
 from __future__ import annotations
@@ -28,9 +31,13 @@ FAILS = "fails"
 NOT_SHOWN = "not shown at this scale"
 
 VERDICT_RULE = (
-  "a claim **holds** where the claimed side is better by more than the spread (the larger of "
-  "the two sample standard deviations over seeds), **fails** where it is worse by more than "
-  "that, and is otherwise **not shown at this scale** (so too with one seed: no spread)."
+  "per seed, the difference between the side a claim says is better and the other (the same "
+  "seed's scenes and recipe for both); a claim **holds** where the mean difference exceeds its "
+  "spread (the sample standard deviation of the differences over seeds), **fails** where it is "
+  "below minus the spread, and is otherwise **not shown at this scale** (so too with one seed). "
+  "Paired, because a seed draws its own scenes, whose difficulty moves both sides alike: the "
+  "tables' ± (of each side alone) include that variation, the differences do not. With 2 seeds "
+  "(the quick form) it is a weak test; the full run uses 3."
 )
 QUICK_BANNER = (
   "**Quick form (`--quick`): verdicts are a smoke test, not findings.** Models trained for a "
@@ -44,19 +51,32 @@ def spread(values: Sequence[float]) -> float:
   return float(np.std(values, ddof=1)) if values.size > 1 else float("nan")
 
 
-def verdict(claimed: Sequence[float], other: Sequence[float], higher_is_better: bool = True) -> str:
-  """The rule of the module docstring. claimed / other: per-seed values of the side the claim
-  says is better and of the side it is compared with."""
+def differences(claimed: Sequence[float], other: Sequence[float], higher_is_better=True):
+  """Per-seed differences claimed - other (other - claimed where lower is better)."""
   claimed, other = np.asarray(claimed, np.float64), np.asarray(other, np.float64)
-  if claimed.size < 2 or other.size < 2:
+  if claimed.shape != other.shape:
+    raise ValueError(f"unpaired seeds: {claimed.size} values vs {other.size}")
+  return (claimed - other) * (1.0 if higher_is_better else -1.0)
+
+
+def verdict(claimed: Sequence[float], other: Sequence[float], higher_is_better: bool = True) -> str:
+  """The rule of the module docstring. claimed / other: per-seed values (same seed order) of the
+  side the claim says is better and of the side it is compared with."""
+  d = differences(claimed, other, higher_is_better)
+  if d.size < 2:
     return NOT_SHOWN
-  difference = float(claimed.mean() - other.mean()) * (1.0 if higher_is_better else -1.0)
-  margin = max(spread(claimed), spread(other))
-  if difference > margin:
+  mean, margin = float(d.mean()), spread(d)
+  if mean > margin:
     return HOLDS
-  if difference < -margin:
+  if mean < -margin:
     return FAILS
   return NOT_SHOWN
+
+
+def difference(claimed: Sequence[float], other: Sequence[float], digits: int = 2) -> str:
+  """The per-seed differences claimed - other as "m ± s", for the evidence lines."""
+  d = differences(claimed, other)
+  return ("+" if d.mean() >= 0 else "") + mean_std(d, digits)
 
 
 def no_worse(claimed: Sequence[float], other: Sequence[float], higher_is_better=True) -> str:

@@ -210,10 +210,13 @@ def claim(per_seed: Sequence[list[dict]]) -> report.Claim:
   ]
   steps = report.verdict(last[tokens]["psnr_seeds"], last[gaussians]["psnr_seeds"])
   time = report.verdict(last[tokens]["psnr_seeds"], timed)
+  tuned = last[tokens]["psnr_seeds"]
   evidence = (
     f"{last[tokens]['value']} steps: {last[tokens]['psnr']} dB (tokens) vs "
-    f"{last[gaussians]['psnr']} dB (Gaussians): {steps}; at the token run's time, Gaussian "
-    f"tuning {report.mean_std(timed, 3)} dB: {time}."
+    f"{last[gaussians]['psnr']} dB (Gaussians), difference "
+    f"{report.difference(tuned, last[gaussians]['psnr_seeds'], 3)} dB: {steps}; at the token "
+    f"run's time, Gaussian tuning {report.mean_std(timed, 3)} dB, difference "
+    f"{report.difference(tuned, timed, 3)} dB: {time}."
   )
   figure = tuning_plot(report.means(rows), ("tokens", "gaussians"))
   columns = ["axis", "value", "psnr", "seconds_per_scene"]

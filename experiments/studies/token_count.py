@@ -153,7 +153,8 @@ def claim(per_seed: Sequence[list[dict]]) -> report.Claim:
   )
   fewest, most = (f(rows, key=lambda row: row["tokens"]) for f in (min, max))
   evidence = (
-    f"{most['tokens']} tokens: {most['psnr']} dB vs {fewest['tokens']} tokens: {fewest['psnr']} dB."
+    f"{most['tokens']} tokens: {most['psnr']} dB vs {fewest['tokens']} tokens: {fewest['psnr']} "
+    f"dB; difference {report.difference(most['psnr_seeds'], fewest['psnr_seeds'], 3)} dB."
   )
   verdict = report.verdict(most["psnr_seeds"], fewest["psnr_seeds"])
   columns = ["tokens", "gaussians", "psnr", "seconds_per_scene"]

@@ -167,7 +167,8 @@ def claim(per_seed: Sequence[list[dict]]) -> report.Claim:
   verdict = report.verdict(outside["TokenGS"], outside[PIXEL_ALIGNED])
   evidence = (
     f"targets outside the span: {report.mean_std(outside['TokenGS'])} dB (TokenGS) vs "
-    f"{report.mean_std(outside[PIXEL_ALIGNED])} dB (pixel-aligned)."
+    f"{report.mean_std(outside[PIXEL_ALIGNED])} dB (pixel-aligned); difference "
+    f"{report.difference(outside['TokenGS'], outside[PIXEL_ALIGNED])} dB."
   )
   columns = ["target", "frames_outside_span", *METHODS]
   return report.Claim(

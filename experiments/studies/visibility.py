@@ -125,9 +125,11 @@ def claim(per_seed: Sequence[list[dict]]) -> report.Claim:
   on, off = (next(r for r in rows if r["visibility loss"] == name) for name in (ON, OFF))
   fewer = report.verdict(on["outside_share_seeds"], off["outside_share_seeds"], False)
   kept = report.no_worse(on["psnr_seeds"], off["psnr_seeds"])
+  share = report.difference(on["outside_share_seeds"], off["outside_share_seeds"], 3)
   evidence = (
-    f"outside share {on['outside_share']} (on) vs {off['outside_share']} (off): {fewer}; "
-    f"PSNR {on['psnr']} vs {off['psnr']} dB: no loss {kept}."
+    f"outside share {on['outside_share']} (on) vs {off['outside_share']} (off), difference "
+    f"{share}: {fewer}; PSNR {on['psnr']} vs {off['psnr']} dB, difference "
+    f"{report.difference(on['psnr_seeds'], off['psnr_seeds'], 3)} dB: no loss {kept}."
   )
   figure = plot([row for seed_rows in per_seed for row in seed_rows])  # a point per seed
   verdict = report.all_of([fewer, kept])
