@@ -107,11 +107,6 @@ class KubricExperiment(Experiment):
     The auxiliary weight needs dynamic tokens and is unused without them, as officially."""
     config = self.model
     if config.time_embedding:
-      if self.eval.static_baseline and config.num_dynamic_gs_tokens == 0:
-        raise ValueError(
-          "eval.static_baseline trains the static-only twin of a dynamic model; this model has "
-          "no dynamic tokens (it is static already)"
-        )
       return
     dropped = [
       f"--{flag}"

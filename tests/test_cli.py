@@ -172,11 +172,3 @@ def test_a_static_kubric_model_refuses_the_dynamic_only_settings(flag, capsys, m
     cli.parse(["finetune", "paper-static", *flag], kubric.PRESETS, "paper", "p")
   said = str(error.value) + capsys.readouterr().err
   assert "static Kubric model" in said and flag[0] in said
-  with pytest.raises((SystemExit, ValueError)) as error:  # static already: no static-only twin
-    cli.parse(
-      ["run", "paper", "--model.num-dynamic-gs-tokens", "0", "--eval.static-baseline"],
-      kubric.PRESETS,
-      "paper",
-      "p",
-    )
-  assert "no dynamic tokens" in str(error.value) + capsys.readouterr().err
