@@ -480,7 +480,7 @@ def _per_seed_rows(seed: int) -> dict:
       "psnr": 20 + n * gain + jitter,
       "seconds_per_scene": n * cost,
     }
-    for target, gain, cost in (("tokens", 0.1, 0.02), ("gaussians", 0.05, 0.005))
+    for target, gain, cost in (("tokens", 0.1, 0.02), ("gaussians", 0.05, 0.015))
     for n in (5, 10)
   ]
   return {
@@ -616,7 +616,27 @@ def test_view_schedule_tuning_time_and_distance_rows():
   assert not np.array_equal(schedule, context_extension.view_schedule(1, 300, (2, 3, 4)))
   curve = [{"seconds_per_scene": 0.2, "psnr": 12.0}, {"seconds_per_scene": 0.1, "psnr": 10.0}]
   assert test_time_scaling.psnr_at_time(curve, 0.15) == pytest.approx(11.0)
-  assert test_time_scaling.psnr_at_time(curve, 1.0) == pytest.approx(12.0)  # its end value
+  assert math.isnan(test_time_scaling.psnr_at_time(curve, 0.3))  # beyond it: not measured
+  # equal time: token tuning at 10 steps (0.2 s) is the longest the Gaussian curve reaches (0.3 s)
+  tuning = [
+    {"axis": test_time_scaling.UNTUNED, "value": 0, "psnr": 10.0, "seconds_per_scene": 0.0},
+    *(
+      {"axis": axis, "value": n, "psnr": 10 + n * gain, "seconds_per_scene": n * cost}
+      for axis, gain, cost in (
+        (test_time_scaling.TOKENS, 0.2, 0.02),
+        ("gaussians tuning steps", 0.1, 0.01),
+      )
+      for n in (10, 30)
+    ),
+  ]
+  assert test_time_scaling.equal_time(tuning) == pytest.approx((12.0, 12.0))  # 20 Gaussian steps
+  slower = [
+    {**r, "seconds_per_scene": 10 * r["seconds_per_scene"]}
+    if r["axis"] == test_time_scaling.TOKENS
+    else r
+    for r in tuning
+  ]
+  assert all(math.isnan(x) for x in test_time_scaling.equal_time(slower))
   rows = [
     {"frames_outside_span": 0, "m": 3.0},
     {"frames_outside_span": 2, "m": 1.0},
