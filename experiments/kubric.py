@@ -60,6 +60,9 @@ steps and decayed linearly to 0 over the next 20% (official 5k hold / 10k decay 
 (`--train.rgb-loss l2`, `--train.lambda-ssim`, `--train.lambda-lpips`, `--train.lambda-coverage`,
 `--train.lambda-opacity`, `--train.use-input-supervision`); the dynamic terms are top-level flags
 (`--lambda-dyn-aux`, `--lambda-motion`, `--dyn-aux-hold-fraction`, ...).
+Cameras are scaled by the official "pointmap" scale (the context views' mean depth-point distance
+from the origin); `--pointmap-trim-lo 0.05 --pointmap-trim-hi 0.95` averages only the distances
+between those quantiles, in training and evaluation (official default 0 / 1: every point).
 A model without time embedding (`paper-static`, or `--model.no-time-embedding` with
 `--model.num-dynamic-gs-tokens 0`) trains with the static objective on the target views, their
 times ignored, and is scored with the same protocol and baselines (no `dynamic/` pictures); the

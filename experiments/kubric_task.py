@@ -75,6 +75,9 @@ class KubricExperiment(Experiment):
     normalization: the frame the cameras are expressed in: "mean_cam" (official Kubric: the
       mean input camera) or "first_cam" (the first input camera, as RE10K: the frame of a static
       base trained on RE10K-like data).
+    pointmap_trim_lo / pointmap_trim_hi: the scene scale (the "pointmap" scale, the context
+      views' mean depth-point distance) averages only the distances between these quantiles
+      (official `pointmap_trim_lo` / `pointmap_trim_hi`; `ExampleConfig`); 0 / 1, official: all.
   """
 
   num_cameras: int = 4
@@ -91,6 +94,8 @@ class KubricExperiment(Experiment):
   dyn_aux_on_objects: bool = False
   background: Literal["grey", "input_mean"] = "grey"
   normalization: Literal["mean_cam", "first_cam"] = "mean_cam"
+  pointmap_trim_lo: float = 0.0
+  pointmap_trim_hi: float = 1.0
 
   def __post_init__(self):
     if self.train.lambda_depth > 0:
@@ -98,6 +103,7 @@ class KubricExperiment(Experiment):
         "train.lambda_depth must be 0 on Kubric: its examples carry no true depth to supervise"
       )
     KubricTask().loss_config(self)  # the dynamic terms' checks, at parse time
+    kubric_example_config(self, training=True)  # the examples' (the trim's), at parse time
     self._check_static_model()
 
   def _check_static_model(self) -> None:
@@ -139,13 +145,15 @@ class KubricExperiment(Experiment):
 
 
 def kubric_example_config(experiment: KubricExperiment, *, training: bool) -> ExampleConfig:
-  """The official Kubric example preset (pointmap scale) at the experiment's image size and
-  camera normalisation; random flips only in training, where the targets' object pixels come
-  too when the auxiliary loss scores them."""
+  """The official Kubric example preset (pointmap scale) at the experiment's image size, camera
+  normalisation and pointmap trim; random flips only in training, where the targets' object
+  pixels come too when the auxiliary loss scores them."""
   return dataclasses.replace(
     DATASET_PRESETS["kubric"],
     image_shape=tuple(experiment.image_size),
     normalization=experiment.normalization,
+    pointmap_trim_lo=experiment.pointmap_trim_lo,
+    pointmap_trim_hi=experiment.pointmap_trim_hi,
     random_flip=training,
     deterministic=not training,
     target_objects=training and experiment.dyn_aux_on_objects,

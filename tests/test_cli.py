@@ -172,3 +172,26 @@ def test_a_static_kubric_model_refuses_the_dynamic_only_settings(flag, capsys, m
     cli.parse(["finetune", "paper-static", *flag], kubric.PRESETS, "paper", "p")
   said = str(error.value) + capsys.readouterr().err
   assert "static Kubric model" in said and flag[0] in said
+
+
+def test_kubric_pointmap_trim_flags_reach_the_examples_and_bad_ones_are_refused(
+  capsys, monkeypatch
+):
+  from experiments import kubric
+  from experiments.kubric_task import kubric_example_config
+
+  monkeypatch.setenv("COLUMNS", "400")  # tyro's error box on one line
+  _, default = cli.parse(["run", "paper"], kubric.PRESETS, "paper", "p")
+  for training in (True, False):  # official default: every depth point
+    config = kubric_example_config(default, training=training)
+    assert (config.pointmap_trim_lo, config.pointmap_trim_hi) == (0.0, 1.0)
+  trim = ["--pointmap-trim-lo", "0.05", "--pointmap-trim-hi", "0.95"]
+  for preset in kubric.PRESETS:
+    _, experiment = cli.parse(["run", preset, *trim], kubric.PRESETS, "paper", "p")
+    for training in (True, False):  # training and the evaluation's examples alike
+      config = kubric_example_config(experiment, training=training)
+      assert (config.pointmap_trim_lo, config.pointmap_trim_hi) == (0.05, 0.95), preset
+  bad = ["--pointmap-trim-lo", "0.6", "--pointmap-trim-hi", "0.4"]
+  with pytest.raises((SystemExit, ValueError)) as error:
+    cli.parse(["run", "paper", *bad], kubric.PRESETS, "paper", "p")
+  assert "pointmap_trim_lo" in str(error.value) + capsys.readouterr().err

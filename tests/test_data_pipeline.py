@@ -270,3 +270,53 @@ def test_synthetic_dataset_preset_batches_generated_walks(tmp_path):
     3,
   )
   assert not pipeline.rejections
+
+
+def test_pointmap_trim_drops_outlier_depths_as_pointmap_scale_does():
+  """`ExampleConfig.pointmap_trim_lo / _hi` (official `pointmap_trim_lo / _hi`) reach the
+  pipeline's "pointmap" scale: on depth maps with a few far outliers the trimmed scale differs
+  from the untrimmed one and is `pointmap_scale(trim=...)` of the normalised context cameras."""
+  from tokengs_jax.data.transforms import normalize_cameras
+
+  rng = np.random.default_rng(0)
+  size, frames = 8, 4
+  c2w = np.tile(np.eye(4), (frames, 1, 1))
+  c2w[:, :3, 3] = rng.normal(scale=0.3, size=(frames, 3))
+  intrinsics = np.tile([8.0, 8.0, size / 2, size / 2], (frames, 1))
+  depths = rng.uniform(1.5, 2.5, (frames, size, size)).astype(np.float32)
+  depths[:, 0, :3] = 500.0  # a few far outliers (sky hits) in every view
+  record = {
+    "key": "outliers",
+    "c2w": c2w,
+    "intrinsics": intrinsics,
+    "images": rng.integers(0, 255, (frames, size, size, 3), dtype=np.uint8),
+    "depths": depths,
+    "height": size,
+    "width": size,
+  }
+  views = (np.array([0, 1]), np.array([2, 3]))
+  base = dataclasses.replace(
+    DATASET_PRESETS["kubric"], image_shape=(size, size), random_flip=False, deterministic=True
+  )
+  assert (base.pointmap_trim_lo, base.pointmap_trim_hi) == (0.0, 1.0)  # official: no trim
+  normalised = normalize_cameras(c2w[np.concatenate(views)], 2, base.normalization)
+
+  def scaled(trim):
+    config = dataclasses.replace(base, pointmap_trim_lo=trim[0], pointmap_trim_hi=trim[1])
+    example = make_example(record, config, np.random.default_rng(0), views=views)
+    scale = 1.0 / kubric.pointmap_scale(depths[views[0]], normalised[:2], intrinsics[:2], trim)
+    expected = normalised[:, :3, 3] * scale
+    got = np.concatenate([example["context_c2w"], example["target_c2w"]])[:, :3, 3]
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-7)
+    return scale
+
+  untrimmed, trimmed = scaled((0.0, 1.0)), scaled((0.05, 0.9))
+  # the outliers (3 of 64 points per view) inflate the mean distance ~20x; trimming them away
+  # brings the scale back near 1 / (mean depth 2)
+  assert trimmed > 5 * untrimmed and trimmed == pytest.approx(0.5, rel=0.3)
+  assert scaled((0.0, 0.9)) == pytest.approx(trimmed, rel=0.05)
+  for lo, hi in ((0.5, 0.5), (-0.1, 1.0), (0.0, 1.5), (0.9, 0.1)):
+    with pytest.raises(ValueError, match="pointmap_trim_lo"):
+      dataclasses.replace(base, pointmap_trim_lo=lo, pointmap_trim_hi=hi)
+    with pytest.raises(ValueError, match="pointmap_trim_lo"):  # the official: silently no trim
+      kubric.pointmap_scale(depths[:1], normalised[:1], intrinsics[:1], (lo, hi))

@@ -28,7 +28,7 @@ from tokengs_jax import process
 from tokengs_jax.data.chunks import ChunkError, LazyTensor, decode_jpeg
 from tokengs_jax.data.chunks.images import check_frame_bytes, decode_image
 from tokengs_jax.data.dl3dv import DL3DVError
-from tokengs_jax.data.kubric import KubricError, pointmap_scale
+from tokengs_jax.data.kubric import KubricError, pointmap_scale, sampling as kubric_sampling
 from tokengs_jax.data.rejections import Rejections, summarize_rejections
 from tokengs_jax.data.sampler import (
   SAMPLER_PRESETS,
@@ -85,8 +85,8 @@ class ExampleConfig:
       Kubric preset uses 1.0 with `pointmap`).
     normalization: `first_cam` (official default) or `mean_cam`.
     scale_method: `constant` (official default), `distance`, `bound`, or `pointmap`
-      (`translation_scale` / mean distance from the origin of the context views' depth points,
-      official Kubric; needs the record's `depths`).
+      (`translation_scale` / mean distance from the origin of the context views' depth points
+      between quantiles `pointmap_trim_lo` / `_hi`, 0 / 1: all; official Kubric; needs `depths`).
     random_flip: flip each example left-right with probability 1/2 (training).
     deterministic: pixelSplat's test-stage sampling, no flip (validation without an index).
     max_fov_degrees: reject the scene (`BadExampleError`) if any of its frames (all of the record's
@@ -122,6 +122,11 @@ class ExampleConfig:
   min_context_baseline: float | None = None
   target_depths: bool = False
   target_objects: bool = False
+  pointmap_trim_lo: float = 0.0
+  pointmap_trim_hi: float = 1.0
+
+  def __post_init__(self):
+    kubric_sampling.check_pointmap_trim(self.pointmap_trim_lo, self.pointmap_trim_hi)
 
 
 DATASET_PRESETS = {
@@ -290,8 +295,9 @@ def make_example(
   num_context = len(context)
   c2w = normalize_cameras(c2w, num_context, config.normalization)
   if config.scale_method == "pointmap":  # official: stored-resolution depth, normalised cameras
+    trim = (config.pointmap_trim_lo, config.pointmap_trim_hi)
     scale = config.translation_scale / pointmap_scale(
-      depths, c2w[:num_context], raw_intrinsics[:num_context]
+      depths, c2w[:num_context], raw_intrinsics[:num_context], trim
     )
   else:
     scale = translation_scale(c2w, num_context, config.translation_scale, config.scale_method)
@@ -358,11 +364,8 @@ class _BuildExample:
 
   def __init__(self, source, config, seed, batch_size, evaluation_index, select_views, skip_bad):
     self.source, self.config, self.seed, self.batch_size = source, config, seed, batch_size
-    self.evaluation_index, self.select_views, self.skip_bad = (
-      evaluation_index,
-      select_views,
-      skip_bad,
-    )
+    self.evaluation_index, self.select_views = evaluation_index, select_views
+    self.skip_bad = skip_bad
 
   def __call__(self, position: int, scene_index: int):
     rng = np.random.default_rng([self.seed, position])  # same example for the same position

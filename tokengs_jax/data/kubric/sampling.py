@@ -47,6 +47,16 @@ def sample_dynamic_indices(
   return frames, views
 
 
+def check_pointmap_trim(lo: float, hi: float) -> None:
+  """ValueError unless 0 <= lo < hi <= 1 (the `pointmap_scale` trim's quantiles; the official
+  provider silently falls back to no trim)."""
+  if not 0.0 <= lo < hi <= 1.0:
+    raise ValueError(
+      f"pointmap_trim_lo / pointmap_trim_hi must satisfy 0 <= lo < hi <= 1 (quantiles of the "
+      f"depth points' distances), got {lo} / {hi}"
+    )
+
+
 def pointmap_scale(
   depths: np.ndarray,
   c2w: np.ndarray,
@@ -60,15 +70,17 @@ def pointmap_scale(
   it treats the stored value as planar z. Kubric's files hold the distance along the ray, so
   off-axis points land sqrt(1 + x^2 + y^2) too far (up to ~19 % at the corners of the 35 mm /
   32 mm lens); this is kept so the scale is the official one. `unproject_ray_depth` gives the
-  true points. Optionally keeps only distances between the `trim` quantiles; returns the mean
-  (1.0 when no pixel has depth).
+  true points. Optionally keeps only distances between the `trim` quantiles (official
+  `pointmap_trim_lo` / `pointmap_trim_hi`, `np.quantile`'s linear rule as `torch.quantile`'s);
+  returns the mean (1.0 when no pixel has depth).
 
   depths: [V, H, W] as stored (Kubric: ray distance), c2w: [V, 4, 4] (already normalised),
   intrinsics: [V, 4] pixels (of the stored resolution).
 
   Raises `KubricError` for a NaN or inf depth value (`check_finite_depth`: the official scale
-  would be NaN, or 1.0 for NaN-only maps).
+  would be NaN, or 1.0 for NaN-only maps), ValueError for a trim outside 0 <= lo < hi <= 1.
   """
+  check_pointmap_trim(*trim)
   check_finite_depth(depths, "the context views' depth maps")
   distances = []
   for depth, pose, (fx, fy, cx, cy) in zip(depths, np.asarray(c2w, np.float64), intrinsics):
