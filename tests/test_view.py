@@ -310,6 +310,7 @@ class _DynamicSource:
   second has a Gaussian with a NaN centre)."""
 
   title, keys, time_conditioned = "dynamic", ["a", "b"], True
+  objective = ObjectiveConfig()  # the render settings every source names
 
   def default_time(self, index):
     return 0.25 * (index + 1)

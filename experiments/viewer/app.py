@@ -70,7 +70,8 @@ class ViewerApp:
   scene's start time and target view) are set with the callbacks muted, so nothing draws twice.
 
   Args:
-    source: the scenes.
+    source: the scenes (`keys`, `scene`, `default_time`, `time_conditioned`, `title` and the
+      `objective` its renders were scored with).
     server: a running `viser.ViserServer`.
     render_size: longer side (pixels) of the target-view render shown in the panel.
     pull_back: a new browser starts this many scene depths behind the rendered target camera, so
