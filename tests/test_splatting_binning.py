@@ -1,8 +1,12 @@
-"""Sub-tile lists (`binning.split_tiles`): same lists as a brute-force filter, same renders."""
+"""Binning (`splatting.binning`): the ellipse-tile bound never exceeds a tile's true minimum;
+sub-tile lists (`binning.split_tiles`) are the brute-force filter of their tiles' lists and render
+what whole tiles render."""
 
 import dataclasses
 import functools
 
+import hypothesis
+import hypothesis.strategies as st
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -101,6 +105,42 @@ def test_split_lists_are_each_tile_list_filtered_in_order(subtile_size):
   assert int(split.num_intersections) == int(bins.num_intersections)
 
 
+@hypothesis.settings(max_examples=20, deadline=None, derandomize=True)
+@hypothesis.given(seed=st.integers(0, 2**31 - 1))
+def test_min_sigma_over_tile_is_the_minimum_over_its_pixels(seed):
+  # The ellipse-tile test drops a (Gaussian, tile) pair only if this bound says no pixel centre of
+  # the tile reaches the alpha threshold: it must never exceed the true minimum over the pixels.
+  rng = np.random.default_rng(seed)
+  height, width, tile = 40, 52, 16
+  means = rng.uniform(-30, 80, (64, 2))
+  basis = rng.normal(size=(64, 2, 2)) * np.exp(rng.uniform(-1, 3, (64, 1, 1)))
+  cov = basis @ np.swapaxes(basis, 1, 2) + 0.3 * np.eye(2)
+  inv = np.linalg.inv(cov)
+  conics = np.stack([inv[:, 0, 0], inv[:, 0, 1], inv[:, 1, 1]], -1)
+  tile_x, tile_y = rng.integers(0, 4, 64), rng.integers(0, 3, 64)
+  bound = np.asarray(
+    binning.min_sigma_over_tile(
+      jnp.asarray(means, jnp.float32),
+      jnp.asarray(conics, jnp.float32),
+      jnp.asarray(tile_x),
+      jnp.asarray(tile_y),
+      tile_size=tile,
+      height=height,
+      width=width,
+    )
+  )
+  for i in range(64):
+    cols = np.arange(tile_x[i] * tile, min(tile_x[i] * tile + tile, width)) + 0.5
+    rows = np.arange(tile_y[i] * tile, min(tile_y[i] * tile + tile, height)) + 0.5
+    dx = means[i, 0] - cols[None, :]
+    dy = means[i, 1] - rows[:, None]
+    sigma = 0.5 * (conics[i, 0] * dx * dx + conics[i, 2] * dy * dy) + conics[i, 1] * dx * dy
+    # float32 rounding only, 10x below the 1e-3 slack binning adds before dropping a pair.
+    assert bound[i] <= sigma.min() * (1 + 1e-4) + 1e-4, i
+    inside = cols[0] <= means[i, 0] <= cols[-1] and rows[0] <= means[i, 1] <= rows[-1]
+    assert (bound[i] == 0) == inside, i  # zero only where the mean lies inside the pixel rectangle
+
+
 @functools.partial(jax.jit, static_argnames="config")
 def _loss_and_grad(g, weights, config):
   def loss(g):
@@ -135,11 +175,3 @@ def test_sub_tiles_render_what_whole_tiles_render(budget, split_below, monkeypat
       np.testing.assert_array_equal(getattr(out.stats, name), getattr(whole.stats, name))
   if budget is not None:  # the tight budget does cut this scene, and the flag says so
     assert bool(whole.stats.truncated[0]) and bool(whole.stats.overflow[0])
-
-
-def test_render_config_refuses_a_subtile_that_does_not_divide_the_tile():
-  with pytest.raises(ValueError, match="subtile_size"):
-    RenderConfig(subtile_size=6)
-  with pytest.raises(ValueError, match="subtile_size"):
-    RenderConfig(subtile_size=0)
-  assert RenderConfig(tile_size=8).subtile_size == 8  # the default fits gsplat's and 8-px tiles

@@ -1,4 +1,5 @@
-"""Renderer parity with gsplat 1.5.3 fixtures, tiled vs dense, gradients, batching, jit."""
+"""`render` end to end: parity with gsplat 1.5.3 fixtures, tiled vs dense, gradients, batching,
+jit, input validation, full-float32 matmuls."""
 
 import functools
 
@@ -10,9 +11,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import reference_fixture
+from render_scenes import HEIGHT, INTR, NUM, W2C, WIDTH, random_scene
 
 from tokengs_jax.gaussians import Gaussians
-from tokengs_jax.splatting import RenderBudgetWarning, RenderConfig, binning, exact, render
+from tokengs_jax.splatting import RenderConfig, render
 from tokengs_jax.splatting.reference import render_dense
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
@@ -116,22 +118,8 @@ def test_render200_fixture_images_and_gradients(render200):
 
 # ---- random scenes: tiled vs dense -------------------------------------------------------------
 
-HEIGHT, WIDTH, NUM = 40, 52, 48  # not tile multiples: exercises edge-tile padding
 # Small chunks and few tiles per step so that a small scene takes many compacted loop steps.
 SMALL_STEPS = RenderConfig(chunk_size=8, tiles_per_step=3)
-W2C = np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3.0], [0, 0, 0, 1]], np.float32)
-INTR = np.array([44.0, 47.0, 25.0, 21.0], np.float32)
-
-
-def random_scene(seed, num=NUM, dtype=np.float32):
-  rng = np.random.default_rng(seed)
-  return Gaussians(
-    means=rng.uniform([-1.2, -1.0, -1.0], [1.2, 1.0, 1.0], (num, 3)).astype(dtype),
-    opacities=rng.uniform(0.05, 1.0, num).astype(dtype),
-    scales=np.exp(rng.uniform(np.log(0.02), np.log(0.4), (num, 3))).astype(dtype),
-    quats=rng.normal(size=(num, 4)).astype(dtype),
-    colors=rng.uniform(0, 1, (num, 3)).astype(dtype),
-  )
 
 
 @functools.partial(jax.jit, static_argnames="config")
@@ -296,135 +284,6 @@ def test_grad_under_jit_and_vmap_agree_with_eager_grad():
   )
 
 
-def test_means2d_carry_gradient_for_visibility_losses():
-  g = random_scene(12, num=16)
-  grad = jax.grad(
-    lambda m: jnp.sum(
-      render(
-        Gaussians(m, g.opacities, g.scales, g.quats, g.colors),
-        W2C[None],
-        INTR[None],
-        height=HEIGHT,
-        width=WIDTH,
-      ).means2d[0, :, 0]
-    )
-  )(g.means)
-  # d u / d x = fx / z for a camera looking down +z.
-  z = g.means[:, 2] + 3.0
-  np.testing.assert_allclose(grad[:, 0], INTR[0] / z, rtol=1e-5)
-
-
-@hypothesis.settings(max_examples=20, deadline=None, derandomize=True)
-@hypothesis.given(seed=st.integers(0, 2**31 - 1))
-def test_min_sigma_over_tile_is_the_minimum_over_its_pixels(seed):
-  # The ellipse-tile test drops a (Gaussian, tile) pair only if this bound says no pixel centre of
-  # the tile reaches the alpha threshold: it must never exceed the true minimum over the pixels.
-  rng = np.random.default_rng(seed)
-  height, width, tile = 40, 52, 16
-  means = rng.uniform(-30, 80, (64, 2))
-  basis = rng.normal(size=(64, 2, 2)) * np.exp(rng.uniform(-1, 3, (64, 1, 1)))
-  cov = basis @ np.swapaxes(basis, 1, 2) + 0.3 * np.eye(2)
-  inv = np.linalg.inv(cov)
-  conics = np.stack([inv[:, 0, 0], inv[:, 0, 1], inv[:, 1, 1]], -1)
-  tile_x, tile_y = rng.integers(0, 4, 64), rng.integers(0, 3, 64)
-  bound = np.asarray(
-    binning.min_sigma_over_tile(
-      jnp.asarray(means, jnp.float32),
-      jnp.asarray(conics, jnp.float32),
-      jnp.asarray(tile_x),
-      jnp.asarray(tile_y),
-      tile_size=tile,
-      height=height,
-      width=width,
-    )
-  )
-  for i in range(64):
-    cols = np.arange(tile_x[i] * tile, min(tile_x[i] * tile + tile, width)) + 0.5
-    rows = np.arange(tile_y[i] * tile, min(tile_y[i] * tile + tile, height)) + 0.5
-    dx = means[i, 0] - cols[None, :]
-    dy = means[i, 1] - rows[:, None]
-    sigma = 0.5 * (conics[i, 0] * dx * dx + conics[i, 2] * dy * dy) + conics[i, 1] * dx * dy
-    # float32 rounding only, 10x below the 1e-3 slack binning adds before dropping a pair.
-    assert bound[i] <= sigma.min() * (1 + 1e-4) + 1e-4, i
-    inside = cols[0] <= means[i, 0] <= cols[-1] and rows[0] <= means[i, 1] <= rows[-1]
-    assert (bound[i] == 0) == inside, i  # zero only where the mean lies inside the pixel rectangle
-
-
-# ---- exactness: render_exact re-renders what overflowed ------------------------------------------
-
-
-def _crowded_scene(num=64, seed=3):
-  """Half-transparent Gaussians spread over the image: many tiles each, no pixel saturates."""
-  rng = np.random.default_rng(seed)
-  return Gaussians(
-    means=rng.uniform([-1.0, -0.8, -0.5], [1.0, 0.8, 0.5], (num, 3)).astype(np.float32),
-    opacities=np.full(num, 0.05, np.float32),
-    scales=rng.uniform(0.2, 0.4, (num, 3)).astype(np.float32),
-    quats=rng.normal(size=(num, 4)).astype(np.float32),
-    colors=rng.uniform(0, 1, (num, 3)).astype(np.float32),
-  )
-
-
-def test_render_exact_rerenders_an_overflowing_scene(monkeypatch):
-  g = _crowded_scene()
-  tight = RenderConfig(max_intersections=64, chunk_size=8)
-  with pytest.warns(RenderBudgetWarning, match="overflowed"):
-    cut = render(g, W2C[None], INTR[None], height=HEIGHT, width=WIDTH, config=tight)
-  assert bool(cut.stats.overflow[0]) and int(cut.stats.num_intersections[0]) > 64
-  calls = []
-  quiet = exact.jitted_render  # no warning: render_exact renders again instead
-  monkeypatch.setattr(
-    exact, "jitted_render", lambda *a, **k: calls.append(k["config"]) or quiet(*a, **k)
-  )
-  out = exact.render_exact(g, W2C[None], INTR[None], height=HEIGHT, width=WIDTH, config=tight)
-  assert len(calls) == 2 and not bool(out.stats.overflow[0]) and not bool(out.stats.truncated[0])
-  rgb, alpha, _ = render_dense(jax.tree.map(jnp.asarray, g), W2C, INTR, height=HEIGHT, width=WIDTH)
-  np.testing.assert_allclose(out.rgb[0], rgb, atol=1e-5)
-  np.testing.assert_allclose(out.alpha[0], alpha, atol=1e-5)
-  assert float(jnp.max(jnp.abs(cut.rgb[0] - rgb))) > 1e-3  # the tight render was wrong
-  # the learnt budget is where the next call of these shapes starts: one render
-  again = exact.render_exact(g, W2C[None], INTR[None], height=HEIGHT, width=WIDTH, config=tight)
-  assert len(calls) == 3 and calls[-1] == calls[1]
-  np.testing.assert_array_equal(again.rgb, out.rgb)
-
-
-def test_render_exact_refuses_transformations_and_impossible_budgets(monkeypatch):
-  g = _crowded_scene()
-  with pytest.raises(TypeError, match="outside|cannot run under"):
-    jax.jit(lambda g: exact.render_exact(g, W2C[None], INTR[None], height=HEIGHT, width=WIDTH).rgb)(
-      g
-    )
-  monkeypatch.setattr(exact, "BUDGET_LIMIT", 100)
-  with pytest.raises(exact.RenderBudgetError, match="BUDGET_LIMIT"):
-    exact.render_exact(
-      g,
-      W2C[None],
-      INTR[None],
-      height=HEIGHT,
-      width=WIDTH,
-      config=RenderConfig(max_intersections=64, chunk_size=8, tile_size=8),
-    )
-
-
-def test_budget_ladder_sorts_small_scenes_in_a_small_buffer():
-  config = RenderConfig()
-  assert config.budget_ladder(65536, 256) == (262144, 524288, 1048576)
-  assert config.budget_ladder(100, 256) == (4096,)  # small scenes: one size
-  assert config.intersection_budget(100, 4) == 416  # never above N x tiles (chunk multiple)
-  # whichever ladder step a scene is binned at, the image is the same
-  g = random_scene(5)
-  tiles = 3 * 4
-  ladder = RenderConfig(min_intersections=32, chunk_size=8)
-  single = RenderConfig(min_intersections=NUM * tiles, chunk_size=8)
-  assert len(ladder.budget_ladder(NUM, tiles)) == 3 and len(single.budget_ladder(NUM, tiles)) == 1
-  a = render(g, W2C[None], INTR[None], height=HEIGHT, width=WIDTH, config=ladder)
-  b = render(g, W2C[None], INTR[None], height=HEIGHT, width=WIDTH, config=single)
-  assert int(a.stats.num_intersections[0]) <= ladder.budget_ladder(NUM, tiles)[1]  # a lower step
-  assert not bool(a.stats.truncated[0])
-  np.testing.assert_array_equal(a.rgb, b.rgb)
-  np.testing.assert_array_equal(a.depth, b.depth)
-
-
 # ---- precision: every dot of the renderer (and losses / metrics) at full float32 ----------------
 
 
@@ -494,21 +353,3 @@ def test_render_refuses_bad_inputs_by_name(change, match):
   args.update(change)
   with pytest.raises(ValueError, match=match):
     render(**args)
-
-
-@pytest.mark.parametrize("knob", ["tile_size", "chunk_size", "tiles_per_step"])
-def test_render_config_refuses_non_positive_sizes(knob):
-  with pytest.raises(ValueError, match=knob):
-    RenderConfig(**{knob: 0})
-
-
-def test_compositor_block_sizes_halve_down_to_eight():
-  from tokengs_jax.splatting import rasterize
-
-  def sizes(tiles_per_step):
-    tiling = rasterize.Tiling(32, 32, 8, 4, 4, 1, 32, tiles_per_step, 0.999, 1 / 255, 1e-4)
-    return rasterize.step_sizes(tiling)
-
-  assert sizes(128) == (128, 64, 32, 16, 8)
-  assert sizes(35) == (35, 17, 8)
-  assert sizes(3) == (3,)  # no ladder below 16: `test_chunking_...` compares the two paths
