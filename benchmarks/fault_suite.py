@@ -23,7 +23,7 @@ REPO = pathlib.Path(__file__).resolve().parent.parent
 FAULT_FILES = (
   "tests/test_data_bad_input.py",
   "tests/test_data_memory.py",
-  "tests/test_checkpoint_faults.py",
+  "tests/test_train_checkpoint_files.py",
   "tests/test_signals.py",
   "tests/test_splatting_checks.py",
   "tests/test_stress.py",

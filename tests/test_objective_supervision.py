@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from scenes import gaussians_in_front
-from test_train import toy_params
+from toy_training import toy_params
 
 from tokengs_jax import losses, splatting
 from tokengs_jax.gaussians import Gaussians

@@ -1,5 +1,7 @@
-"""The training loop: exact resume from a checkpoint (past a damaged one), the training log kept
-across resumes, loud stop on non-finite values, a clean stop on SIGTERM/SIGINT."""
+"""The training loop (`train.loop`): exact resume from a checkpoint (past a damaged one), the
+training log kept across resumes, loud stop on non-finite values, a clean stop on SIGTERM/SIGINT;
+end to end, the TokenGS objective with the real model and renderer, static (tiny preset; slow:
+renderer compiles) and dynamic (the loop on generated Kubric-like scenes)."""
 
 import dataclasses
 import logging
@@ -8,15 +10,19 @@ import signal
 import jax
 import numpy as np
 import pytest
-from test_checkpoint import truncate_json
-from test_train import toy_batch, toy_loss, toy_params
+from checkpoints import truncate_json
+from scenes import DYNAMIC_CONFIG, DYNAMIC_SIZE, dynamic_params, synthetic_batch
+from toy_training import toy_batch, toy_loss, toy_params
 
+from tokengs_jax import losses
+from tokengs_jax.objective import ObjectiveConfig, tokengs_loss_fn
 from tokengs_jax.train import (
   Checkpointer,
   LoopConfig,
   NonFiniteError,
   OptimConfig,
   create_train_state,
+  make_mesh,
   make_optimizer,
   train,
 )
@@ -237,3 +243,99 @@ def test_a_host_array_reaching_the_compiled_step_is_an_error_not_a_silent_copy(m
   monkeypatch.setattr(loop, "shard_batch", lambda batch, mesh: batch)  # numpy arrays, not placed
   with pytest.raises(Exception, match="[Dd]isallowed host-to-device transfer"):
     train(toy_loss, toy_params(), ToyBatches(), OPTIM, LoopConfig(total_steps=2), log_fn=quiet)
+
+
+# ---- end to end: the TokenGS objective with the real model and renderer --------------------------
+
+
+@pytest.mark.slow
+def test_tiny_training_loss_falls(tiny):
+  config, params = tiny
+  batch = synthetic_batch()
+
+  def batches():
+    while True:
+      yield batch
+
+  history = []
+  # two scenes on a 2-device data mesh: the real model and renderer under sharding
+  train(
+    tokengs_loss_fn(config),
+    params,
+    batches(),
+    OptimConfig(learning_rate=1e-2, schedule="warmup_cosine", total_steps=30, warmup_steps=3),
+    LoopConfig(total_steps=30, log_every=5),
+    mesh=make_mesh(devices=jax.devices()[:2]),
+    log_fn=lambda step, m: history.append(m),
+  )
+  print("loss every 5 steps:", [round(m["loss"], 4) for m in history])
+  assert history[-1]["loss"] < 0.8 * history[0]["loss"]
+
+
+@pytest.fixture(scope="module")
+def kubric_batches(tmp_path_factory):
+  """One batch of two examples from two generated Kubric-like scenes through the data pipeline."""
+  from tokengs_jax.data import kubric
+  from tokengs_jax.data.pipeline import DATASET_PRESETS, InputPipeline
+  from tokengs_jax.data.synthetic import generate
+
+  root = tmp_path_factory.mktemp("kubric")
+  generate.generate_kubric_like(
+    root,
+    2,
+    DYNAMIC_SIZE,
+    DYNAMIC_SIZE,
+    frames=6,
+    num_cameras=3,
+    seed=1,
+    config=generate.KubricLikeConfig(supersample=1),
+  )
+  example_config = dataclasses.replace(
+    DATASET_PRESETS["kubric"], image_shape=(DYNAMIC_SIZE, DYNAMIC_SIZE), random_flip=False
+  )
+  pipeline = InputPipeline(
+    kubric.KubricSceneSource(root, num_cameras=3),
+    example_config,
+    batch_size=2,
+    seed=0,
+    shuffle=False,
+    num_epochs=None,
+    shard_index=0,
+    shard_count=1,
+    select_views=kubric.kubric_view_selector(num_context=2, num_targets=2, min_gap=2, max_gap=5),
+  )
+  return next(iter(pipeline))
+
+
+def test_dynamic_training_on_generated_kubric_scenes(kubric_batches):
+  batch = kubric_batches
+  assert batch["context_times"].shape == batch["target_times"].shape == (2, 2)
+  loss_config = losses.LossConfig(
+    rgb_loss="l1", lambda_rgb=0.8, lambda_dyn_aux=0.3, dyn_aux_hold_steps=2, dyn_aux_decay_steps=4
+  )
+
+  def batches():
+    while True:
+      yield batch
+
+  history = []
+  steps = 30
+  # the train step adds "step" to each batch; the auxiliary weight reads it
+  train(
+    tokengs_loss_fn(DYNAMIC_CONFIG, loss_config, objective=ObjectiveConfig(view_chunk_size=1)),
+    dynamic_params(),
+    batches(),
+    OptimConfig(learning_rate=1e-2, schedule="constant", total_steps=steps),
+    LoopConfig(total_steps=steps, log_every=1),
+    mesh=make_mesh(devices=jax.devices()[:1]),
+    log_fn=lambda step, metrics: history.append(metrics),
+  )
+  print("rgb per step:", [round(m["rgb"], 4) for m in history])
+  assert all(np.isfinite(m["loss"]) and np.isfinite(m["dyn_aux"]) for m in history)
+  np.testing.assert_allclose(
+    [m["dyn_aux_weight"] for m in history],
+    [float(losses.dynamic_aux_weight(s, loss_config)) for s in range(steps)],
+    rtol=1e-6,
+  )
+  # measured: 0.209 -> 0.182 in 30 steps (noisy at first: few, small Gaussians at init)
+  assert np.mean([m["rgb"] for m in history[-5:]]) < 0.95 * np.mean([m["rgb"] for m in history[:5]])

@@ -12,7 +12,7 @@ import threading
 import jax
 import pytest
 from etils import epath
-from test_checkpoint import flip_one_bit, largest_array_file, state_at
+from checkpoints import flip_one_bit, largest_array_file, state_at
 
 from tokengs_jax.train import Checkpointer
 from tokengs_jax.train.checkpoint_files import CheckpointWriteError, refused_write_errno

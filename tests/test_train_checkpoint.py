@@ -1,7 +1,8 @@
-"""Checkpoints: per-array checksums, and restore walking back past damaged steps with a log line."""
+"""Checkpoints (`train.checkpoint`): per-array checksums, restore walking back past damaged steps
+with a log line, and data states saved and restored per process."""
 
+import json
 import logging
-import pathlib
 import shutil
 
 import chex
@@ -9,26 +10,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from checkpoints import flip_one_bit, largest_array_file, state_at, truncate_json
 
 from tokengs_jax.train import Checkpointer, OptimConfig, create_train_state, make_optimizer
 from tokengs_jax.train.checkpoint import (
   ChecksumError,
   UnusableCheckpointError,
   array_checksums,
+  data_state_file,
+  data_state_handler,
   verify_checksums,
 )
-
-OPTIMIZER = make_optimizer(OptimConfig(learning_rate=1e-2, schedule="constant"))
-
-
-def state_at(step):
-  """A train state whose arrays depend on `step`; "big" (256 KiB) is the large array file."""
-  params = {
-    "big": jnp.arange(64 * 1024, dtype=jnp.float32).reshape(64, 1024) + step,
-    "bias": jnp.full((3,), float(step)),
-  }
-  state = create_train_state(params, OPTIMIZER, seed=0)
-  return state.replace(step=jnp.asarray(step, jnp.int32))
 
 
 @pytest.fixture
@@ -43,11 +35,6 @@ def saved(tmp_path):
   return directory
 
 
-def largest_array_file(step_dir: pathlib.Path) -> pathlib.Path:
-  """The largest file of array chunks (`state/ocdbt.process_*/d/*`)."""
-  return max((step_dir / "state").glob("ocdbt.process_*/d/*"), key=lambda p: p.stat().st_size)
-
-
 def empty_directory(step_dir):
   for path in step_dir.iterdir():
     shutil.rmtree(path) if path.is_dir() else path.unlink()
@@ -57,22 +44,10 @@ def remove_array_metadata(step_dir):
   (step_dir / "state" / "_METADATA").unlink()
 
 
-def truncate_json(step_dir):
-  path = step_dir / "data" / "process_0-of-1.json"
-  path.write_text(path.read_text()[:7])
-
-
 def truncate_array_file(step_dir):
   path = largest_array_file(step_dir)
   assert path.stat().st_size > 100_000
   path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
-
-
-def flip_one_bit(step_dir):
-  path = largest_array_file(step_dir)
-  data = bytearray(path.read_bytes())
-  data[len(data) // 2] ^= 0x10
-  path.write_bytes(bytes(data))
 
 
 def change_a_digit_in_the_json(step_dir):
@@ -164,3 +139,38 @@ def test_a_half_written_save_is_not_a_checkpoint(saved, caplog):
   with caplog.at_level(logging.WARNING, logger="tokengs_jax.train.checkpoint"):
     state, _ = checkpointer.restore(state_at(0))
   assert int(state.step) == 4 and not caplog.records
+
+
+def test_data_states_are_saved_and_restored_per_process(tmp_path):
+  """Two simulated hosts: each process's iterator position goes to its own file of the step and
+  comes back to that process only; another process count is refused with a clear message.
+
+  One real process here: process 0 saves through the Checkpointer, and "process 1" writes its file
+  into the same step the way orbax runs the data handler on every host."""
+  params = {"w": jnp.arange(3.0)}
+  state = create_train_state(params, make_optimizer(OptimConfig(schedule="constant")), seed=0)
+  state = state.replace(step=jnp.asarray(4, jnp.int32))
+  directory = tmp_path / "run"
+  host0 = Checkpointer(directory, process_index=0, process_count=2, async_save=False)
+  host0.save(state, {"position": 40})
+  host0.wait()
+  data_dir = directory / "4" / "data"
+  import orbax.checkpoint as ocp
+
+  data_state_handler(1, 2).save(data_dir, args=ocp.args.JsonSave({"iterator": {"position": 41}}))
+  assert sorted(p.name for p in data_dir.glob("process_*")) == [
+    data_state_file(0, 2),
+    data_state_file(1, 2),
+  ]
+  assert json.loads((data_dir / data_state_file(0, 2)).read_text()) == {
+    "iterator": {"position": 40}
+  }
+
+  for index, position in ((0, 40), (1, 41)):
+    restored, data_state = Checkpointer(directory, process_index=index, process_count=2).restore(
+      state
+    )
+    assert data_state == {"position": position} and int(restored.step) == 4
+    np.testing.assert_array_equal(restored.params["w"], params["w"])
+  with pytest.raises(FileNotFoundError, match=r"process 0 of 3 .*process_0-of-2\.json"):
+    Checkpointer(directory, process_index=0, process_count=3).restore(state)
