@@ -1,14 +1,12 @@
-"""Chunk reader/writer: the torch-written fixture, round trips, unsafe pickles and bad input."""
+"""Chunk files <-> scene records (`chunks.scenes`): the torch-written fixture, round trips, lazy
+and raw frames, and bad cameras or frames refused naming file, scene and frame."""
 
-import concurrent.futures
 import json
-import os
-import pickle
 import re
-import zipfile
 
 import numpy as np
 import pytest
+from chunk_scenes import chunk_scene as _scene
 from conftest import reference_fixture
 
 from tokengs_jax.data import (
@@ -18,32 +16,7 @@ from tokengs_jax.data import (
   InputPipeline,
   chunks,
 )
-from tokengs_jax.data.chunks import ChunkError, UnsafeChunkError, read_chunk, write_chunk
-
-
-def _scene(key="s0", frames=3, height=12, width=20, seed=0):
-  rng = np.random.default_rng(seed)
-  angles = rng.uniform(-0.3, 0.3, (frames, 3))
-  c2w = np.tile(np.eye(4), (frames, 1, 1))
-  for f, (_, b, c) in enumerate(angles):
-    rz = np.array([[np.cos(c), -np.sin(c), 0], [np.sin(c), np.cos(c), 0], [0, 0, 1]])
-    ry = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
-    c2w[f, :3, :3] = rz @ ry
-    c2w[f, :3, 3] = rng.normal(size=3)
-  intrinsics = np.tile([width * 0.9, height * 1.1, width / 2 + 0.3, height / 2 - 0.2], (frames, 1))
-  ramp = np.linspace(0, 255, width, dtype=np.float32)
-  images = np.zeros((frames, height, width, 3), np.uint8)
-  images[..., 0] = ramp
-  images[..., 1] = np.linspace(0, 255, height)[:, None]
-  images[..., 2] = (np.arange(frames) * 40)[:, None, None]
-  return {
-    "key": key,
-    "url": f"https://example.invalid/{key}",
-    "c2w": c2w,
-    "intrinsics": intrinsics,
-    "images": images,
-    "timestamps": np.arange(frames) * 1000,
-  }
+from tokengs_jax.data.chunks import ChunkError, read_chunk, write_chunk
 
 
 def test_reads_torch_written_fixture_with_true_cameras():
@@ -73,29 +46,6 @@ def test_write_read_round_trip(tmp_path):
     assert np.abs(back["images"].astype(int) - scene["images"]).max() <= 8  # JPEG quality 95
 
 
-def test_lazy_frames_load_from_many_threads_past_the_open_file_cache(tmp_path, monkeypatch):
-  """grain reads with threads: more chunk files than the cache holds, read concurrently, must
-  neither race on the cache nor close an archive another thread is reading."""
-  monkeypatch.setattr(chunks.archive, "_MAX_OPEN_ARCHIVES", 2)
-  frames = []
-  for number in range(6):
-    scene = _scene(f"s{number}", seed=number)
-    scene["images"] = [chunks.encode_jpeg(image) for image in scene["images"]]
-    write_chunk(tmp_path / f"{number:06d}.torch", [scene])
-    (lazy,) = read_chunk(tmp_path / f"{number:06d}.torch", images="lazy")
-    frames += [(frame, scene["images"][i]) for i, frame in enumerate(lazy["images"])]
-
-  def load_all(offset):
-    return all(
-      frames[(i + offset) % len(frames)][0].load().tobytes()
-      == frames[(i + offset) % len(frames)][1]
-      for i in range(len(frames) * 10)
-    )
-
-  with concurrent.futures.ThreadPoolExecutor(8) as pool:
-    assert all(pool.map(load_all, range(8)))
-
-
 def test_jpeg_bytes_are_stored_verbatim_and_lazy_frames_load(tmp_path):
   scene = _scene()
   scene["images"] = [chunks.encode_jpeg(image) for image in scene["images"]]
@@ -105,73 +55,6 @@ def test_jpeg_bytes_are_stored_verbatim_and_lazy_frames_load(tmp_path):
   assert lazy["images"][2].load().tobytes() == scene["images"][2]
   (raw,) = read_chunk(tmp_path / "c.torch", images="bytes")
   assert [f.tobytes() for f in raw["images"]] == scene["images"]
-
-
-def test_tensor_archive_dtypes_and_containers(tmp_path):
-  obj = {
-    "f64": np.arange(6.0).reshape(2, 3),
-    "b": np.array([True, False]),
-    "i8": np.arange(-3, 3, dtype=np.int8),
-    "t": np.arange(12, dtype=np.int32).reshape(3, 4).T,
-    "e": np.zeros((0, 2), np.float32),
-    "n": [None, 1.5, -7, 2**40, 70000, (1, "a"), ()],
-  }
-  chunks.save_tensor_archive(tmp_path / "m.torch", obj)
-  back = chunks.load_tensor_archive(tmp_path / "m.torch")
-  for key in ("f64", "b", "i8", "t", "e"):
-    assert back[key].dtype == obj[key].dtype
-    np.testing.assert_array_equal(back[key], obj[key])
-  assert back["n"] == obj["n"]
-
-
-class _Exploit:
-  def __init__(self, marker):
-    self.marker = marker
-
-  def __reduce__(self):
-    return (os.system, (f"touch {self.marker}",))
-
-
-def _zip_with_pickle(path, payload: bytes):
-  with zipfile.ZipFile(path, "w") as archive:
-    archive.writestr("evil/data.pkl", payload)
-    archive.writestr("evil/version", "3\n")
-
-
-def test_malicious_pickle_is_refused_and_never_runs(tmp_path):
-  marker = tmp_path / "pwned"
-  path = tmp_path / "evil.torch"
-  _zip_with_pickle(path, pickle.dumps([{"key": "x", "cameras": _Exploit(marker)}], protocol=2))
-  with pytest.raises(UnsafeChunkError, match=r"evil\.torch.*posix\.system|evil\.torch.*os\.system"):
-    read_chunk(path)
-  assert not marker.exists()
-
-
-def test_forged_tensor_geometry_is_refused(tmp_path):
-  path = tmp_path / "forged.torch"
-  chunks.save_tensor_archive(path, [np.arange(4, dtype=np.float32)])
-  with zipfile.ZipFile(path) as archive:
-    records = {n: archive.read(n) for n in archive.namelist()}
-  name = "forged/data.pkl"
-  forged = records[name].replace(b"K\x00(K\x04t", b"K\x00(M\x00\x10t")  # size (4,) -> (4096,)
-  assert forged != records[name]
-  records[name] = forged
-  with zipfile.ZipFile(path, "w") as archive:
-    for record, data in records.items():
-      archive.writestr(record, data)
-  with pytest.raises(ChunkError, match="forged.torch.*reaches element"):
-    chunks.load_tensor_archive(path)
-
-
-@pytest.mark.parametrize("content", [b"", b"not a zip at all", None])
-def test_truncated_or_non_chunk_file(tmp_path, content):
-  path = tmp_path / "bad.torch"
-  if content is None:  # a real chunk cut in half
-    write_chunk(path, [_scene()])
-    content = path.read_bytes()[: path.stat().st_size // 2]
-  path.write_bytes(content)
-  with pytest.raises(ChunkError, match="bad.torch"):
-    read_chunk(path)
 
 
 def _rewrite_record(tmp_path, mutate):
