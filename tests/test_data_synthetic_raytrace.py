@@ -1,21 +1,15 @@
-"""The synthetic ray tracer against analytic values, camera paths, and chunk files it writes."""
-
-import json
+"""The synthetic ray tracer (`synthetic.raytrace`) against analytic values: depths, shading,
+textures (photographs included), segmentation and shadows."""
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from synthetic_scenes import H, W
 
 from tokengs_jax import camera
-from tokengs_jax.data import read_chunk
-from tokengs_jax.data.synthetic import cameras, raytrace, scenes
-from tokengs_jax.data.synthetic.generate import (
-  Re10kLikeConfig,
-  generate_re10k_like,
-  render_re10k_like_scene,
-)
+from tokengs_jax.data.synthetic import cameras, photos, raytrace
+from tokengs_jax.data.synthetic.raytrace import Plane, Scene, Texture, render, texture_color
 
-H, W = 24, 32
 INTRINSICS = np.array([30.0, 28.0, 15.3, 12.7])  # fx != fy and an off-centre principal point
 
 
@@ -194,156 +188,38 @@ def test_unknown_texture_kind_is_refused():
     raytrace.Texture("marble")
 
 
-def test_forward_walk_is_a_smooth_opencv_trajectory():
-  frames = 32
-  c2w = cameras.forward_walk(np.random.default_rng(7), frames, np.zeros(3), heading=0.3)
-  assert c2w.shape == (frames, 4, 4)
-  rot = c2w[:, :3, :3]
-  np.testing.assert_allclose(
-    rot @ np.swapaxes(rot, 1, 2), np.broadcast_to(np.eye(3), rot.shape), atol=1e-9
+def test_photo_texture_tiles_the_photograph_and_tints_grey_ones():
+  with pytest.raises(ValueError, match="names its `image`"):
+    Texture(kind="photo")
+  with pytest.raises(ValueError, match="names its `image`"):
+    Texture(kind="checker", image="brick.png")
+  image = photos.photo("astronaut.png")
+  height, width = image.shape[:2]
+  plain = Texture(kind="photo", image="astronaut.png", frequency=1.0, seed=0)
+  # Texel (row 10, column 20) of tile (0, 0) and of tile (2, -1): the photograph repeats.
+  uv = np.array([[20.5 / width, 10.5 / height, 0.0], [2 + 20.5 / width, -1 + 10.5 / height, 0.0]])
+  np.testing.assert_allclose(texture_color(plain, uv.astype(np.float32)), image[[10, 10], [20, 20]])
+  # A box face addresses the photograph with its two in-face axes (face axis 0: local y, z).
+  on_face = np.array([[0.3, 20.5 / width, 10.5 / height]], np.float32)
+  np.testing.assert_allclose(texture_color(plain, on_face, np.array([0])), image[[10], [20]])
+  tinted = Texture(
+    kind="photo", image="brick.png", tint=True, color_a=(1.0, 0.0, 0.0), color_b=(0.0, 0.0, 1.0)
   )
-  np.testing.assert_allclose(np.linalg.det(rot), 1.0, atol=1e-9)
-  assert (rot[:, :, 1] @ cameras.WORLD_UP < -0.95).all()  # camera +y (down) points down: upright
-  steps = np.linalg.norm(np.diff(c2w[:, :3, 3], axis=0), axis=-1)
-  config = cameras.WalkConfig()
-  assert steps.min() > config.step[0] - 0.05 and steps.max() < config.step[1] + 0.05
-  turn = np.arccos(np.clip(np.einsum("fi,fi->f", rot[1:, :, 2], rot[:-1, :, 2]), -1, 1))
-  assert turn.max() < 0.1  # no jumps in look direction between frames
+  colours = texture_color(tinted, np.random.default_rng(0).uniform(0, 1, (256, 3)))
+  assert np.allclose(colours[:, 1], 0.0) and np.allclose(colours.sum(-1), 1.0)  # red..blue mixes
 
 
-def test_room_scene_camera_stays_clear_of_objects_and_inside_the_room():
-  scene, c2w = scenes.sample_room_scene(np.random.default_rng(11), 24)
-  walls = {tuple(np.round(p.normal)): p for p in scene.planes}
-  half_w, half_d = walls[(-1.0, 0.0, 0.0)].point[0], walls[(0.0, 0.0, -1.0)].point[2]
-  assert (np.abs(c2w[:, 0, 3]) < half_w).all() and (np.abs(c2w[:, 2, 3]) < half_d).all()
-  for obj in scene.objects:
-    gap = np.linalg.norm(c2w[:, [0, 2], 3] - np.asarray(obj.center)[[0, 2]], axis=-1)
-    assert gap.min() > scenes.RoomConfig().clearance
-
-
-def test_re10k_like_scene_is_deterministic_by_seed():
-  config = Re10kLikeConfig(supersample=1)
-  a = render_re10k_like_scene(5, "train", 2, 12, 16, 3, config)
-  b = render_re10k_like_scene(5, "train", 2, 12, 16, 3, config)
-  c = render_re10k_like_scene(5, "train", 3, 12, 16, 3, config)
-  for field in ("c2w", "intrinsics", "images", "depths"):
-    np.testing.assert_array_equal(a[field], b[field])
-  assert not np.array_equal(a["c2w"], c["c2w"])
-  assert (a["depths"] > 0).all()  # a closed room: every ray hits something
-
-
-def test_generated_chunks_read_back_with_the_same_cameras(tmp_path):
-  config = Re10kLikeConfig(supersample=1, scenes_per_chunk=2)
-  index = generate_re10k_like(
-    tmp_path, num_train=3, num_test=1, height=H, width=W, frames=4, seed=9, config=config
+def test_a_plane_textured_with_a_photo_renders_the_photo():
+  """The tracer end to end: a camera facing a photo-textured wall sees the photograph's texels."""
+  wall = Plane(
+    point=np.array([0.0, 0.0, 2.0]),
+    normal=np.array([0.0, 0.0, -1.0]),
+    tangent=np.array([1.0, 0.0, 0.0]),
+    texture=Texture(kind="photo", image="coffee.png", frequency=0.25),
   )
-  assert sorted((tmp_path / "train").iterdir()) == [
-    tmp_path / "train" / n
-    for n in ("000000.depth.npz", "000000.torch", "000001.depth.npz", "000001.torch", "index.json")
-  ]
-  assert json.loads((tmp_path / "train" / "index.json").read_text()) == index["train"]
-  assert len(index["train"]) == 3 and len(index["test"]) == 1
-  scenes_read = read_chunk(tmp_path / "train" / "000001.torch")
-  assert [s["key"] for s in scenes_read] == ["synthetic9_train_000002"]
-  expected = render_re10k_like_scene(9, "train", 2, H, W, 4, config)
-  got = scenes_read[0]
-  np.testing.assert_allclose(got["c2w"], expected["c2w"], atol=2e-5)
-  np.testing.assert_allclose(got["intrinsics"], expected["intrinsics"], rtol=1e-5)
-  assert got["images"].shape == (4, H, W, 3)
-  assert np.abs(got["images"].astype(float) - expected["images"]).mean() < 4.0  # JPEG q95
-
-
-def test_generated_dataset_batches_through_the_chunked_source_and_pipeline(tmp_path):
-  from tokengs_jax.data.chunked import ChunkedSceneSource
-  from tokengs_jax.data.pipeline import ExampleConfig, InputPipeline
-  from tokengs_jax.data.sampler import BoundedSamplerConfig
-
-  generate_re10k_like(
-    tmp_path,
-    num_train=2,
-    num_test=0,
-    height=H,
-    width=W,
-    frames=8,
-    seed=1,
-    config=Re10kLikeConfig(supersample=1),
-  )
-  source = ChunkedSceneSource(tmp_path / "train")
-  assert len(source) == 2
-  # Synthetic clips are short (each frame moves further than an RE10K frame): a scaled-down sampler.
-  config = ExampleConfig(image_shape=(16, 16), sampler=BoundedSamplerConfig(2, 3, 3, 7, 0, 0, 3, 7))
-  pipeline = InputPipeline(
-    source, config, batch_size=2, seed=0, num_epochs=1, shard_index=0, shard_count=1
-  )
-  batch = next(iter(pipeline))
-  assert batch["context_images"].shape == (2, 2, 16, 16, 3) and batch["target_c2w"].shape == (
-    2,
-    3,
-    4,
-    4,
-  )
-  assert np.isfinite(batch["context_c2w"]).all() and 0.0 <= batch["context_images"].min() <= 1.0
-
-
-# ----------------------------------------------------------------------------------------------
-# The gallery family (out-of-distribution test set)
-
-
-def test_gallery_set_reads_back_through_the_evaluation_index(tmp_path):
-  from tokengs_jax.data import ChunkedSceneSource, evaluation_views, load_evaluation_index
-  from tokengs_jax.data.synthetic.held_out import GalleryDatasetConfig, generate_galleries
-
-  config = GalleryDatasetConfig(supersample=1, scenes_per_chunk=2)
-  written = generate_galleries(
-    tmp_path, num_scenes=3, height=H, width=W, frames=9, seed=4, config=config
-  )
-  assert sorted(p.name for p in (tmp_path / "test").iterdir()) == [
-    "000000.depth.npz",  # true depth maps, for the evaluation's geometry scores
-    "000000.torch",
-    "000001.depth.npz",
-    "000001.torch",
-    "index.json",
-  ]
-  index = load_evaluation_index(tmp_path / "eval_index.json")
-  assert list(index) == list(written) == ["gallery4_000000", "gallery4_000001", "gallery4_000002"]
-  source = ChunkedSceneSource(tmp_path / "test", keys=list(index))
-  for position, key in enumerate(index):
-    record = source[position]
-    assert record["key"] == key and len(record["images"]) == 9
-    context, target = evaluation_views(index, key, 9)
-    np.testing.assert_array_equal(context, [0, 8])
-    np.testing.assert_array_equal(target, [2, 4, 6])  # strictly between the inputs
-    assert not set(target.tolist()) & set(context.tolist())
-
-
-def test_gallery_scene_is_deterministic_and_unlike_the_rooms():
-  from tokengs_jax.data.synthetic.held_out import GalleryDatasetConfig, render_gallery_scene
-
-  config = GalleryDatasetConfig(supersample=1)
-  a = render_gallery_scene(3, 1, 12, 16, 3, config)
-  b = render_gallery_scene(3, 1, 12, 16, 3, config)
-  for field in ("c2w", "intrinsics", "images", "depths"):
-    np.testing.assert_array_equal(a[field], b[field])
-  assert not np.array_equal(a["c2w"], render_gallery_scene(3, 2, 12, 16, 3, config)["c2w"])
-  assert (a["depths"] > 0).all()  # a closed room
-
-  rooms_kinds, gallery_kinds, wall_counts = set(), set(), set()
-  for i in range(6):
-    room, _ = scenes.sample_room_scene(np.random.default_rng(i), 12)
-    gallery, orbit = scenes.sample_gallery_scene(np.random.default_rng(i), 12)
-    rooms_kinds |= {p.texture.kind for p in room.primitives}
-    gallery_kinds |= {p.texture.kind for p in gallery.primitives}
-    wall_counts.add(len(gallery.planes) - 2)
-    # Rooms have 4 axis-aligned walls and a high white light; galleries 5-8 walls, a low tinted one.
-    assert len(room.planes) == 6 and len(gallery.planes) >= 7
-    assert gallery.light_direction[1] < 0.8 * np.linalg.norm(gallery.light_direction)
-    assert gallery.light_color != (1.0, 1.0, 1.0)
-    # An inward orbit moves across its view direction (a walk mostly moves along it).
-    travel = np.diff(orbit[:, [0, 2], 3], axis=0)
-    look = orbit[:-1, [0, 2], 2]
-    along = np.abs(np.einsum("fi,fi->f", travel, look)) / (
-      np.linalg.norm(travel, axis=-1) * np.linalg.norm(look, axis=-1)
-    )
-    assert np.median(along) < 0.5
-  assert rooms_kinds.isdisjoint(gallery_kinds)
-  assert len(wall_counts) > 1
+  scene = Scene(planes=(wall,), ambient=1.0)
+  image = render(scene, np.eye(4), np.array([16.0, 16.0, 8.0, 8.0]), 16, 16).rgb
+  assert image.std() > 0.02  # texture detail, not a flat colour
+  assert np.isin(
+    np.round(image.reshape(-1, 3) * 255), np.round(photos.photo("coffee.png") * 255)
+  ).all()
