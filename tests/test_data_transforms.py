@@ -141,47 +141,23 @@ def test_depth_follows_the_image_crop_and_keeps_unknown_pixels_unknown():
     assert (resized[cropped[..., 0] == 0] == 0.0).all()
 
 
-def test_make_example_target_depths_are_scaled_and_flipped_with_the_cameras():
-  import dataclasses
-
-  from tokengs_jax.data import BoundedSamplerConfig, ExampleConfig, make_example
-
-  rng = np.random.default_rng(0)
-  frames, height, width = 4, 8, 12
-  depths = rng.uniform(1.0, 5.0, (frames, height, width)).astype(np.float32)
-  record = {
-    "key": "k",
-    "height": height,
-    "width": width,
-    "c2w": np.tile(np.eye(4, dtype=np.float32), (frames, 1, 1)),
-    "intrinsics": np.tile(np.array([10.0, 10.0, 6.0, 4.0], np.float32), (frames, 1)),
-    "images": list(rng.integers(0, 255, (frames, height, width, 3), dtype=np.uint8)),
-    "depths": list(depths),
-  }
-  sampler = BoundedSamplerConfig(2, 1, 1, 3, 0, 0, 1, 3)
-  config = ExampleConfig((height, width), sampler, 0.25, target_depths=True, random_flip=False)
-  views = (np.array([0, 3]), np.array([2]))
-  example = make_example(record, config, rng, views=views)
-  np.testing.assert_allclose(example["target_depths"], 0.25 * depths[[2]], rtol=1e-6)
-  flipped = dataclasses.replace(config, random_flip=True)
-  for seed in range(8):  # one of these seeds flips
-    other = make_example(record, flipped, np.random.default_rng(seed), views=views)
-    mirrored = np.allclose(other["target_images"], example["target_images"][:, :, ::-1])
-    expected = example["target_depths"][:, :, ::-1] if mirrored else example["target_depths"]
-    np.testing.assert_allclose(other["target_depths"], expected)
-  assert "target_depths" not in make_example(
-    record, dataclasses.replace(config, target_depths=False), rng, views=views
-  )
-
-
-def test_make_example_target_objects_are_the_segmentations_flipped_with_the_images():
+@pytest.mark.parametrize("field", ["target_depths", "target_objects"])
+def test_make_example_per_target_maps_follow_the_targets_images(field):
+  """`target_depths` (the record's depths, scaled as the cameras) and `target_objects` (its
+  segmentations > 0, float32) are the targets' maps, mirrored whenever the images are; absent
+  when not asked for; objects without segmentations are a bad example."""
   import dataclasses
 
   from tokengs_jax.data import BadExampleError, BoundedSamplerConfig, ExampleConfig, make_example
 
   rng = np.random.default_rng(0)
   frames, height, width = 4, 8, 12
-  segmentations = rng.integers(0, 3, (frames, height, width)).astype(np.int32)
+  if field == "target_depths":
+    stored, maps = "depths", rng.uniform(1.0, 5.0, (frames, height, width)).astype(np.float32)
+    expected = 0.25 * maps[[2]]
+  else:
+    stored, maps = "segmentations", rng.integers(0, 3, (frames, height, width)).astype(np.int32)
+    expected = (maps[[2]] > 0).astype(np.float32)
   record = {
     "key": "k",
     "height": height,
@@ -189,26 +165,30 @@ def test_make_example_target_objects_are_the_segmentations_flipped_with_the_imag
     "c2w": np.tile(np.eye(4, dtype=np.float32), (frames, 1, 1)),
     "intrinsics": np.tile(np.array([10.0, 10.0, 6.0, 4.0], np.float32), (frames, 1)),
     "images": list(rng.integers(0, 255, (frames, height, width, 3), dtype=np.uint8)),
-    "segmentations": list(segmentations),
+    stored: list(maps),
   }
   sampler = BoundedSamplerConfig(2, 1, 1, 3, 0, 0, 1, 3)
-  config = ExampleConfig((height, width), sampler, 0.25, target_objects=True, random_flip=False)
+  config = ExampleConfig((height, width), sampler, 0.25, random_flip=False, **{field: True})
   views = (np.array([0, 3]), np.array([2]))
   example = make_example(record, config, rng, views=views)
-  assert example["target_objects"].dtype == np.float32
-  np.testing.assert_array_equal(example["target_objects"], (segmentations[[2]] > 0))
+  assert example[field].dtype == np.float32
+  np.testing.assert_allclose(example[field], expected, rtol=1e-6)
   flipped = dataclasses.replace(config, random_flip=True)
   flips = 0
   for seed in range(8):
     other = make_example(record, flipped, np.random.default_rng(seed), views=views)
     mirrored = np.allclose(other["target_images"], example["target_images"][:, :, ::-1])
     flips += mirrored
-    expected = example["target_objects"][:, :, ::-1] if mirrored else example["target_objects"]
-    np.testing.assert_array_equal(other["target_objects"], expected)
+    np.testing.assert_allclose(
+      other[field], example[field][:, :, ::-1] if mirrored else example[field]
+    )
   assert 0 < flips < 8
-  without = {name: value for name, value in record.items() if name != "segmentations"}
-  with pytest.raises(BadExampleError, match="segmentations"):
-    make_example(without, config, rng, views=views)
+  off = make_example(record, dataclasses.replace(config, **{field: False}), rng, views=views)
+  assert field not in off
+  if field == "target_objects":
+    without = {name: value for name, value in record.items() if name != stored}
+    with pytest.raises(BadExampleError, match="segmentations"):
+      make_example(without, config, rng, views=views)
 
 
 def test_rigid_inverse_matches_the_jax_camera_inverse():
