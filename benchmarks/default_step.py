@@ -123,21 +123,11 @@ def attribute(trace_dir: str, hlo_text: str, steps: int) -> dict[str, float]:
   return dict(totals.most_common())
 
 
-def main() -> None:
-  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument("--data", default="outputs/synthetic_re10k")
-  parser.add_argument("--rounds", type=int, default=40)
-  parser.add_argument("--profile", action="store_true")
-  parser.add_argument(
-    "--model", nargs="*", default=[], help="ModelConfig overrides, e.g. matmul_dtype=bfloat16"
-  )
-  parser.add_argument("--checkout", default=None, help="time the code of this git checkout")
-  process = this_checkouts_process()
-  process.add_arguments(parser)
-  args = parser.parse_args()
-  process.setup(host_memory=args.host_memory)
-  if args.checkout:
-    use_checkout(args.checkout)
+def timed_steps(params, loss_fn, optim, batches):
+  """The sharded train step of `loss_fn`, compiled once on 4 real batches of `batches`:
+  `(run, compiled)`, where `run(rounds)` steps that many times, cycling the batches, and returns
+  the wall and process-CPU milliseconds of each step."""
+  # Imported here, not at the top, so that `--checkout` can choose where they come from.
   from tokengs_jax.train import (
     Precision,
     create_train_state,
@@ -148,8 +138,6 @@ def main() -> None:
     shard_batch,
   )
 
-  overrides = {key: _value(text) for key, text in (item.split("=", 1) for item in args.model)}
-  params, loss_fn, optim, batches = default_training(args.data, overrides)
   optimizer, mesh = make_optimizer(optim), make_mesh()
   state = jax.jit(
     lambda p: create_train_state(p, optimizer, 0), out_shardings=NamedSharding(mesh, P())
@@ -170,6 +158,26 @@ def main() -> None:
       cpu.append(time.process_time() - start_cpu)
     return 1e3 * np.asarray(wall), 1e3 * np.asarray(cpu)
 
+  return run, compiled
+
+
+def main() -> None:
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument("--data", default="outputs/synthetic_re10k")
+  parser.add_argument("--rounds", type=int, default=40)
+  parser.add_argument("--profile", action="store_true")
+  parser.add_argument(
+    "--model", nargs="*", default=[], help="ModelConfig overrides, e.g. matmul_dtype=bfloat16"
+  )
+  parser.add_argument("--checkout", default=None, help="time the code of this git checkout")
+  process = this_checkouts_process()
+  process.add_arguments(parser)
+  args = parser.parse_args()
+  process.setup(host_memory=args.host_memory)
+  if args.checkout:
+    use_checkout(args.checkout)
+  overrides = {key: _value(text) for key, text in (item.split("=", 1) for item in args.model)}
+  run, compiled = timed_steps(*default_training(args.data, overrides))
   run(5)
   wall, cpu = run(args.rounds)
   print(

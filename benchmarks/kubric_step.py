@@ -18,13 +18,9 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import tempfile
-import time
 
-import jax
 import numpy as np
-from default_step import this_checkouts_process, use_checkout
-from jax.sharding import NamedSharding
-from jax.sharding import PartitionSpec as P
+from default_step import this_checkouts_process, timed_steps, use_checkout
 
 
 def kubric_training(data_dir: str, num_scenes: int):
@@ -60,33 +56,9 @@ def main() -> None:
   process.setup(host_memory=args.host_memory)
   if args.checkout:
     use_checkout(args.checkout)
-  from tokengs_jax.train import (
-    Precision,
-    create_train_state,
-    make_mesh,
-    make_optimizer,
-    make_train_step,
-    replicate,
-    shard_batch,
-  )
-
-  params, loss_fn, optim, batches = kubric_training(args.data, args.scenes)
-  optimizer, mesh = make_optimizer(optim), make_mesh()
-  state = jax.jit(
-    lambda p: create_train_state(p, optimizer, 0), out_shardings=NamedSharding(mesh, P())
-  )(replicate(params, mesh))
-  step = make_train_step(loss_fn, optimizer, mesh, precision=Precision())
-  examples = [shard_batch(next(batches), mesh) for _ in range(4)]
-  key = jax.random.key(0)
-  compiled = step.lower(state, examples[0], key).compile()
-  wall, cpu = [], []
-  for r in range(5 + args.rounds):  # the first 5 warm up
-    start, start_cpu = time.perf_counter(), time.process_time()
-    state, _ = compiled(state, examples[r % len(examples)], key)
-    jax.block_until_ready(state)
-    wall.append(time.perf_counter() - start)
-    cpu.append(time.process_time() - start_cpu)
-  wall, cpu = 1e3 * np.asarray(wall[5:]), 1e3 * np.asarray(cpu[5:])
+  run, _ = timed_steps(*kubric_training(args.data, args.scenes))
+  run(5)
+  wall, cpu = run(args.rounds)
   print(
     f"kubric train step: wall ms min {wall.min():.1f} median {np.median(wall):.1f} | "
     f"CPU ms min {cpu.min():.1f} median {np.median(cpu):.1f}"
