@@ -23,6 +23,7 @@ process.setup(
 )
 
 FIXTURES = pathlib.Path(__file__).resolve().parent.parent.parent / "shared" / "fixtures"
+OFFICIAL_OPTIONS = FIXTURES.parent / "reference" / "tokengs-official" / "tokengs" / "options.py"
 
 
 def reference_fixture(*parts: str) -> pathlib.Path:
@@ -33,6 +34,22 @@ def reference_fixture(*parts: str) -> pathlib.Path:
   if not path.exists():
     pytest.skip(f"reference fixture {path} is absent (../shared/fixtures is not beside the repo)")
   return path
+
+
+@pytest.fixture(scope="session")
+def official():
+  """The official `tokengs/options.py` module, imported (its presets and defaults are what the
+  presets here are checked against); skips where `../shared/reference` is absent."""
+  import importlib.util
+  import sys
+
+  if not OFFICIAL_OPTIONS.exists():
+    pytest.skip(f"the official options {OFFICIAL_OPTIONS} are absent (no ../shared/reference)")
+  spec = importlib.util.spec_from_file_location("official_tokengs_options", OFFICIAL_OPTIONS)
+  module = importlib.util.module_from_spec(spec)
+  sys.modules[spec.name] = module  # dataclasses look their module up while building
+  spec.loader.exec_module(module)
+  return module
 
 
 @pytest.fixture(scope="session")

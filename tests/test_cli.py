@@ -2,37 +2,13 @@
 presets that reproduce official ones resolving to the official values (issue 26)."""
 
 import dataclasses
-import importlib.util
 import inspect
-import pathlib
-import sys
 
 import pytest
 
 from experiments import cli, data, dl3dv, re10k, tasks
 from tokengs_jax import model
 from tokengs_jax.data.kubric import kubric_view_selector
-
-OFFICIAL_OPTIONS = (
-  pathlib.Path(__file__).resolve().parents[2]
-  / "shared"
-  / "reference"
-  / "tokengs-official"
-  / "tokengs"
-  / "options.py"
-)
-
-
-@pytest.fixture(scope="module")
-def official():
-  """The official `tokengs/options.py` module (skips where the reference is absent)."""
-  if not OFFICIAL_OPTIONS.exists():
-    pytest.skip(f"the official options {OFFICIAL_OPTIONS} are absent (no ../shared/reference)")
-  spec = importlib.util.spec_from_file_location("official_tokengs_options_cli", OFFICIAL_OPTIONS)
-  module = importlib.util.module_from_spec(spec)
-  sys.modules[spec.name] = module  # dataclasses look their module up while building
-  spec.loader.exec_module(module)
-  return module
 
 
 def _official_steps(options) -> int:

@@ -3,9 +3,6 @@ under the official preset names, the opacity regulariser, input-view supervision
 settings refused at parse time."""
 
 import dataclasses
-import importlib.util
-import pathlib
-import sys
 import types
 
 import jax
@@ -25,14 +22,6 @@ from tokengs_jax.objective import (
   time_conditioned_loss,
 )
 
-OFFICIAL_OPTIONS = (
-  pathlib.Path(__file__).resolve().parents[2]
-  / "shared"
-  / "reference"
-  / "tokengs-official"
-  / "tokengs"
-  / "options.py"
-)
 
 # official Options field -> TrainSettings field
 LOSS_FIELDS = {
@@ -54,18 +43,6 @@ OFFICIAL_PRESETS = {
     for stage, command in (("finetune", "finetune"), ("eval", "eval"))
   },
 }
-
-
-@pytest.fixture(scope="module")
-def official():
-  """The official `tokengs/options.py` module (skips where the reference is absent)."""
-  if not OFFICIAL_OPTIONS.exists():
-    pytest.skip(f"the official options {OFFICIAL_OPTIONS} are absent (no ../shared/reference)")
-  spec = importlib.util.spec_from_file_location("official_tokengs_options", OFFICIAL_OPTIONS)
-  module = importlib.util.module_from_spec(spec)
-  sys.modules[spec.name] = module  # dataclasses look their module up while building
-  spec.loader.exec_module(module)
-  return module
 
 
 def test_default_loss_settings_are_the_official_defaults(official):
