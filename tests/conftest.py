@@ -10,6 +10,7 @@ import pathlib
 
 import jax
 import pytest
+from PIL import ImageFile
 
 from tokengs_jax import process
 
@@ -59,3 +60,13 @@ def tiny():
 
   config = preset("tiny")
   return config, init_params(jax.random.PRNGKey(0), config)
+
+
+@pytest.fixture
+def no_pixel_decoding(monkeypatch):
+  """Fails a test that decodes pixels (and spares the memory a refused header would have cost)."""
+
+  def decode(image):
+    raise AssertionError(f"{image.size[0]}x{image.size[1]} pixels decoded")
+
+  monkeypatch.setattr(ImageFile.ImageFile, "load", decode)

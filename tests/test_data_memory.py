@@ -5,18 +5,16 @@ Allocations are measured with tracemalloc (numpy reports its buffers to it), whi
 this process's Python and numpy allocations: deterministic, unlike the resident set size."""
 
 import gc
-import io
 import json
 import os
 import re
 import struct
 import tracemalloc
 import zipfile
-import zlib
 
 import numpy as np
 import pytest
-from PIL import Image, ImageFile
+from image_bytes import declaring_more_pixels, encoded
 
 from tokengs_jax.data import ChunkedSceneSource, DL3DVError, DL3DVSceneSource, chunks, kubric
 from tokengs_jax.data.chunks import ChunkError
@@ -146,34 +144,6 @@ def test_a_compressed_record_is_inflated_into_one_buffer(tmp_path):
 # they are read or decoded, by every reader, and errors name the frame, not PIL's buffer
 
 
-def _declaring_more_pixels(data: bytes, height: int, width: int) -> bytes:
-  """A small JPEG or PNG whose header declares `height` x `width` (its pixels are not there)."""
-  data = bytearray(data)
-  if data.startswith(b"\x89PNG"):  # IHDR: width, height, then a CRC over type and data
-    data[16:24] = struct.pack(">II", width, height)
-    data[29:33] = struct.pack(">I", zlib.crc32(data[12:29]))
-  else:  # baseline JPEG start of frame: marker, length, precision, height, width
-    start = data.index(b"\xff\xc0")
-    data[start + 5 : start + 9] = struct.pack(">HH", height, width)
-  return bytes(data)
-
-
-def _encoded(format_name: str) -> bytes:
-  buffer = io.BytesIO()
-  Image.new("RGB", (8, 8)).save(buffer, format=format_name)
-  return buffer.getvalue()
-
-
-@pytest.fixture
-def no_pixel_decoding(monkeypatch):
-  """Fails a test that decodes pixels (and spares the memory a refused header would have cost)."""
-
-  def decode(image):
-    raise AssertionError(f"{image.size[0]}x{image.size[1]} pixels decoded")
-
-  monkeypatch.setattr(ImageFile.ImageFile, "load", decode)
-
-
 def _forge_frame_length(path, actual: int, declared: int):
   """Rewrites the chunk's pickle so the frame tensor of `actual` bytes declares `declared`: a
   frame record that large, read, is the 255 MiB garbage frame PIL scanned for 17 s (0.5 GB)."""
@@ -215,7 +185,7 @@ def test_a_chunk_frame_declaring_more_pixels_than_the_bound_is_refused_at_the_sc
 ):
   record = _record("huge")
   record["images"][0] = np.frombuffer(
-    _declaring_more_pixels(bytes(record["images"][0]), 6000, 6000), np.uint8
+    declaring_more_pixels(bytes(record["images"][0]), 6000, 6000), np.uint8
   )
   chunks.save_tensor_archive(tmp_path / "000000.torch", [record])
   (rejection,) = chunks.scan_chunk(tmp_path / "000000.torch")
@@ -223,15 +193,6 @@ def test_a_chunk_frame_declaring_more_pixels_than_the_bound_is_refused_at_the_sc
     "scene 'huge' frame 0: the header declares 6000x6000 pixels, more than MAX_FRAME_PIXELS "
     "33554432"
   )
-
-
-@pytest.mark.parametrize("format_name", ["JPEG", "PNG"])
-def test_an_image_pil_only_warns_about_is_refused_before_decoding(format_name, no_pixel_decoding):
-  # 100M pixels: PIL warns (above 89M) but decodes; a 631-byte JPEG took 1.3 GB
-  data = _declaring_more_pixels(_encoded(format_name), 10_000, 10_000)
-  with pytest.warns(Image.DecompressionBombWarning):
-    with pytest.raises(ChunkError, match=r"^c scene 's' frame 3: the header declares 10000x10000"):
-      chunks.decode_jpeg(data, where="c scene 's' frame 3")
 
 
 def _dl3dv_scene(root, image: bytes):
@@ -245,7 +206,7 @@ def _dl3dv_scene(root, image: bytes):
 
 
 def test_a_dl3dv_frame_over_either_bound_is_refused_before_it_is_read(tmp_path, no_pixel_decoding):
-  _dl3dv_scene(tmp_path / "pixels", _declaring_more_pixels(_encoded("PNG"), 6000, 6000))
+  _dl3dv_scene(tmp_path / "pixels", declaring_more_pixels(encoded("PNG"), 6000, 6000))
   with pytest.raises(DL3DVError, match=r"f\.png \(scene 's'\): the header declares 6000x6000"):
     DL3DVSceneSource(tmp_path / "pixels")[0]
   frame = _dl3dv_scene(tmp_path / "bytes", b"")
@@ -263,7 +224,7 @@ def _kubric_view(path, data: bytes, declared_bytes: int):
 
 
 def test_a_kubric_frame_over_either_bound_is_refused_before_it_is_read(tmp_path, no_pixel_decoding):
-  data = _declaring_more_pixels(_encoded("PNG"), 6000, 6000)
+  data = declaring_more_pixels(encoded("PNG"), 6000, 6000)
   view = _kubric_view(tmp_path / "pixels.tar", data, len(data))
   with pytest.raises(kubric.KubricError, match=r"png: the header declares 6000x6000 pixels"):
     kubric.decode_member(view, "rgba_00000.png", (8, 8))
@@ -272,28 +233,10 @@ def test_a_kubric_frame_over_either_bound_is_refused_before_it_is_read(tmp_path,
     kubric.decode_member(view, "rgba_00000.png", (8, 8))
 
 
-def test_image_errors_name_the_frame_and_are_the_same_every_run():
-  # PIL's message named `<_io.BytesIO object at 0x...>`, another address in every run
-  where = "c.torch scene 's' frame 0"
-  for read in (chunks.jpeg_size, chunks.decode_jpeg):
-    with pytest.raises(ChunkError) as error:
-      read(b"not an image", where=where)
-    assert str(error.value) == (
-      f"{where}: corrupt image (not a JPEG / PNG / TIFF file: no format recognises its header)"
-    )
-
-
-@pytest.mark.parametrize("format_name", ["GIF", "BMP", "ICO"])
-def test_only_the_formats_datasets_ship_are_opened(format_name):
-  # every format PIL registers would otherwise parse untrusted bytes (EPS runs Ghostscript)
-  with pytest.raises(ChunkError, match=r"^f: corrupt image \(not a JPEG / PNG / TIFF file"):
-    chunks.decode_jpeg(_encoded(format_name), where="f")
-
-
 def test_a_depth_map_in_an_example_is_bounded_like_every_frame(no_pixel_decoding):
   from tokengs_jax.data import pipeline
 
-  depth = _declaring_more_pixels(_encoded("PNG"), 6000, 6000)  # encoded, as a record holds it
+  depth = declaring_more_pixels(encoded("PNG"), 6000, 6000)  # encoded, as a record holds it
   record = {"key": "s", "path": "c.torch", "height": 8, "width": 8, "depths": [depth]}
   with pytest.raises(pipeline.BadExampleError, match=r"depth 0: the header declares 6000x6000"):
     pipeline._depth(record, 0)
