@@ -1,9 +1,10 @@
 """The shipped weights (experiments/pretrained/): intact, and exactly what the defaults load.
 
 The commands that trained them (`python -m experiments.re10k run pretrain`, `python -m
-experiments.kubric run pretrain`) run at a small scale in `tests/test_experiments.py`
-(`test_entry_point_end_to_end`, which also ships its output the same way, and
-`test_kubric_entry_point_end_to_end`, which starts from static weights as the Kubric one does).
+experiments.kubric run pretrain`) run at a small scale in `tests/test_re10k.py`
+(`test_entry_point_end_to_end`, which also ships its output the same way) and
+`tests/test_kubric_entry_point.py` (`test_kubric_entry_point_end_to_end`, which starts from static
+weights as the Kubric one does).
 """
 
 import dataclasses

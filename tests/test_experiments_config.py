@@ -1,0 +1,69 @@
+"""experiments/config.py: a recorded experiment read back (`config.from_fields`), and
+`eval --from-run`, which builds on it (the rest of the command line: test_cli). Named
+`test_experiments_<module>` as `test_config` would read as a `tokengs_jax` module's."""
+
+import dataclasses
+import json
+
+import pytest
+
+from experiments import cli, re10k
+
+
+def test_recorded_settings_of_every_preset_read_back_as_they_were():
+  """`config.from_fields` rebuilds an experiment from its metrics.json record (JSON lists back
+  to tuples, nested settings, a Kubric experiment's own fields)."""
+  from experiments import config, dl3dv, kubric
+
+  for presets in (re10k.PRESETS, dl3dv.PRESETS, kubric.PRESETS):
+    for preset in presets.values():
+      recorded = json.loads(json.dumps(dataclasses.asdict(preset), default=str))
+      assert config.from_fields(type(preset), recorded) == preset
+  with pytest.raises(ValueError, match="no fields.*'frames'"):
+    config.from_fields(config.Experiment, {"frames": 3})
+
+
+def test_eval_from_run_takes_the_recorded_settings_and_flags_override_them(tmp_path):
+  """`eval --from-run RUN_DIR`: the experiment the run recorded in its metrics.json, scoring its
+  trained weights (`params.msgpack`, when it trained; else the weights it evaluated) into
+  RUN_DIR/eval/; flags override it. Another command, or a folder without metrics.json, refuses."""
+  smoke = re10k.PRESETS["smoke"]
+  run = tmp_path / "run"
+  recorded = dataclasses.replace(
+    smoke,
+    output_dir=str(run),
+    official_checkpoint="w.safetensors",
+    eval=dataclasses.replace(smoke.eval, num_scenes=1, media_scenes=3),
+  )
+  run.mkdir()
+  payload = {"experiment": dataclasses.asdict(recorded)}
+  (run / "metrics.json").write_text(json.dumps(payload, default=str))
+
+  def parse(*argv):
+    return cli.parse(list(argv), re10k.PRESETS, "synthetic-tiny", "prog")
+
+  assert parse("eval", "--from-run", str(run)) == (
+    "eval",
+    dataclasses.replace(recorded, output_dir=str(run / "eval")),
+  )
+  (run / "params.msgpack").write_bytes(b"")
+  command, experiment = parse(
+    "eval", f"--from-run={run}", "--eval.num-scenes", "4", "--output-dir", str(tmp_path / "x")
+  )
+  assert experiment == dataclasses.replace(
+    recorded,
+    checkpoint=str(run / "params.msgpack"),
+    official_checkpoint=None,
+    output_dir=str(tmp_path / "x"),
+    eval=dataclasses.replace(recorded.eval, num_scenes=4),
+  )
+  with pytest.raises(SystemExit, match="eval --from-run"):
+    parse("run", "--from-run", str(run))
+  with pytest.raises(SystemExit, match="metrics.json"):
+    parse("eval", "--from-run", str(tmp_path))
+  from experiments import kubric
+
+  kubric_run = {"experiment": dataclasses.asdict(kubric.PRESETS["synthetic-tiny"])}
+  (run / "metrics.json").write_text(json.dumps(kubric_run, default=str))
+  with pytest.raises(SystemExit, match="records no Experiment.*another entry point"):
+    parse("eval", "--from-run", str(run))

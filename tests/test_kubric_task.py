@@ -1,0 +1,146 @@
+"""experiments/kubric_task.py: the Kubric presets' loss (the official release's, scaled to the run;
+the common `--train.*` flags) and its synthetic subsets (published whole, stamped, rewritten when
+their settings change)."""
+
+import dataclasses
+import json
+import re
+import shutil
+
+import pytest
+
+from experiments import cli
+from small_experiments import tiny_kubric as _tiny_kubric
+
+
+def test_kubric_loss_is_the_official_release_scaled_to_the_run():
+  from experiments import kubric
+  from experiments.kubric_task import KubricTask
+
+  paper = kubric.PRESETS["paper"]
+  config = KubricTask().loss_config(paper)
+  assert (config.rgb_loss, config.lambda_rgb, config.lambda_ssim, config.lambda_vis) == (
+    "l1",
+    0.8,
+    0.2,
+    1.0,
+  )
+  # official release: 0.3 held for 5k steps, decayed to 0 over 10k (of 50k finetuning steps)
+  assert (
+    config.lambda_dyn_aux,
+    config.dyn_aux_hold_steps,
+    config.dyn_aux_decay_steps,
+    config.dyn_aux_min,
+  ) == (0.3, 5_000, 10_000, 0.0)
+  assert (config.lambda_motion, config.dyn_aux_on_motion) == (0.0, False)
+  tiny = kubric.PRESETS["pretrain"]  # what trained the default's shipped weights
+  config = KubricTask().loss_config(tiny)
+  # the default's deviations: moving pixels x5, the auxiliary term on them, held all run
+  assert (config.lambda_motion, config.dyn_aux_on_motion) == (4.0, True)
+  assert config.dyn_aux_hold_steps == tiny.train.steps
+  assert config.dyn_aux_decay_steps == round(0.2 * tiny.train.steps)
+  # token tuning's input views moved nowhere: the official auxiliary term
+  assert not KubricTask().tuning_loss_config(tiny).dyn_aux_on_motion
+  assert KubricTask().objective(tiny).decode_times == "first"
+  mse = dataclasses.replace(tiny, train=dataclasses.replace(tiny.train, rgb_loss="l2"))
+  assert KubricTask().loss_config(mse).rgb_loss == "l2"
+
+
+def _refusal(capsys, parse, *argv) -> str:
+  """What the command line says, on one line, as it refuses `argv` (tyro's boxed message)."""
+  with pytest.raises(SystemExit):
+    parse(*argv)
+  return " ".join(re.sub("[\u2500-\u257f]", " ", capsys.readouterr().err).split())
+
+
+def test_kubric_presets_keep_their_loss_and_honour_the_common_train_flags(capsys):
+  """The loss terms moved to `train` (issue 26): each preset's loss is the one it had (by hand:
+  the official release's L1 x 0.8 + SSIM x 0.2 + visibility x 1 and the auxiliary term), the
+  common `--train.*` loss flags now change Kubric's loss, and a record of a run from before the
+  move reads back to the loss it trained with."""
+  from experiments import config, kubric
+  from experiments.kubric_task import KubricExperiment, KubricTask
+  from tokengs_jax.losses import LossConfig
+
+  release = dict(rgb_loss="l1", lambda_rgb=0.8, lambda_ssim=0.2, lambda_vis=1.0)
+  pretrain = dict(release, lambda_dyn_aux=0.3, lambda_motion=4.0, dyn_aux_on_motion=True)
+  expected = {
+    "pretrain": LossConfig(**pretrain, dyn_aux_hold_steps=1200, dyn_aux_decay_steps=240),
+    # 0 steps: nothing to hold, the decay's one-step floor
+    "synthetic-tiny": LossConfig(**pretrain, dyn_aux_hold_steps=0, dyn_aux_decay_steps=1),
+    "paper": LossConfig(
+      **release, lambda_dyn_aux=0.3, dyn_aux_hold_steps=5_000, dyn_aux_decay_steps=10_000
+    ),
+  }
+  for name, loss in expected.items():
+    assert KubricTask().loss_config(kubric.PRESETS[name]) == loss, name
+  assert KubricTask().loss_config(KubricExperiment()).lambda_rgb == 0.8  # the release's default
+
+  def parse(*argv):
+    return cli.parse(list(argv), kubric.PRESETS, "synthetic-tiny", "prog")[1]
+
+  flags = ("--train.lambda-ssim", "0.5", "--train.rgb-loss", "l2", "--train.lambda-opacity", "0.1")
+  loss = KubricTask().loss_config(parse("run", "paper", *flags))
+  assert loss == dataclasses.replace(
+    expected["paper"], lambda_ssim=0.5, rgb_loss="l2", lambda_opacity=0.1
+  )
+  tuned = parse("--train.use-input-supervision")
+  assert KubricTask().objective(tuned).use_input_supervision
+  assert "Unrecognized" in _refusal(capsys, parse, "--rgb-loss", "l2")  # the duplicate flag
+  said = _refusal(capsys, parse, "--train.lambda-depth", "0.1")
+  assert "lambda_depth must be 0 on Kubric" in said
+  assert "dyn_aux_on_motion needs lambda_motion" in _refusal(capsys, parse, "--lambda-motion", "0")
+
+  old = json.loads(json.dumps(dataclasses.asdict(kubric.PRESETS["pretrain"]), default=str))
+  old["rgb_loss"] = "l2"  # recorded top-level, and train's unused photometric weights
+  old["train"].update(rgb_loss="l2", lambda_rgb=1.0, lambda_ssim=0.2, lambda_opacity=0.3)
+  read = config.from_fields(KubricExperiment, old)
+  assert KubricTask().loss_config(read) == dataclasses.replace(expected["pretrain"], rgb_loss="l2")
+
+
+def test_kubric_synthetic_subsets_are_published_whole_stamped_and_rewritten_when_changed(
+  tmp_path, monkeypatch
+):
+  """Each subset goes through `data.ensure_generated_set`: reused under the same settings,
+  written anew under others, never left half-written, and refused when it records none."""
+  from experiments import kubric_task
+
+  task, experiment = kubric_task.KubricTask(), _tiny_kubric(tmp_path)
+  root = task.root(experiment)
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]  # no staging folder left
+  assert sorted(p.name for p in root.iterdir()) == ["test", "v0"]
+  stamp = json.loads((root / "v0" / "generator.json").read_text())
+  assert stamp["generator"] == "generate_kubric_like" and stamp["seed"] == experiment.seed
+  for subset in ("v0", "test"):
+    (root / subset / "kept").touch()
+  task.root(experiment)  # the same settings: both subsets reused
+  assert (root / "v0" / "kept").exists() and (root / "test" / "kept").exists()
+
+  reseeded = dataclasses.replace(experiment, seed=experiment.seed + 1)
+  task.root(reseeded)  # another seed: both subsets written anew, nothing left aside
+  assert not (root / "v0" / "kept").exists() and not (root / "test" / "kept").exists()
+  assert json.loads((root / "v0" / "generator.json").read_text())["seed"] == reseeded.seed
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
+  assert sorted(p.name for p in root.iterdir()) == ["test", "v0"]
+  more = dataclasses.replace(
+    reseeded, synthetic=dataclasses.replace(reseeded.synthetic, num_train=2)
+  )
+  assert len(task.sources(more)[0]) == 2
+
+  def interrupted(staging, subset, **arguments):
+    (staging / subset / "scene_000000").mkdir(parents=True)
+    raise RuntimeError("interrupted")
+
+  shutil.rmtree(root / "v0")  # missing: the next call writes it
+  monkeypatch.setattr(kubric_task, "generate_kubric_like", interrupted)
+  with pytest.raises(RuntimeError, match="interrupted"):
+    task.root(more)
+  assert not (root / "v0").exists()  # the half-written subset was never published
+  monkeypatch.undo()
+  assert len(task.sources(more)[0]) == 2
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
+
+  (root / "v0" / "generator.json").unlink()  # a subset from before the settings were recorded
+  with pytest.raises(ValueError, match="not recorded.*another --synthetic-dir"):
+    task.root(more)
+  assert (root / "v0" / "scene_000000").exists()  # refused, not deleted
