@@ -424,9 +424,13 @@ def test_a_gaussian_hidden_in_every_view_keeps_the_views_colours():
   np.testing.assert_allclose(np.asarray(tested[0, 1, 11]), 0.2, atol=1e-5)
 
 
-def test_the_occlusion_tolerance_is_checked():
+def test_the_occlusion_tolerance_and_the_sharpnesses_are_checked():
   with pytest.raises(ValueError, match="input_occlusion_tolerance"):
     model.preset("tiny", input_occlusion_tolerance=-0.1)
+  with pytest.raises(ValueError, match="dynamic_colour_sharpness"):
+    model.preset("tiny", dynamic_colour_sharpness=float("nan"))
+  with pytest.raises(ValueError, match="viewer_colour_sharpness"):
+    model.preset("tiny", viewer_colour_sharpness=float("inf"))
   assert model.preset("tiny", input_occlusion_tolerance=0.1).input_occlusion_tolerance == 0.1
 
 

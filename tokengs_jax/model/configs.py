@@ -152,6 +152,10 @@ class ModelConfig:
       raise ValueError(
         f"input_occlusion_tolerance must be None or >= 0, got {self.input_occlusion_tolerance!r}"
       )
+    for name in ("viewer_colour_sharpness", "dynamic_colour_sharpness"):
+      value = getattr(self, name)
+      if value is not None and not math.isfinite(value):
+        raise ValueError(f"{name} must be finite, got {value!r}")
     if self.matmul_dtype not in (None, "float32", "bfloat16"):
       raise ValueError(
         f"matmul_dtype must be None, 'float32' or 'bfloat16', got {self.matmul_dtype!r}"
