@@ -259,6 +259,12 @@ class Experiment:
     checkpoint: a `params.msgpack` to evaluate, or to start finetuning from.
     official_checkpoint: official `.safetensors` weights (eval / finetune start).
     seed: initialisation, data order and view sampling.
+    normalization: the frame the cameras are expressed in (official
+      `camera_normalization_method`), for training and evaluation alike: "first_cam" (the first
+      input camera's) or "mean_cam" (the input cameras' mean pose; the official DL3DV latent
+      presets); None: the dataset's default (`first_cam` for RE10K, DL3DV and the synthetic set).
+      The translation scale method is not a setting: every official RE10K / DL3DV preset uses
+      `constant` (issue 26).
   """
 
   dataset: Literal["re10k", "dl3dv"] = "re10k"
@@ -270,6 +276,7 @@ class Experiment:
   checkpoint: str | None = None
   official_checkpoint: str | None = None
   seed: int = 0
+  normalization: Literal["first_cam", "mean_cam"] | None = None
   synthetic: SyntheticSettings = SyntheticSettings()
   train: TrainSettings = TrainSettings()
   eval: EvalSettings = EvalSettings()

@@ -316,6 +316,8 @@ def example_config(experiment: Experiment, *, training: bool) -> ExampleConfig:
     config = ExampleConfig(
       experiment.image_size, sampler, DATASET_PRESETS["re10k"].translation_scale
     )
+  if experiment.normalization is not None:  # None: the preset's camera frame
+    config = dataclasses.replace(config, normalization=experiment.normalization)
   if not training:
     config = dataclasses.replace(config, random_flip=False, deterministic=True)
   elif t.lambda_depth > 0:

@@ -35,8 +35,9 @@ Presets:
 - `paper-latent-{2,4,6}view-{ssim,lpips}`: the official 2026.6 latent-bottleneck release
   (`finetune_dl3dv_latent_<N>view_<loss>` under `finetune`, `eval_dl3dv_latent_<N>view_<loss>`
   under `eval`): the `dl3dv_latent_<N>view` model, 6 / 4 / 4 targets (official 8 / 8 / 10
-  views), the SSIM variant's loss 0.8 L1 + 0.2 SSIM or the LPIPS variant's MSE + 0.5 LPIPS, and
-  scene-latent tuning at lr 1e-2 when evaluating.
+  views), the SSIM variant's loss 0.8 L1 + 0.2 SSIM or the LPIPS variant's MSE + 0.5 LPIPS,
+  cameras in the `mean_cam` frame (`--normalization`), and scene-latent tuning at lr 1e-2 when
+  evaluating.
 """
 
 from __future__ import annotations
@@ -88,6 +89,7 @@ for _views in (2, 4, 6):
       _paper,
       output_dir=f"outputs/dl3dv/paper_latent_{_views}view_{_name}",
       model=model.preset(f"dl3dv_latent_{_views}view"),
+      normalization="mean_cam",  # official `_LATENT_D12_ARCH` (issue 26)
       train=dataclasses.replace(
         _paper.train, num_target_views=_LATENT_VIEWS[_views] - _views, **_loss
       ),

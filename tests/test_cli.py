@@ -171,3 +171,47 @@ def test_kubric_pointmap_trim_flags_reach_the_examples_and_bad_ones_are_refused(
   with pytest.raises((SystemExit, ValueError)) as error:
     cli.parse(["run", "paper", *bad], kubric.PRESETS, "paper", "p")
   assert "pointmap_trim_lo" in str(error.value) + capsys.readouterr().err
+
+
+# our static presets that reproduce official ones: official preset -> (entry point module, preset)
+_STATIC_PRESETS_OF_OFFICIAL = {
+  "train_dl3dv_base": "paper-base",
+  **{f"finetune_dl3dv_{v}view": f"paper-{v}view" for v in (2, 4, 6)},
+  **{f"eval_dl3dv_{v}view": f"paper-{v}view" for v in (2, 4, 6)},
+  **{
+    f"{stage}_dl3dv_latent_{v}view_{loss}": f"paper-latent-{v}view-{loss}"
+    for stage in ("finetune", "eval")
+    for v in (2, 4, 6)
+    for loss in ("ssim", "lpips")
+  },
+}
+
+
+@pytest.mark.parametrize("official_name", sorted(_STATIC_PRESETS_OF_OFFICIAL))
+def test_static_presets_use_the_official_camera_normalisation(official, official_name):
+  """Issue 26: each preset's camera frame and translation-scale mode are its official preset's,
+  for training and evaluation alike."""
+  options = official.config_defaults[official_name]
+  experiment = dl3dv.PRESETS[_STATIC_PRESETS_OF_OFFICIAL[official_name]]
+  for training in (True, False):
+    example = data.example_config(experiment, training=training)
+    assert example.normalization == options.camera_normalization_method
+    assert example.scale_method == options.camera_scale_method
+  assert (experiment.normalization == "mean_cam") == (
+    options.camera_normalization_method == "mean_cam"
+  )
+
+
+@pytest.mark.parametrize("normalization", ["first_cam", "mean_cam"])
+def test_normalization_flag_reaches_the_example_config(normalization):
+  for presets, name in ((re10k.PRESETS, "synthetic-tiny"), (dl3dv.PRESETS, "paper-2view")):
+    _, experiment = cli.parse(
+      ["train", name, "--normalization", normalization], presets, name, "prog"
+    )
+    assert experiment.normalization == normalization
+    for training in (True, False):
+      assert data.example_config(experiment, training=training).normalization == normalization
+  # unset: the dataset's default frame
+  default = data.example_config(re10k.PRESETS["synthetic-tiny"], training=True)
+  assert re10k.PRESETS["synthetic-tiny"].normalization is None
+  assert default.normalization == "first_cam"
