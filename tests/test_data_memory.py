@@ -117,9 +117,14 @@ def test_cached_rejections_hold_no_traceback_nor_the_arrays_of_their_scenes(tmp_
     assert source.rejections.counts == {"bad_scene": 6}
     return source, source[0]
 
-  (source, scene), _, held = _peak_and_current(read_the_good_scene)
-  assert scene["key"] == "good"
+  # the least of two reads: tracemalloc counts every thread's allocations, and threads an earlier
+  # test of the same worker left running once added 5 MB to one read (a full .ci/run); what the
+  # cached rejections hold is held by both reads alike
+  reads = [_peak_and_current(read_the_good_scene) for _ in range(2)]
+  assert all(scene["key"] == "good" for (_, scene), _, _ in reads)
+  held = min(held for _, _, held in reads)
   assert held < 2 * MiB
+  (source, _), _, _ = reads[-1]
   (cached,) = source._cache.values()
   rejections = [entry for entry in cached if isinstance(entry, ChunkError)]
   assert [error.scene_key for error in rejections] == [f"bad{i}" for i in range(6)]
