@@ -231,6 +231,7 @@ def test_dynamic_aux_on_objects_scores_the_dynamic_render_against_the_object_mas
   np.testing.assert_allclose(
     loss - 0.5 * terms["dyn_aux"], base_loss - 0.5 * base_terms["dyn_aux"], rtol=1e-5
   )
+  assert "objects_alpha" not in terms  # only the auxiliary render is scored on the objects
   # an empty mask: the alpha term alone asks the dynamic render to be transparent everywhere
   _, empty = loss_and_terms(on_objects, np.zeros_like(objects))
   _, full = loss_and_terms(on_objects, np.ones_like(objects))
@@ -245,7 +246,7 @@ def test_dynamic_aux_on_objects_scores_the_dynamic_render_against_the_object_mas
 
 
 def test_the_object_terms_are_the_masked_error_and_the_alpha_error():
-  """`_score_at_times` with "objects": objects_rgb is the error on the mask's pixels over all
+  """`_score_at_times` of the auxiliary render with "objects": objects_rgb is the error on the mask's pixels over all
   pixels, objects_alpha the render's alpha against the mask, each side averaged on its own."""
   from tokengs_jax.gaussians import Gaussians
   from tokengs_jax.objective.model_loss import _score_at_times
@@ -271,6 +272,7 @@ def test_the_object_terms_are_the_masked_error_and_the_alpha_error():
     objective=ObjectiveConfig(background=(0.0, 0.0, 0.0)),
     lpips_params=None,
     context_images=None,
+    auxiliary=True,
   )
   rendered = splatting.render(
     gaussians, w2c[:, :, None], intrinsics[:, :, None], height=16, width=16, background=jnp.zeros(3)

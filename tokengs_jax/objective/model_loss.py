@@ -163,17 +163,18 @@ def _score_at_times(
   objective: ObjectiveConfig,
   lpips_params,
   context_images,
-  coverage: bool = True,
+  auxiliary: bool = False,
 ):
   """Loss of Gaussians [B, Vc or 1, N] (one set per view time) rendered into a chunk's views.
 
   views: the chunk's "world_to_camera" [B, Vc, 4, 4], "intrinsics" [B, Vc, 4], "images"
   [B, Vc, H, W, 3] and, for the motion term, "moving" [B, Vc, H, W] (for the auxiliary loss
-  on the objects, "objects" [B, Vc, H, W]: terms "objects_rgb" and "objects_alpha"); world_to_camera
-  [B, V, 4, 4] / intrinsics [B, V, 4]: all the views, which the visibility term projects every
-  time's Gaussians into; context_images: the input views [B, Vi, H, W, 3] behind an
-  "input_mean" background, or None; coverage: add the coverage term (`add_coverage`), which a
-  render of part of the Gaussians (the dynamic auxiliary one) leaves out.
+  on the objects, "objects" [B, Vc, H, W]); world_to_camera [B, V, 4, 4] / intrinsics
+  [B, V, 4]: all the views, which the visibility term projects every time's Gaussians into;
+  context_images: the input views [B, Vi, H, W, 3] behind an "input_mean" background, or None;
+  auxiliary: a render of part of the Gaussians (the dynamic auxiliary one): no coverage term
+  (`add_coverage`), and where the views carry "objects" the terms "objects_rgb" and
+  "objects_alpha" that only this render is scored by.
   Returns `(loss, terms, render stats [B, Vc, 1])`.
   """
   from tokengs_jax import losses
@@ -196,7 +197,7 @@ def _score_at_times(
     )
     loss = loss + loss_config.lambda_rgb * loss_config.lambda_motion * terms["motion"]
     terms["loss"] = loss
-  if "objects" in views:
+  if auxiliary and "objects" in views:
     objects = views["objects"]
     terms["objects_rgb"] = losses.motion_loss(
       rendered.rgb[:, :, 0], views["images"], objects, loss_config.rgb_loss
@@ -208,7 +209,7 @@ def _score_at_times(
     background = 1.0 - objects
     off_objects = jnp.sum(background * jnp.square(alpha)) / jnp.maximum(jnp.sum(background), 1.0)
     terms["objects_alpha"] = on_objects + off_objects
-  if coverage:
+  if not auxiliary:
     loss, terms = add_coverage(loss, terms, rendered.alpha[:, :, 0], loss_config)
   # the Gaussians of each time against every view: [B, Vc or 1]
   loss, terms = add_visibility(
@@ -247,7 +248,7 @@ def _scored_with_dynamic_aux(
   _, dynamic = gaussians.static_and_dynamic(num_static_gaussians)
 
   def dynamic_loss():
-    loss, terms, _ = scored(dynamic, views, coverage=False)
+    loss, terms, _ = scored(dynamic, views, auxiliary=True)
     if loss_config.dyn_aux_on_motion:
       if "motion" not in terms:
         raise ValueError("dyn_aux_on_motion needs the views' moving pixels (`moving`)")
