@@ -60,6 +60,20 @@ def this_checkouts_process():
   return module
 
 
+def parse_and_set_up(parser):
+  """Adds `--checkout` and the process flags to a step benchmark's `parser`, parses the command
+  line, sets the process up and switches to that checkout's code: call it before importing
+  `tokengs_jax` or `experiments`. Returns the parsed arguments."""
+  parser.add_argument("--checkout", default=None, help="time the code of this git checkout")
+  process = this_checkouts_process()
+  process.add_arguments(parser)
+  args = parser.parse_args()
+  process.setup(host_memory=args.host_memory)
+  if args.checkout:
+    use_checkout(args.checkout)
+  return args
+
+
 def _value(text: str):
   """A `--model` override value: a Python literal (2, 0.3, None) or else the string itself."""
   try:
@@ -169,13 +183,7 @@ def main() -> None:
   parser.add_argument(
     "--model", nargs="*", default=[], help="ModelConfig overrides, e.g. matmul_dtype=bfloat16"
   )
-  parser.add_argument("--checkout", default=None, help="time the code of this git checkout")
-  process = this_checkouts_process()
-  process.add_arguments(parser)
-  args = parser.parse_args()
-  process.setup(host_memory=args.host_memory)
-  if args.checkout:
-    use_checkout(args.checkout)
+  args = parse_and_set_up(parser)
   overrides = {key: _value(text) for key, text in (item.split("=", 1) for item in args.model)}
   run, compiled = timed_steps(*default_training(args.data, overrides))
   run(5)

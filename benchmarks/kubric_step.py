@@ -20,7 +20,7 @@ import dataclasses
 import tempfile
 
 import numpy as np
-from default_step import this_checkouts_process, timed_steps, use_checkout
+from default_step import parse_and_set_up, timed_steps
 
 
 def kubric_training(data_dir: str, num_scenes: int):
@@ -49,13 +49,7 @@ def main() -> None:
   parser.add_argument("--data", default="outputs/kubric_step")
   parser.add_argument("--scenes", type=int, default=8)
   parser.add_argument("--rounds", type=int, default=20)
-  parser.add_argument("--checkout", default=None, help="time the code of this git checkout")
-  process = this_checkouts_process()
-  process.add_arguments(parser)
-  args = parser.parse_args()
-  process.setup(host_memory=args.host_memory)
-  if args.checkout:
-    use_checkout(args.checkout)
+  args = parse_and_set_up(parser)
   run, _ = timed_steps(*kubric_training(args.data, args.scenes))
   run(5)
   wall, cpu = run(args.rounds)
