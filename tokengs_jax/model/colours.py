@@ -110,7 +110,7 @@ class Occluders:
   """
 
   scenes: jax.Array
-  tolerance: float = flax.struct.field(pytree_node=False, default=0.1)
+  tolerance: float = flax.struct.field(pytree_node=False)
 
 
 def _hidden(occluders: Occluders, views: InputViews, uv: jax.Array, depth: jax.Array) -> jax.Array:
