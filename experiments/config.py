@@ -78,6 +78,10 @@ class TrainSettings:
       official LPIPS presets, `LPIPS_LOSS`: MSE + 0.5 LPIPS).
     lambda_opacity: weight of the opacity regulariser (`losses.opacity_loss`, official
       `lambda_opacity`: mean -log(opacity)); 0: off, as every official preset.
+    lambda_mask: weight of the foreground-mask term (`losses.mask_loss`, official `lambda_mask`:
+      mean squared error of the rendered alpha against the targets' masks); 0: off, as every
+      official preset. Needs data with masks: Kubric (its PNG alpha); RE10K, DL3DV and the
+      synthetic set refuse it on construction.
     use_input_supervision: also score the input views in the training loss (official
       `use_input_supervision`; `ObjectiveConfig.use_input_supervision`); off, as official.
     grad_accum_steps: micro-batches per optimiser step (gradient accumulation): each
@@ -116,6 +120,7 @@ class TrainSettings:
   lambda_rgb: float = 1.0
   lambda_ssim: float = 0.2
   lambda_opacity: float = 0.0
+  lambda_mask: float = 0.0
   use_input_supervision: bool = False
   grad_accum_steps: int = 1
   eval_every: int = 0
@@ -148,6 +153,7 @@ class TrainSettings:
       lambda_depth=self.lambda_depth,
       lambda_coverage=self.lambda_coverage,
       lambda_opacity=self.lambda_opacity,
+      lambda_mask=self.lambda_mask,
     )
 
 
@@ -280,6 +286,13 @@ class Experiment:
   synthetic: SyntheticSettings = SyntheticSettings()
   train: TrainSettings = TrainSettings()
   eval: EvalSettings = EvalSettings()
+
+  def __post_init__(self):
+    if self.train.lambda_mask > 0:  # at parse time, not at the first traced step
+      raise ValueError(
+        f"train.lambda_mask must be 0 on {self.dataset} (and the synthetic set): its examples "
+        "carry no foreground masks (Kubric's do: python -m experiments.kubric)"
+      )
 
   @property
   def image_size(self) -> tuple[int, int]:

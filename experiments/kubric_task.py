@@ -102,6 +102,11 @@ class KubricExperiment(Experiment):
       raise ValueError(
         "train.lambda_depth must be 0 on Kubric: its examples carry no true depth to supervise"
       )
+    if self.train.lambda_mask > 0 and self.train.use_input_supervision:
+      raise ValueError(
+        "train.lambda_mask needs every supervised view's foreground mask, and the examples carry "
+        "the targets' only: it excludes train.use_input_supervision"
+      )
     KubricTask().loss_config(self)  # the dynamic terms' checks, at parse time
     kubric_example_config(self, training=True)  # the examples' (the trim's), at parse time
     self._check_static_model()
@@ -147,7 +152,8 @@ class KubricExperiment(Experiment):
 def kubric_example_config(experiment: KubricExperiment, *, training: bool) -> ExampleConfig:
   """The official Kubric example preset (pointmap scale) at the experiment's image size, camera
   normalisation and pointmap trim; random flips only in training, where the targets' object
-  pixels come too when the auxiliary loss scores them."""
+  pixels come too when the auxiliary loss scores them, and the targets' foreground masks (their
+  PNG alpha) when `train.lambda_mask` does."""
   return dataclasses.replace(
     DATASET_PRESETS["kubric"],
     image_shape=tuple(experiment.image_size),
@@ -157,6 +163,8 @@ def kubric_example_config(experiment: KubricExperiment, *, training: bool) -> Ex
     random_flip=training,
     deterministic=not training,
     target_objects=training and experiment.dyn_aux_on_objects,
+    # read (a second decode of each target PNG) only when the mask loss scores them
+    target_masks=training and experiment.train.lambda_mask > 0,
   )
 
 

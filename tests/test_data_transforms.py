@@ -141,11 +141,12 @@ def test_depth_follows_the_image_crop_and_keeps_unknown_pixels_unknown():
     assert (resized[cropped[..., 0] == 0] == 0.0).all()
 
 
-@pytest.mark.parametrize("field", ["target_depths", "target_objects"])
+@pytest.mark.parametrize("field", ["target_depths", "target_objects", "target_masks"])
 def test_make_example_per_target_maps_follow_the_targets_images(field):
-  """`target_depths` (the record's depths, scaled as the cameras) and `target_objects` (its
-  segmentations > 0, float32) are the targets' maps, mirrored whenever the images are; absent
-  when not asked for; objects without segmentations are a bad example."""
+  """`target_depths` (the record's depths, scaled as the cameras), `target_objects` (its
+  segmentations > 0, float32) and `target_masks` (its alphas / 255) are the targets' maps,
+  mirrored whenever the images are; absent when not asked for; objects without segmentations
+  or masks without alphas are a bad example."""
   import dataclasses
 
   from tokengs_jax.data import BadExampleError, BoundedSamplerConfig, ExampleConfig, make_example
@@ -155,9 +156,12 @@ def test_make_example_per_target_maps_follow_the_targets_images(field):
   if field == "target_depths":
     stored, maps = "depths", rng.uniform(1.0, 5.0, (frames, height, width)).astype(np.float32)
     expected = 0.25 * maps[[2]]
-  else:
+  elif field == "target_objects":
     stored, maps = "segmentations", rng.integers(0, 3, (frames, height, width)).astype(np.int32)
     expected = (maps[[2]] > 0).astype(np.float32)
+  else:
+    stored, maps = "alphas", rng.integers(0, 256, (frames, height, width), dtype=np.uint8)
+    expected = maps[[2]] / np.float32(255.0)
   record = {
     "key": "k",
     "height": height,
@@ -185,9 +189,9 @@ def test_make_example_per_target_maps_follow_the_targets_images(field):
   assert 0 < flips < 8
   off = make_example(record, dataclasses.replace(config, **{field: False}), rng, views=views)
   assert field not in off
-  if field == "target_objects":
+  if field != "target_depths":
     without = {name: value for name, value in record.items() if name != stored}
-    with pytest.raises(BadExampleError, match="segmentations"):
+    with pytest.raises(BadExampleError, match=f"{field} needs the record's '{stored}'"):
       make_example(without, config, rng, views=views)
 
 

@@ -67,3 +67,20 @@ def test_eval_from_run_takes_the_recorded_settings_and_flags_override_them(tmp_p
   (run / "metrics.json").write_text(json.dumps(kubric_run, default=str))
   with pytest.raises(SystemExit, match="records no Experiment.*another entry point"):
     parse("eval", "--from-run", str(run))
+
+
+def test_lambda_mask_reaches_the_loss_and_is_refused_on_data_without_masks(capsys):
+  """`--train.lambda-mask` (official `lambda_mask`) is `TrainSettings.lambda_mask`, in the loss it
+  builds; RE10K, DL3DV and the synthetic set carry no foreground masks, so their command lines
+  refuse a positive weight before any work, naming it."""
+  from experiments import config, dl3dv
+
+  assert config.TrainSettings().loss_config().lambda_mask == 0.0  # off, as official
+  assert config.TrainSettings(lambda_mask=0.5).loss_config().lambda_mask == 0.5
+  for presets, default in ((re10k.PRESETS, "synthetic-tiny"), (dl3dv.PRESETS, "synthetic-4view")):
+    assert cli.parse([], presets, default, "prog")[1].train.lambda_mask == 0.0
+    with pytest.raises(SystemExit):
+      cli.parse(["--train.lambda-mask", "0.5"], presets, default, "prog")
+    assert "lambda_mask must be 0" in capsys.readouterr().err
+  with pytest.raises(ValueError, match="no foreground masks"):
+    dataclasses.replace(re10k.PRESETS["smoke"], train=config.TrainSettings(lambda_mask=0.1))

@@ -255,6 +255,41 @@ def test_frame_errors_name_the_tar_and_member(generated, tmp_path, change, messa
   make_example(record, CONFIG, np.random.default_rng(0), views=_views(0, 1))
 
 
+def test_target_masks_are_the_png_alpha_read_only_when_asked(generated, tmp_path):
+  """`alphas` is each `rgba_*.png`'s alpha channel (the generator writes opaque frames: all
+  255); `target_masks` carries the targets' alpha / 255 (the official mask loss's truth), and an
+  example that is not asked for them never decodes them."""
+  scene = _copy(generated, tmp_path)
+  record = kubric.KubricSceneSource(tmp_path, num_cameras=CAMERAS)[0]
+  assert record["alphas"][5].dtype == np.uint8 and (record["alphas"][5] == 255).all()
+  alpha = np.zeros((H, W), np.uint8)
+  alpha[:, : W // 2], alpha[0, -1] = 255, 51  # left half foreground, one 20 % pixel
+  rgb = np.asarray(Image.open(io.BytesIO(_read_member(scene / "output_001.tar", 1))))[..., :3]
+  buffer = io.BytesIO()
+  Image.fromarray(np.concatenate([rgb, alpha[..., None]], -1), "RGBA").save(buffer, format="PNG")
+  _rewrite(scene / "output_001.tar", {"./rgba_00001.png": buffer.getvalue()})
+  record = kubric.KubricSceneSource(tmp_path, num_cameras=CAMERAS)[0]
+  views = _views(0, 1)  # the target: camera 1, frame 1
+  example = make_example(
+    record, dataclasses.replace(CONFIG, target_masks=True), np.random.default_rng(0), views=views
+  )
+  np.testing.assert_allclose(example["target_masks"][0], alpha / np.float32(255.0), atol=1e-7)
+  np.testing.assert_array_equal(example["target_images"][0] * 255, rgb.astype(np.float32))
+
+  class Unread:  # any read of an alpha would fail the example
+    def __getitem__(self, index):
+      raise AssertionError("an alpha was decoded without target_masks")
+
+  assert "target_masks" not in make_example(
+    {**record, "alphas": Unread()}, CONFIG, np.random.default_rng(0), views=views
+  )
+
+
+def _read_member(path, frame: int) -> bytes:
+  with tarfile.open(path) as tar:
+    return tar.extractfile(f"./rgba_{frame:05d}.png").read()
+
+
 # ---- motion truth: segmentations and object poses
 
 

@@ -98,6 +98,31 @@ def test_kubric_presets_keep_their_loss_and_honour_the_common_train_flags(capsys
   assert KubricTask().loss_config(read) == dataclasses.replace(expected["pretrain"], rgb_loss="l2")
 
 
+def test_lambda_mask_flag_reaches_the_kubric_loss_and_only_then_the_examples_carry_masks(capsys):
+  """`--train.lambda-mask` (official `lambda_mask`) weighs Kubric's training loss; only then do
+  the training examples carry the targets' masks (evaluation's never; token tuning scores none,
+  as official); with input supervision (the inputs carry no masks) or negative: refused."""
+  from experiments import kubric
+  from experiments.kubric_task import KubricTask, kubric_example_config
+
+  def parse(*argv):
+    return cli.parse(list(argv), kubric.PRESETS, "synthetic-tiny", "prog")[1]
+
+  plain = parse("run", "paper")
+  assert KubricTask().loss_config(plain).lambda_mask == 0.0
+  assert not kubric_example_config(plain, training=True).target_masks
+  masked = parse("run", "paper", "--train.lambda-mask", "0.5")
+  assert KubricTask().loss_config(masked) == dataclasses.replace(
+    KubricTask().loss_config(plain), lambda_mask=0.5
+  )
+  assert kubric_example_config(masked, training=True).target_masks
+  assert not kubric_example_config(masked, training=False).target_masks
+  assert KubricTask().tuning_loss_config(masked).lambda_mask == 0.0
+  said = _refusal(capsys, parse, "--train.lambda-mask", "0.5", "--train.use-input-supervision")
+  assert "lambda_mask" in said and "use_input_supervision" in said
+  assert "lambda_mask=-1.0" in _refusal(capsys, parse, "--train.lambda-mask", "-1")
+
+
 def test_kubric_synthetic_subsets_are_published_whole_stamped_and_rewritten_when_changed(
   tmp_path, monkeypatch
 ):

@@ -242,3 +242,26 @@ def test_motion_loss_is_the_error_of_the_moving_pixels_over_all_pixels():
   assert float(losses.motion_loss(pred, target, everywhere)) == pytest.approx(
     float(losses.rgb_loss(pred, target))
   )
+
+
+def test_mask_loss_is_the_squared_alpha_error_averaged_over_views_and_pixels():
+  """Official `lambda_mask`: mean (alpha - mask)^2 over every view and pixel, by hand."""
+  alpha = np.array([[[[0.0], [1.0]], [[0.5], [1.0]]], [[[0.2], [0.2]], [[0.2], [0.2]]]])
+  masks = np.array([[[0.0, 0.0], [1.0, 1.0]], [[0.2, 0.2], [0.2, 1.0]]])  # [V=2, 2, 2]
+  # view 0: 0, 1, 0.25, 0; view 1: 0, 0, 0, 0.64 -> 1.89 / 8
+  np.testing.assert_allclose(jax.jit(losses.mask_loss)(alpha, masks), 1.89 / 8, rtol=1e-6)
+  grad = jax.grad(losses.mask_loss)(jnp.asarray(alpha), jnp.asarray(masks))
+  assert float(grad[0, 1, 0, 0]) < 0 < float(grad[0, 0, 1, 0])  # towards the mask
+  assert losses.LossConfig().lambda_mask == 0.0  # off by default, as official
+  with pytest.raises(ValueError, match="lambda_mask"):
+    losses.LossConfig(lambda_mask=-0.5)
+
+
+def test_composite_on_white_keeps_the_foreground_and_whitens_the_background():
+  """Official `gt * mask + 1 * (1 - mask)`: a soft mask blends towards white."""
+  images = np.full((1, 1, 3, 3), 0.2, np.float32)[..., None].repeat(3, -1)  # [1, 1, 3, 3, 3]
+  masks = np.array([[[[1.0, 0.0, 0.5]] * 3]], np.float32)  # [1, 1, 3, 3]
+  got = np.asarray(losses.composite_on_white(images, masks))
+  np.testing.assert_allclose(got[..., 0, :], 0.2)
+  np.testing.assert_allclose(got[..., 1, :], 1.0)
+  np.testing.assert_allclose(got[..., 2, :], 0.6)

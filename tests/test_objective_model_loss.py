@@ -162,6 +162,54 @@ def test_coverage_term_scores_the_whole_render_and_not_the_dynamic_auxiliary_one
   np.testing.assert_allclose(loss, base_loss + 3.0 * terms["coverage"], rtol=1e-5)
 
 
+def test_mask_term_scores_the_main_and_the_auxiliary_render_and_needs_the_batch_masks():
+  """Official `lambda_mask`: the main loss gains weight * its "mask" term, the auxiliary loss (the
+  same loss on the dynamic render, official) its own; weight 0: no term, the masks carried or
+  not; a weight without the batch's `target_masks`: ValueError."""
+  params = dynamic_params()
+  batch = dynamic_batch([[0.0, 1.0]], [[0.4, 0.4]])
+  objective = ObjectiveConfig(decode_times="first")
+  with_aux = losses.LossConfig(rgb_loss="l1", lambda_rgb=0.8, lambda_dyn_aux=0.5)
+  with_mask = dataclasses.replace(with_aux, lambda_mask=2.0)
+  # all foreground: the targets are unchanged by the official white compositing
+  masked = {**batch, "target_masks": np.ones(batch["target_images"].shape[:-1], np.float32)}
+
+  def loss_and_terms(config, batch):
+    return jax.jit(tokengs_loss_fn(DYNAMIC_CONFIG, config, objective=objective))(
+      params, batch, None, 0
+    )
+
+  base_loss, base_terms = loss_and_terms(with_aux, batch)
+  off_loss, off_terms = loss_and_terms(with_aux, masked)
+  assert "mask" not in off_terms
+  np.testing.assert_allclose(off_loss, base_loss, rtol=1e-6)
+  loss, terms = loss_and_terms(with_mask, masked)
+  assert 0 < float(terms["mask"]) < 1
+  np.testing.assert_allclose(
+    loss - 0.5 * terms["dyn_aux"],
+    base_loss - 0.5 * base_terms["dyn_aux"] + 2.0 * terms["mask"],
+    rtol=1e-5,
+  )
+  assert float(terms["dyn_aux"]) > float(base_terms["dyn_aux"])  # the dynamic alpha is scored
+  with pytest.raises(ValueError, match="target_masks"):
+    loss_and_terms(with_mask, batch)
+
+
+def test_supervision_targets_whiten_the_masked_out_background_as_official():
+  """Targets with `target_masks` are composited on white (official `gt * mask + (1 - mask)`)
+  whatever the weight; without masks they are the batch's images."""
+  from tokengs_jax.objective.model_loss import supervision_targets
+
+  images = np.full((1, 1, 2, 2, 3), 0.25, np.float32)
+  masks = np.array([[[[1.0, 0.0], [0.5, 1.0]]]], np.float32)
+  off = losses.LossConfig()
+  got, got_masks = supervision_targets({"target_images": images, "target_masks": masks}, off)
+  np.testing.assert_allclose(got[0, 0, :, :, 0], [[0.25, 1.0], [0.625, 0.25]])
+  assert got_masks is masks
+  unmasked, no_masks = supervision_targets({"target_images": images}, off)
+  assert unmasked is images and no_masks is None
+
+
 def test_dynamic_aux_on_motion_scores_the_dynamic_gaussians_on_the_moving_pixels_only():
   params = dynamic_params()
   batch = dynamic_batch([[0.0, 1.0]], [[0.4, 0.4]])

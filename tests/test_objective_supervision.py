@@ -10,7 +10,7 @@ from toy_training import toy_params
 
 from tokengs_jax import losses, splatting
 from tokengs_jax.gaussians import Gaussians
-from tokengs_jax.objective import mean_over_view_chunks, supervision_loss
+from tokengs_jax.objective import ObjectiveConfig, mean_over_view_chunks, supervision_loss
 
 
 def test_supervision_adds_the_depth_term_only_with_depths_and_a_weight():
@@ -64,6 +64,32 @@ def test_coverage_term_charges_the_uncovered_share_and_grows_opacity():
   # more opaque Gaussians leave less uncovered: every visible one's gradient is negative
   grad = jax.grad(coverage_of)(gaussians.opacities)
   assert float(jnp.max(grad)) <= 0 and float(jnp.min(grad)) < 0
+
+
+def test_supervision_adds_the_mask_term_only_with_a_weight_and_needs_the_masks():
+  """Official `lambda_mask`: + weight * mean (alpha - mask)^2 over the views' pixels; no term at
+  weight 0 (masks or not), and a ValueError for a weight without masks."""
+  key = jax.random.split(jax.random.key(2), 2)
+  gaussians = gaussians_in_front(*key, (1, 32), spread=0.5, opacity=0.6, scale=0.1)
+  images = jnp.full((1, 2, 16, 16, 3), 0.5)
+  w2c = jnp.tile(jnp.eye(4)[None, None], (1, 2, 1, 1))
+  intrinsics = jnp.tile(jnp.array([[[16.0, 16.0, 8.0, 8.0]]]), (1, 2, 1))
+  masks = jnp.zeros((1, 2, 16, 16)).at[:, :, 8:].set(1.0)  # the bottom half is foreground
+  args = (gaussians, images, w2c, intrinsics)
+  render = splatting.RenderConfig()
+  plain, plain_terms = supervision_loss(*args, losses.LossConfig(), render, masks=masks)
+  assert "mask" not in plain_terms
+  weighted = losses.LossConfig(lambda_mask=2.0)
+  for chunk in (None, 1):
+    objective = ObjectiveConfig(view_chunk_size=chunk)
+    loss, terms = supervision_loss(*args, weighted, render, objective, masks=masks)
+    alpha = splatting.render(gaussians, w2c, intrinsics, height=16, width=16).alpha
+    expected = jnp.mean(jnp.square(alpha[..., 0] - masks))
+    np.testing.assert_allclose(terms["mask"], expected, rtol=1e-5)
+    assert 0.05 < float(terms["mask"]) < 1.0
+    np.testing.assert_allclose(loss, plain + 2.0 * terms["mask"], rtol=1e-5)
+  with pytest.raises(ValueError, match="target_masks"):
+    supervision_loss(*args, weighted, render)
 
 
 def toy_render_loss(params, views):

@@ -2,6 +2,7 @@
 
     loss = lambda_rgb * rgb + lambda_ssim * (1 - SSIM) / 2 + lambda_vis * visibility
            + lambda_lpips * LPIPS + lambda_opacity * mean(-log(opacity + 1e-6))
+           + lambda_mask * mean((alpha - mask)^2)
            [+ lambda_dyn_aux(step) * loss of the dynamic Gaussians alone]
 
 - rgb: MSE ("l2", official default) or L1 over every pixel and channel.
@@ -11,6 +12,9 @@
 - LPIPS: VGG v0.1, `normalize=True`, mean over views (optional; `lpips_params` must be given).
 - opacity (`opacity_loss`, official `lambda_opacity`, 0 by default): the mean of -log(opacity)
   over every Gaussian, a pull of each Gaussian towards full opacity.
+- mask (`mask_loss`, official `lambda_mask`, 0 by default): the squared error between the rendered
+  alpha and the target views' foreground masks, averaged over views and pixels. Where the targets
+  carry masks they are also the photometric terms' background: `composite_on_white`.
 
 Deviation from the official visibility loss: the official code takes gsplat's `means2d`, which
 are projections made without looking at depth (and are zero for culled centres), so a centre
@@ -80,6 +84,9 @@ class LossConfig:
       to grow and move over it.
     lambda_opacity: weight of `opacity_loss` (official `lambda_opacity`, 0 in every official
       preset): mean -log(opacity + 1e-6) of the Gaussians, pulling each towards opacity 1.
+    lambda_mask: weight of `mask_loss` (official `lambda_mask`, 0 in every official preset): the
+      rendered alpha against the target views' foreground masks; > 0 needs the batch's
+      `target_masks` (the model losses raise ValueError without them).
 
   Every weight (`lambda_*`, `dyn_aux_min`) must be finite and >= 0.
   """
@@ -102,6 +109,7 @@ class LossConfig:
   dyn_aux_on_objects: bool = False
   lambda_coverage: float = 0.0
   lambda_opacity: float = 0.0
+  lambda_mask: float = 0.0
 
   def __post_init__(self):
     check_weights(
@@ -238,6 +246,26 @@ def coverage_loss(alpha: jax.Array) -> jax.Array:
 def opacity_loss(opacities: jax.Array) -> jax.Array:
   """Official opacity regulariser: mean of -log(opacity + 1e-6).  opacities: [..., N] -> []."""
   return -jnp.mean(jnp.log(opacities + 1e-6))
+
+
+def mask_loss(alpha: jax.Array, masks: jax.Array) -> jax.Array:
+  """Official foreground-mask term: mean squared error between the rendered alpha and the target
+  masks (official `F.mse_loss(pred_masks, gt_masks)` per scene, then the mean over scenes: every
+  scene here has its masks, so that is the mean over all of them).
+
+  alpha: [..., H, W, 1] rendered opacity; masks: [..., H, W] in [0, 1] (1: foreground) -> [].
+  """
+  return jnp.mean(jnp.square(alpha[..., 0] - masks))
+
+
+def composite_on_white(images: jax.Array, masks: jax.Array) -> jax.Array:
+  """Target images with their background (mask 0) replaced by white, as the official loss sees
+  a masked target whatever `bg_color` the renders use (`gt * mask + 1 * (1 - mask)`).
+
+  images: [..., H, W, 3] in [0, 1]; masks: [..., H, W] in [0, 1] -> [..., H, W, 3].
+  """
+  masks = masks[..., None].astype(images.dtype)
+  return images * masks + (1.0 - masks)
 
 
 def depth_loss(depth: jax.Array, alpha: jax.Array, true_depth: jax.Array) -> jax.Array:

@@ -12,7 +12,8 @@ planar z); `pointmap_scale` unprojects them exactly as the official provider doe
 Batches are dicts of numpy arrays (docs/design.md): `context_images [B, Vc, H, W, 3]`,
 `context_c2w [B, Vc, 4, 4]`, `context_intrinsics [B, Vc, 4]`, the same for `target_*`,
 `scene_index [B]`, and for records with `times`: `context_times [B, Vc]`, `target_times [B, Vt]`;
-`target_depths` / `target_objects [B, Vt, H, W]` where `ExampleConfig` asks for them.
+`target_depths` / `target_objects` / `target_masks [B, Vt, H, W]` where `ExampleConfig` asks for
+them.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ import numpy as np
 from tokengs_jax import process
 from tokengs_jax.data.chunks import ChunkError, LazyTensor, decode_jpeg
 from tokengs_jax.data.chunks.images import check_frame_bytes, decode_image
+from tokengs_jax.data import targets
 from tokengs_jax.data.dl3dv import DL3DVError
 from tokengs_jax.data.kubric import KubricError, pointmap_scale, sampling as kubric_sampling
 from tokengs_jax.data.rejections import Rejections, summarize_rejections
@@ -44,7 +46,6 @@ from tokengs_jax.data.transforms import (
   normalize_times,
   resize_and_center_crop,
   resize_and_center_crop_depth,
-  resize_and_center_crop_mask,
   translation_scale,
 )
 
@@ -104,6 +105,9 @@ class ExampleConfig:
       where the record's `segmentations` show an object (instance number > 0), resized and
       cropped as the images (`resize_and_center_crop_mask`) and flipped with them (the dynamic
       auxiliary loss on the objects, `losses.LossConfig.dyn_aux_on_objects`).
+    target_masks: also return `target_masks [Vt, H, W]` float32 in [0, 1], the targets'
+      foreground masks (the record's `alphas`: Kubric's PNG alpha / 255), resized and cropped as
+      the images and flipped with them (the official mask loss, `losses.LossConfig.lambda_mask`).
 
   The last two reproduce pixelSplat/MVSplat's RE10K filters (`src/dataset/dataset_re10k.py`:
   `max_fov: 100.0` and, with `make_baseline_1`, `baseline_epsilon: 1e-3` in
@@ -122,6 +126,7 @@ class ExampleConfig:
   min_context_baseline: float | None = None
   target_depths: bool = False
   target_objects: bool = False
+  target_masks: bool = False
   pointmap_trim_lo: float = 0.0
   pointmap_trim_hi: float = 1.0
 
@@ -317,40 +322,22 @@ def make_example(
   if "times" in record:
     times = normalize_times(np.asarray(record["times"], np.float64)[frames])
     example["context_times"], example["target_times"] = times[:num_context], times[num_context:]
-  if config.target_depths:
-    example["target_depths"] = _target_depths(record, target, config, scale, flipped)
-  if config.target_objects:
-    example["target_objects"] = _target_objects(record, target, config, flipped)
+  example.update(_target_maps(record, target, config, scale, flipped))
   return example
 
 
-def _target_objects(record: dict, target, config: ExampleConfig, flipped: bool) -> np.ndarray:
-  """The targets' object pixels (segmentation > 0) as `make_example` transformed their images.
-  -> float32 [Vt, H, W]."""
-  where = _where(record)
-  if "segmentations" not in record:
-    raise BadExampleError(f"{where}: target_objects needs the record's 'segmentations'")
-  frames = record["segmentations"]
-  missing = [int(i) for i in target if hasattr(frames, "present") and not frames.present(int(i))]
-  if missing:
-    raise BadExampleError(f"{where}: target_objects needs segmentations, none for frames {missing}")
+def _target_maps(record: dict, target, config: ExampleConfig, scale: float, flipped: bool):
+  """The targets' per-pixel truth `config` asks for, as `make_example` transformed their images
+  and cameras: "target_depths" (float32 [Vt, H, W], 0: unknown) and `targets.target_fields`."""
   try:
-    objects = np.stack([np.asarray(frames[int(i)]) > 0 for i in target])
-  except _DATA_ERRORS as error:
-    raise BadExampleError(f"{where}: {error}") from error
-  objects = resize_and_center_crop_mask(objects, config.image_shape)
-  return (objects[:, :, ::-1] if flipped else objects).astype(np.float32)
-
-
-def _target_depths(record: dict, target, config: ExampleConfig, scale: float, flipped: bool):
-  """The targets' true depth maps as `make_example` transformed their images and cameras.
-  -> float32 [Vt, H, W] (0: unknown)."""
-  try:
-    depths = np.stack([_depth(record, int(i)) for i in target])
-  except _DATA_ERRORS as error:
+    maps = targets.target_fields(record, target, config, flipped)
+    if config.target_depths:
+      depths = np.stack([_depth(record, int(i)) for i in target])
+      depths = resize_and_center_crop_depth(depths, config.image_shape) * scale
+      maps["target_depths"] = (depths[:, :, ::-1] if flipped else depths).astype(np.float32)
+  except (*_DATA_ERRORS, targets.MissingTargetField) as error:
     raise BadExampleError(f"{_where(record)}: {error}") from error
-  depths = resize_and_center_crop_depth(depths, config.image_shape) * scale
-  return (depths[:, :, ::-1] if flipped else depths).astype(np.float32)
+  return maps
 
 
 @dataclasses.dataclass(frozen=True)

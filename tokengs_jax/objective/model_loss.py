@@ -26,6 +26,7 @@ from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.objective.settings import ObjectiveConfig
 from tokengs_jax.objective.supervision import (
   add_coverage,
+  add_mask,
   add_opacity,
   add_visibility,
   gaussians_in_float32,
@@ -53,6 +54,7 @@ def time_conditioned_loss(
   context_images: jax.Array | None = None,
   moving: jax.Array | None = None,
   objects: jax.Array | None = None,
+  masks: jax.Array | None = None,
 ):
   """Loss of time-conditioned Gaussians against views taken at different times.
 
@@ -85,6 +87,7 @@ def time_conditioned_loss(
       `1 + loss_config.lambda_motion` (None or lambda_motion 0: no motion term).
     objects: [B, V, H, W] the views' object pixels (the batch's `target_objects`), which the
       auxiliary loss scores under `loss_config.dyn_aux_on_objects`.
+    masks: [B, V, H, W] foreground masks, for `loss_config.lambda_mask` (both renders' alpha).
 
   Returns:
     `(loss, terms)`: as `supervision_loss`, plus "dyn_aux" (the auxiliary loss, 0 while its
@@ -94,7 +97,7 @@ def time_conditioned_loss(
   views, shared = _chunked_views(
     gaussians_at, times, images, world_to_camera, intrinsics, objective.decode_times
   )
-  views.update(_pixel_masks(moving, objects, loss_config, num_static_gaussians))
+  views.update(_pixel_masks(moving, objects, masks, loss_config, num_static_gaussians))
   scored = functools.partial(
     _score_at_times,
     world_to_camera=world_to_camera,
@@ -117,10 +120,11 @@ def time_conditioned_loss(
   return mean_over_view_chunks(chunk_loss, views, objective.view_chunk_size)
 
 
-def _pixel_masks(moving, objects, loss_config, num_static_gaussians) -> dict:
+def _pixel_masks(moving, objects, foreground, loss_config, num_static_gaussians) -> dict:
   """The per-pixel masks the time-conditioned loss chunks with its views: "moving" (the motion
   term's weights) when `loss_config.lambda_motion > 0`, "objects" (float32) when the dynamic
-  auxiliary loss scores the object pixels."""
+  auxiliary loss scores the object pixels, "masks" (float32, the foreground) when
+  `loss_config.lambda_mask > 0`."""
   masks = {}
   if moving is not None and loss_config.lambda_motion > 0:
     masks["moving"] = moving
@@ -128,6 +132,10 @@ def _pixel_masks(moving, objects, loss_config, num_static_gaussians) -> dict:
     if objects is None:
       raise ValueError("dyn_aux_on_objects needs the views' object pixels (`target_objects`)")
     masks["objects"] = objects.astype(jnp.float32)
+  if loss_config.lambda_mask > 0:
+    if foreground is None:
+      raise ValueError("lambda_mask > 0 needs the views' foreground masks (`target_masks`)")
+    masks["masks"] = foreground.astype(jnp.float32)
   return masks
 
 
@@ -169,7 +177,7 @@ def _score_at_times(
 
   views: the chunk's "world_to_camera" [B, Vc, 4, 4], "intrinsics" [B, Vc, 4], "images"
   [B, Vc, H, W, 3] and, for the motion term, "moving" [B, Vc, H, W] (for the auxiliary loss
-  on the objects, "objects" [B, Vc, H, W]); world_to_camera [B, V, 4, 4] / intrinsics
+  on the objects, "objects" [B, Vc, H, W]; for the mask term, "masks" [B, Vc, H, W]); world_to_camera [B, V, 4, 4] / intrinsics
   [B, V, 4]: all the views, which the visibility term projects every time's Gaussians into;
   context_images: the input views [B, Vi, H, W, 3] behind an "input_mean" background, or None;
   auxiliary: a render of part of the Gaussians (the dynamic auxiliary one): no coverage term
@@ -209,6 +217,8 @@ def _score_at_times(
     background = 1.0 - objects
     off_objects = jnp.sum(background * jnp.square(alpha)) / jnp.maximum(jnp.sum(background), 1.0)
     terms["objects_alpha"] = on_objects + off_objects
+  # official: the auxiliary loss is the whole loss on its render, the mask term included
+  loss, terms = add_mask(loss, terms, rendered.alpha[:, :, 0], views.get("masks"), loss_config)
   if not auxiliary:
     loss, terms = add_coverage(loss, terms, rendered.alpha[:, :, 0], loss_config)
   # the Gaussians of each time against every view: [B, Vc or 1]
@@ -281,10 +291,9 @@ def supervised_views(batch: dict, objective: ObjectiveConfig) -> dict:
   """
   if not objective.use_input_supervision:
     return batch
-  if "target_objects" in batch:
-    raise ValueError(
-      "the input views carry no object pixels: target_objects with input supervision"
-    )
+  for name in ("target_objects", "target_masks"):
+    if name in batch:
+      raise ValueError(f"the input views carry no per-pixel truth: {name} with input supervision")
   views = dict(batch)
   for name in ("images", "c2w", "intrinsics", "times"):
     if f"target_{name}" in batch:
@@ -297,6 +306,21 @@ def supervised_views(batch: dict, objective: ObjectiveConfig) -> dict:
     unknown = jnp.zeros((depths.shape[0], num_inputs, *depths.shape[2:]), depths.dtype)
     views["target_depths"] = jnp.concatenate([depths, unknown], axis=1)
   return views
+
+
+def supervision_targets(batch: dict, loss_config) -> tuple[jax.Array, jax.Array | None]:
+  """(the target images the loss scores [B, V, H, W, 3], their foreground masks [B, V, H, W] or
+  None). Where the batch carries `target_masks` the targets' background is white, as the official
+  loss composites a masked target (`losses.composite_on_white`); `loss_config.lambda_mask > 0`
+  without them raises ValueError here, before the model runs."""
+  from tokengs_jax import losses
+
+  masks = batch.get("target_masks")
+  if masks is None:
+    if loss_config.lambda_mask > 0:
+      raise ValueError("lambda_mask > 0 needs the batch's foreground masks (`target_masks`)")
+    return batch["target_images"], None
+  return losses.composite_on_white(batch["target_images"], masks), masks
 
 
 def static_model_loss(
@@ -323,6 +347,7 @@ def static_model_loss(
 
   reconstruct = model.reconstruct if reconstruct is None else reconstruct
   batch = supervised_views(batch, objective)
+  images, masks = supervision_targets(batch, loss_config)
   gaussians = reconstruct(
     params,
     batch["context_images"],
@@ -333,7 +358,7 @@ def static_model_loss(
   )
   return supervision_loss(
     gaussians,
-    batch["target_images"],
+    images,
     invert_rigid(batch["target_c2w"]),
     batch["target_intrinsics"],
     loss_config,
@@ -342,6 +367,7 @@ def static_model_loss(
     lpips_params,
     depths=batch.get("target_depths"),
     context_images=batch["context_images"],
+    masks=masks,
   )
 
 
@@ -366,7 +392,7 @@ def dynamic_model_loss(
   from tokengs_jax.camera import invert_rigid
 
   batch = supervised_views(batch, objective)
-
+  images, masks = supervision_targets(batch, loss_config)
   with_aux = (
     loss_config.lambda_dyn_aux > 0
     and model_config.num_dynamic_gs_tokens > 0
@@ -394,7 +420,7 @@ def dynamic_model_loss(
       params, encoded, model_config, times, viewer_c2w=invert_rigid(world_to_camera)
     ),
     batch["target_times"],
-    batch["target_images"],
+    images,
     invert_rigid(batch["target_c2w"]),
     batch["target_intrinsics"],
     loss_config,
@@ -406,6 +432,7 @@ def dynamic_model_loss(
     context_images=batch["context_images"],
     moving=moving,
     objects=batch.get("target_objects"),
+    masks=masks,
   )
 
 

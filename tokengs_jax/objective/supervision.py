@@ -137,6 +137,21 @@ def add_coverage(loss: jax.Array, terms: dict, alpha: jax.Array, loss_config):
   return loss, {**terms, "coverage": coverage, "loss": loss}
 
 
+def add_mask(loss: jax.Array, terms: dict, alpha: jax.Array, masks, loss_config):
+  """`loss + lambda_mask * losses.mask_loss` (terms gain "mask" and the new "loss") where
+  `loss_config.lambda_mask > 0`; alpha: [..., H, W, 1] the renders' opacity, masks: [..., H, W]
+  the views' foreground masks (None with lambda_mask > 0: ValueError)."""
+  from tokengs_jax import losses
+
+  if loss_config.lambda_mask <= 0:
+    return loss, terms
+  if masks is None:
+    raise ValueError("lambda_mask > 0 needs the views' foreground masks (`target_masks`)")
+  mask = losses.mask_loss(alpha, masks)
+  loss = loss + loss_config.lambda_mask * mask
+  return loss, {**terms, "mask": mask, "loss": loss}
+
+
 def add_opacity(loss: jax.Array, terms: dict, opacities: jax.Array, loss_config):
   """`loss + lambda_opacity * losses.opacity_loss` (terms gain "opacity" and the new "loss")
   where `loss_config.lambda_opacity > 0`; opacities: [..., N] of the scored Gaussians."""
@@ -159,6 +174,24 @@ def _add_depth(loss: jax.Array, terms: dict, rendered, depths, loss_config):
   depth = losses.depth_loss(rendered.depth, rendered.alpha, depths)
   loss = loss + loss_config.lambda_depth * depth
   return loss, {**terms, "depth": depth, "loss": loss}
+
+
+def _pixel_truth(depths, masks, loss_config) -> dict:
+  """The views' per-pixel truth that the terms which are on score, float32 [B, V, H, W]:
+  "depths" (given and `lambda_depth > 0`), "masks" (given and `lambda_mask > 0`)."""
+  truth = {}
+  if depths is not None and loss_config.lambda_depth > 0:
+    truth["depths"] = depths.astype(jnp.float32)
+  if masks is not None and loss_config.lambda_mask > 0:
+    truth["masks"] = masks.astype(jnp.float32)
+  return truth
+
+
+def _add_pixel_truth_terms(loss: jax.Array, terms: dict, rendered, views: dict, loss_config):
+  """The depth and mask terms (`_add_depth`, `add_mask`) of a chunk's render against its views'
+  `_pixel_truth`; `add_mask` refuses a mask weight without masks."""
+  loss, terms = _add_depth(loss, terms, rendered, views.get("depths"), loss_config)
+  return add_mask(loss, terms, rendered.alpha, views.get("masks"), loss_config)
 
 
 def photometric_loss(rgb: jax.Array, images: jax.Array, loss_config, lpips_params=None):
@@ -187,6 +220,7 @@ def supervision_loss(
   lpips_params=None,
   depths=None,
   context_images=None,
+  masks=None,
 ):
   """Loss of Gaussians against supervision views (training targets, or the inputs when tuning).
 
@@ -207,11 +241,11 @@ def supervision_loss(
     depths: [B, V, H, W] true depth of the views (0: unknown), or None; with
       `loss_config.lambda_depth > 0` it adds `lambda_depth * losses.depth_loss` (term "depth").
     context_images: [B, Vi, H, W, 3] the input views (the "input_mean" background's colour).
+    masks: [B, V, H, W] foreground masks, needed by `loss_config.lambda_mask > 0` ("mask").
 
   Returns:
     `(loss, terms)`: the loss terms, "psnr", and `render_diagnostics`.
   """
-  with_depth = depths is not None and loss_config.lambda_depth > 0
   gaussians = gaussians_in_float32(gaussians)
   height, width = images.shape[-3], images.shape[-2]
   world_to_camera = world_to_camera.astype(jnp.float32)
@@ -237,16 +271,15 @@ def supervision_loss(
       rendered = jax.tree.map(lambda x: x[:, :, 0], rendered)
     loss, terms = photometric_loss(rendered.rgb, views["images"], loss_config, lpips_params)
     loss, terms = add_coverage(loss, terms, rendered.alpha, loss_config)
-    loss, terms = _add_depth(loss, terms, rendered, views.get("depths"), loss_config)
+    loss, terms = _add_pixel_truth_terms(loss, terms, rendered, views, loss_config)
     return loss, {**terms, **render_diagnostics(rendered.stats)}
 
   views = {
     "world_to_camera": world_to_camera,
     "intrinsics": intrinsics,
     "images": images.astype(jnp.float32),
+    **_pixel_truth(depths, masks, loss_config),
   }
-  if with_depth:
-    views["depths"] = depths.astype(jnp.float32)
   if per_view:
     views["gaussians"] = gaussians
   loss, terms = mean_over_view_chunks(chunk_loss, views, objective.view_chunk_size)

@@ -341,9 +341,12 @@ def read_kubric_view(
   return result
 
 
-def decode_member(view: KubricView, name: str, shape: tuple[int, int]) -> np.ndarray:
-  """Member `name` as uint8 [H, W, 3] RGB (`rgba_*.png`, alpha dropped as official), float32
-  [H, W] depth (`depth_*.tiff`, read with PIL as official) or int32 [H, W] instance numbers
+def decode_member(
+  view: KubricView, name: str, shape: tuple[int, int], *, alpha: bool = False
+) -> np.ndarray:
+  """Member `name` as uint8 [H, W, 3] RGB (`rgba_*.png`, alpha dropped as official; with
+  `alpha`, its alpha channel instead, uint8 [H, W]: the foreground mask), float32 [H, W] depth
+  (`depth_*.tiff`, read with PIL as official) or int32 [H, W] instance numbers
   (`segmentation_*.png`, the palette indices), whose size must be `shape` (the metadata's
   resolution: the intrinsics are derived from it). Every failure is a `KubricError` naming tar
   and member."""
@@ -351,8 +354,10 @@ def decode_member(view: KubricView, name: str, shape: tuple[int, int]) -> np.nda
   where = view.where(name)
   if name in view.members:  # a missing one is named by `view.read`
     check_frame_bytes(view.members[name][1], where=where, error=KubricError)
-  mode = "RGB" if name.endswith(".png") and not segmentation else None
+  mode = ("RGBA" if alpha else "RGB") if name.endswith(".png") and not segmentation else None
   pixels = decode_image(view.read(name), where=where, error=KubricError, mode=mode)
+  if alpha:
+    pixels = pixels[..., 3]
   if segmentation:
     pixels = pixels.astype(np.int32)
   elif name.endswith(".tiff"):

@@ -50,14 +50,17 @@ class _TarFrames:
   """Lazy length-(C*F) sequence of one per-frame member, decoded, camera-major: item c * F + f is
   camera c, frame f. `member` is a format string of the frame, e.g. "rgba_{:05d}.png".
 
-  The pipeline reads only the items it picks. They are decoded here (images uint8 [H, W, 3], depth
-  maps float32 [H, W], segmentations int32 [H, W], each of the metadata's resolution), not by the
-  pipeline, so that a bad frame's `KubricError` names its tar and member rather than a flattened
-  index.
+  The pipeline reads only the items it picks. They are decoded here (images uint8 [H, W, 3], their
+  alpha uint8 [H, W] with `alpha`, depth maps float32 [H, W], segmentations int32 [H, W], each of
+  the metadata's resolution), not by the pipeline, so that a bad frame's `KubricError` names its
+  tar and member rather than a flattened index.
   """
 
-  def __init__(self, views: Sequence[KubricView], num_frames: int, member: str):
+  def __init__(
+    self, views: Sequence[KubricView], num_frames: int, member: str, *, alpha: bool = False
+  ):
     self.views, self.num_frames, self.member = tuple(views), num_frames, member
+    self.alpha = alpha  # the member's alpha channel (`decode_member(alpha=True)`)
 
   def __len__(self) -> int:
     return len(self.views) * self.num_frames
@@ -75,14 +78,16 @@ class _TarFrames:
       )
     camera, frame = divmod(int(index), self.num_frames)
     view = self.views[camera]
-    return decode_member(view, self.member.format(frame), (view.height, view.width))
+    shape = (view.height, view.width)
+    return decode_member(view, self.member.format(frame), shape, alpha=self.alpha)
 
 
 class KubricSceneSource:
   """Random-access source of Kubric scene records in the pipeline's record contract.
 
   A scene's C cameras x F frames are flattened camera-major into C*F "frames": `c2w [C*F, 4, 4]`
-  (OpenCV), `intrinsics [C*F, 4]`, lazily decoded `images` (uint8 [H, W, 3]), `depths`
+  (OpenCV), `intrinsics [C*F, 4]`, lazily decoded `images` (uint8 [H, W, 3]), `alphas` (uint8
+  [H, W], the same PNGs' alpha channel: the foreground masks; decoded only if read), `depths`
   (float32 [H, W], the stored distance along each pixel's ray; the pipeline's "pointmap" scale
   reads the context views' ones) and `segmentations` (int32 [H, W] object instance numbers, 0
   the background; `.present(i)` says whether the tar has them), and `times [C*F]` = the frame
@@ -208,6 +213,7 @@ def _read_scene(scene_dir: pathlib.Path, num_cameras: int | None) -> dict:
     "height": first.height,
     "width": first.width,
     "images": _TarFrames(views, first.num_frames, "rgba_{:05d}.png"),
+    "alphas": _TarFrames(views, first.num_frames, "rgba_{:05d}.png", alpha=True),
     "depths": _TarFrames(views, first.num_frames, "depth_{:05d}.tiff"),
     "segmentations": _TarFrames(views, first.num_frames, "segmentation_{:05d}.png"),
     "times": np.tile(np.arange(first.num_frames, dtype=np.float64), len(views)),
