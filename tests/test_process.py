@@ -95,6 +95,7 @@ def test_setup_applies_its_settings_once_and_the_first_call_wins(tmp_path):
   seen = json.loads(done.stdout.strip().splitlines()[-1])
   assert seen["first"] == {
     "compile_cache": str(tmp_path),
+    "compile_cache_max_bytes": process.COMPILE_CACHE_MAX_BYTES,
     "host_memory": "default",
     "host_memory_reason": "requested",
     "cpu_devices": 3,
@@ -102,6 +103,46 @@ def test_setup_applies_its_settings_once_and_the_first_call_wins(tmp_path):
   assert seen["again"] == seen["first"]
   assert seen["devices"] == 3 and seen["cache"] == str(tmp_path)
   assert seen["dispatch"] is True  # "default" leaves JAX's asynchronous dispatch on
+
+
+def test_setup_locks_the_shared_compile_cache_and_can_use_a_folder_written_unlocked(tmp_path):
+  # JAX's default (no cap) neither locks its cache folder nor writes atomically: processes sharing
+  # it read each other's half-written entries (benchmarks/compile_cache_race.py). A cap turns the
+  # lock on; the entry below has no `-atime` file, as an uncapped cache leaves, and would make every
+  # capped write fail ("Error writing persistent compilation cache entry") unless setup adds one.
+  old = tmp_path / "jit_old-0123456789abcdef-cache"
+  old.write_bytes(b"an entry an uncapped cache wrote")
+  os.utime(old, ns=(1_000_000_000, 1_000_000_000))
+  script = textwrap.dedent(
+    f"""
+    import json, os, warnings
+    import jax, jax.numpy as jnp
+    from tokengs_jax import process
+
+    settings = process.setup(compile_cache={str(tmp_path)!r}, min_compile_seconds=0,
+                             host_memory="default")
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    with warnings.catch_warnings(record=True) as caught:
+      warnings.simplefilter("always")
+      jax.jit(lambda x: jnp.sin(x) @ x.T)(jnp.ones((32, 32))).block_until_ready()
+    print(json.dumps(dict(
+      settings=settings, max_size=jax.config.jax_compilation_cache_max_size,
+      warnings=[str(w.message) for w in caught], files=sorted(os.listdir({str(tmp_path)!r})),
+    )))
+    """
+  )
+  done = subprocess.run(
+    [sys.executable, "-c", script], capture_output=True, text=True, timeout=120, check=True
+  )
+  seen = json.loads(done.stdout.strip().splitlines()[-1])
+  assert seen["max_size"] == process.COMPILE_CACHE_MAX_BYTES > 0
+  assert seen["settings"]["compile_cache_max_bytes"] == process.COMPILE_CACHE_MAX_BYTES
+  assert seen["warnings"] == []
+  assert ".lockfile" in seen["files"]  # JAX's cross-process lock was taken
+  entries = [name.removesuffix("-cache") for name in seen["files"] if name.endswith("-cache")]
+  assert len(entries) >= 2 and all(f"{key}-atime" in seen["files"] for key in entries), seen
+  stamp = (tmp_path / "jit_old-0123456789abcdef-atime").read_bytes()
+  assert int.from_bytes(stamp, "little") == 1_000_000_000  # its modification time: oldest first
 
 
 def test_setup_rejects_an_unknown_memory_policy():

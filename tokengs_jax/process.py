@@ -5,9 +5,22 @@ The experiments' command lines, the studies, the browser viewer, the benchmarks 
 launched it:
 
 - the persistent XLA compilation cache (`$TOKENGS_JAX_CACHE`, default `.jax_cache`): on CPU,
-  compiling the training step and the renderer takes longer than a short run itself;
+  compiling the training step and the renderer takes longer than a short run itself. It is
+  capped (`COMPILE_CACHE_MAX_BYTES`, least recently used entries evicted), which is also what
+  makes JAX lock it across processes (below);
 - the host memory policy below (`retain_freed_memory`), where the computations run on XLA:CPU;
 - optionally, the number of virtual CPU devices (the tests' sharding cases use 4).
+
+Shared cache folder: pytest-xdist workers and experiments run side by side share one folder. With
+JAX's default `jax_compilation_cache_max_size` (-1: no cap) its file cache neither locks nor writes
+atomically (`path.write_bytes`), so a process can read another's half-written entry: measured, 20 of
+165 reads of 8 MB entries being written (`benchmarks/compile_cache_race.py entries`). Such a read
+never reaches XLA: the zstd frame records its length, so a cut entry fails to decompress, and JAX
+warns ("Error reading persistent compilation cache entry") and compiles again (docs/robustness.md,
+"Processes"). A cap turns on JAX's cross-process lock (the `filelock` package) around every read
+and write: 0 torn reads of 122 in the same stress. A capped cache keeps an `-atime` file beside
+each entry and reads all of them when it writes; folders written without a cap lack them, so
+`setup` gives each entry that has none its modification time (else every write would fail).
 
 `exit_with_parent` is for the helper processes a run starts (the data pipeline's workers): they
 end with the process that started them, however it ended.
@@ -166,6 +179,30 @@ def resolve_host_memory(host_memory: str) -> tuple[str, str]:
 
 
 _settled: dict | None = None  # the first `setup`'s arguments: later calls keep them
+COMPILE_CACHE_MAX_BYTES = 8 << 30  # the cap `setup` gives an uncapped cache (the repo's: ~0.2 GB)
+
+
+def _add_missing_access_times(folder: str | os.PathLike) -> int:
+  """Gives every entry of a compilation cache folder that has no `<key>-atime` file one holding
+  its modification time (nanoseconds, little-endian: JAX's `lru_cache` format), so that a capped
+  cache can use a folder an uncapped one wrote; returns how many it wrote."""
+  written = 0
+  try:
+    entries = [entry for entry in os.scandir(folder) if entry.name.endswith("-cache")]
+  except FileNotFoundError:
+    return 0
+  for entry in entries:
+    atime = os.path.join(folder, entry.name.removesuffix("-cache") + "-atime")
+    if os.path.exists(atime):
+      continue
+    try:
+      stamp = entry.stat().st_mtime_ns
+    except FileNotFoundError:  # evicted meanwhile by another process
+      continue
+    with open(atime, "wb") as file:
+      file.write(stamp.to_bytes(8, "little"))
+    written += 1
+  return written
 
 
 def setup(
@@ -183,7 +220,9 @@ def setup(
   Args:
     compile_cache: folder of the persistent compilation cache; None: `$TOKENGS_JAX_CACHE`, else
       `.jax_cache` under the working directory. A folder set earlier by the embedding program is
-      kept.
+      kept. An uncapped cache (JAX's default) is capped at `COMPILE_CACHE_MAX_BYTES`, which makes
+      JAX lock it across the processes sharing the folder (see the module doc); a cap set earlier
+      is kept.
     min_compile_seconds: programs that compile faster than this are not cached.
     host_memory: "auto" (`retain_freed_memory` where the computations run on XLA:CPU, glibc's and
       JAX's own settings elsewhere; see the module doc), "retain" (always) or "default" (never,
@@ -191,7 +230,9 @@ def setup(
     cpu_devices: virtual CPU devices to create (None: JAX's default, one).
 
   Returns:
-    The settings in force: `compile_cache`, `host_memory` (the policy applied, "retain" or
+    The settings in force: `compile_cache`, `compile_cache_max_bytes` (JAX's
+    `jax_compilation_cache_max_size`; -1, uncapped and unlocked, only without `filelock`),
+    `host_memory` (the policy applied, "retain" or
     "default"), `host_memory_reason` ("requested", or what "auto" decided from), `cpu_devices`.
   """
   global _settled
@@ -204,10 +245,22 @@ def setup(
     folder = compile_cache or os.environ.get("TOKENGS_JAX_CACHE", ".jax_cache")
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", min_compile_seconds)
+  if jax.config.jax_compilation_cache_max_size == -1:  # JAX's default: no cap, and no lock
+    if importlib.util.find_spec("filelock") is None:
+      warnings.warn(
+        "the `filelock` package is missing: the compilation cache stays uncapped and unlocked, "
+        "and processes sharing its folder can read each other's half-written entries",
+        stacklevel=2,
+      )
+    else:
+      jax.config.update("jax_compilation_cache_max_size", COMPILE_CACHE_MAX_BYTES)
+  if jax.config.jax_compilation_cache_max_size > 0:
+    _add_missing_access_times(jax.config.jax_compilation_cache_dir)
   if host_memory == "retain":
     retain_freed_memory()
   _settled = dict(
     compile_cache=jax.config.jax_compilation_cache_dir,
+    compile_cache_max_bytes=jax.config.jax_compilation_cache_max_size,
     host_memory=host_memory,
     host_memory_reason=reason,
     cpu_devices=cpu_devices,
