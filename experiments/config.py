@@ -94,6 +94,12 @@ class TrainSettings:
       no LPIPS) on the first `eval_scenes` scenes of the test split and log the means as
       "eval/psnr", "eval/ssim", ... (training history and TensorBoard); 0: never (default).
     eval_scenes: held-out scenes of that periodic evaluation.
+    log_image_every: every this many steps (official `log_image_freq`), draw the current model
+      on the first scene of the test split (a dynamic model at each target's time) into
+      TensorBoard: `train/images` (its inputs, targets, rendered targets and depth, as the
+      evaluation grids) and histograms of its Gaussians' opacity, log-scale and distance from
+      the scene's origin (`gaussian/...`); 0: never. Written outside the compiled step
+      (`experiments.training.training_pictures`).
 
   Bad settings (a negative or non-finite loss weight, an unknown `rgb_loss`, a batch that does
   not split into `grad_accum_steps` micro-batches, a negative period) raise ValueError on
@@ -125,6 +131,7 @@ class TrainSettings:
   grad_accum_steps: int = 1
   eval_every: int = 0
   eval_scenes: int = 2
+  log_image_every: int = 100
 
   def __post_init__(self):
     self.loss_config()  # its checks, at parse time
@@ -139,6 +146,8 @@ class TrainSettings:
       raise ValueError(
         f"eval_every must be >= 0 and eval_scenes >= 1, got {self.eval_every}, {self.eval_scenes}"
       )
+    if self.log_image_every < 0:
+      raise ValueError(f"log_image_every must be >= 0, got {self.log_image_every}")
 
   def loss_config(self):
     """The training loss (`losses.LossConfig`): these weights, the library's defaults (official

@@ -214,6 +214,27 @@ def write_grids(
   return written
 
 
+def write_training_pictures(writer, entry: dict, method: str, step: int) -> None:
+  """TensorBoard's pictures of a run in training (`train.log_image_every`), of one kept scene
+  (an `evaluation.evaluate` entry) and its `method`: the scene's grid as `train/images` (inputs,
+  targets, the method's renders and depth, `scene_grid`) and histograms of its Gaussians (the
+  first set: a dynamic model's at the first target's time), non-finite values left out:
+  `gaussian/opacity`, `gaussian/log_scale` (every axis) and `gaussian/distance` (of the means
+  from the origin of the normalised frame the model works in)."""
+  writer.add_image("train/images", scene_grid(entry, [method]), step, dataformats="HWC")
+  one = _first_set(entry, method)
+  values = {
+    "opacity": one.opacities,
+    "log_scale": np.log(np.maximum(one.scales, np.finfo(np.float32).tiny)),
+    "distance": np.linalg.norm(one.means, axis=-1),
+  }
+  for name, value in values.items():
+    value = value[np.isfinite(value)]
+    if value.size:
+      bins = np.linspace(0.0, 1.0, 51) if name == "opacity" else "tensorflow"
+      writer.add_histogram(f"gaussian/{name}", value, step, bins=bins)
+
+
 def _first_set(entry: dict, method: str):
   """The first set ([1] or [1, Vt] -> [1]) of a kept scene's `method` Gaussians, on the host."""
   return jax.tree.map(np.asarray, entry[method]["gaussians"].first_set())

@@ -296,15 +296,24 @@ def _train(experiment: Experiment, task: Task, command: Command, writer, info: d
     flush=True,
   )
   pipeline = task.training_batches(experiment)
-  # `train.eval_every`: the model's feed-forward score on the first test scenes, during training
-  evaluate = training.held_out_metrics(
-    experiment,
-    lambda: task.evaluation_scenes(experiment),
-    lambda trained: evaluation.feed_forward(trained, config, task.objective(experiment)),
-  )
+
+  def held_out_scenes():
+    return task.evaluation_scenes(experiment)
+
+  def first_scene():  # the first of held_out_scenes(), without reading the others
+    first = dataclasses.replace(experiment.eval, num_scenes=1)
+    return task.evaluation_scenes(dataclasses.replace(experiment, eval=first))
+
+  def feed_forward(trained):
+    return evaluation.feed_forward(trained, config, task.objective(experiment))
+
+  # The model's feed-forward score on the first test scenes (`train.eval_every`) and its pictures
+  # on the first one (`train.log_image_every`), during training.
+  evaluate = training.held_out_metrics(experiment, held_out_scenes, feed_forward)
+  pictures = training.training_pictures(experiment, first_scene, feed_forward, writer)
   # The loop's history covers the whole run, resumed or not: the checkpoints carry its log.
   params, history, seconds = training.train_model(
-    experiment, params, task.loss_fn(experiment, config), iter(pipeline), writer, evaluate
+    experiment, params, task.loss_fn(experiment, config), iter(pipeline), writer, evaluate, pictures
   )
   rejected = pipeline.rejection_summary()
   print(f"[data] training data rejected:\n{rejected}", flush=True)

@@ -122,6 +122,36 @@ def held_out_metrics(
   return metrics
 
 
+def training_pictures(
+  experiment: Experiment, scenes: Callable[[], Sequence], method: Callable, writer
+) -> Callable[[int, dict], None] | None:
+  """The TensorBoard pictures of `train.log_image_every` (None when 0 or without a writer, as on
+  the processes that write no results): `(step, params) -> None` renders `method(params)` (an
+  `evaluation.Method`) on the first of `scenes()` (read at the first call) through the
+  evaluation's own path (`evaluation.evaluate`, no LPIPS) and writes its grid and its Gaussians'
+  histograms (`results.write_training_pictures`). A picture that fails is reported in one line
+  and ends the pictures, never the training."""
+  from experiments import results
+  from tokengs_jax import evaluation
+
+  if experiment.train.log_image_every <= 0 or writer is None:
+    return None
+  chosen, failures = [], []
+
+  def write(step: int, params) -> None:
+    if failures:
+      return
+    with results.media_step(f"training pictures at step {step}", failures):
+      if not chosen:
+        chosen.extend(list(scenes())[:1])
+      drawn = evaluation.evaluate(
+        chosen, {"prediction": method(params)}, evaluation.Scorer(lpips=False), keep=1
+      )
+      results.write_training_pictures(writer, drawn.kept[0], "prediction", step)
+
+  return write
+
+
 def _loop_config(experiment: Experiment):
   """The library loop's settings: its steps are micro-steps (`grad_accum_steps` per optimiser
   step), so every period is scaled to fall on an optimiser step."""
@@ -134,6 +164,7 @@ def _loop_config(experiment: Experiment):
     log_every=t.log_every * micro,
     checkpoint_every=t.checkpoint_every * micro,
     eval_every=t.eval_every * micro,
+    image_every=t.log_image_every * micro,
     checkpoint_dir=str((pathlib.Path(experiment.output_dir) / "checkpoints").resolve()),
     async_checkpoint=False,
   )
@@ -152,7 +183,7 @@ def _accumulated(loss_fn, batches, micro: int):
 
 
 def train_model(
-  experiment: Experiment, params, loss_fn, batches, writer=None, evaluate=None
+  experiment: Experiment, params, loss_fn, batches, writer=None, evaluate=None, pictures=None
 ) -> tuple[dict, list[dict], float]:
   """Trains with the library loop (sharded over every device); returns (params, history, seconds).
   With `train.steps == 0` the starting weights come back unchanged (`run` then evaluates them).
@@ -166,6 +197,8 @@ def train_model(
   batches: iterator of this process's batches.
   evaluate: `params -> dict of scalars` (`held_out_metrics`), run every `train.eval_every`
     steps and logged as "eval/<name>"; None: no periodic evaluation.
+  pictures: `(step, params) -> None` (`training_pictures`), run every `train.log_image_every`
+    steps; None: none.
   """
   from tokengs_jax.train import CheckpointWriteError, TrainingStopped, train
 
@@ -176,6 +209,10 @@ def train_model(
   micro = experiment.train.grad_accum_steps
   loss_fn, batches = _accumulated(loss_fn, batches, micro)
   eval_fn = None if evaluate is None else lambda state: evaluate(jax.device_get(state.params))
+
+  def image_fn(step, state):  # the loop's steps are micro-steps
+    pictures(step // micro, jax.device_get(state.params))
+
   logger = _TrainLogger(experiment.train.steps, writer, micro_steps=micro)
   start = time.perf_counter()
   try:
@@ -187,6 +224,7 @@ def train_model(
       _loop_config(experiment),
       eval_fn=eval_fn,
       log_fn=logger,
+      image_fn=None if pictures is None else image_fn,
     )
   except TrainingStopped as stopped:  # the loop has said where and how to resume
     raise SystemExit(stopped.exit_status) from None

@@ -81,22 +81,27 @@ def test_only_process_zero_writes_results(tmp_path, monkeypatch):
   assert not (tmp_path / "out").exists()
 
 
+def _kept_scene(rng, **methods) -> dict:
+  """A kept scene (as `evaluation.evaluate` keeps one) of two 16x16 inputs and targets, with
+  these methods' predictions."""
+  images = {f"{kind}_images": rng.uniform(size=(1, 2, 16, 16, 3)) for kind in ("context", "target")}
+  return {"key": "s", "batch": images, **methods}
+
+
+def _rendered(rng) -> dict:
+  """A method's renders of `_kept_scene`'s two targets: rgb, depth in [1, 3], alpha 1."""
+  depth = rng.uniform(1.0, 3.0, size=(2, 16, 16, 1)).astype(np.float32)
+  return {"rgb": rng.uniform(size=(2, 16, 16, 3)), "depth": depth, "alpha": np.ones_like(depth)}
+
+
 def test_scene_grid_is_readable_upscaled_labelled_with_a_depth_colour_bar():
   rng = np.random.default_rng(0)
-  depth = rng.uniform(1.0, 3.0, size=(2, 16, 16, 1)).astype(np.float32)
-  entry = {
-    "key": "s",
-    "batch": {
-      "context_images": rng.uniform(size=(1, 2, 16, 16, 3)),
-      "target_images": rng.uniform(size=(1, 2, 16, 16, 3)),
-    },
-    "nearest_view": {"rgb": rng.uniform(size=(2, 16, 16, 3)), "depth": None, "alpha": None},
-    "trained": {
-      "rgb": rng.uniform(size=(2, 16, 16, 3)),
-      "depth": depth,
-      "alpha": np.ones_like(depth),
-    },
-  }
+  entry = _kept_scene(
+    rng,
+    nearest_view={"rgb": rng.uniform(size=(2, 16, 16, 3)), "depth": None, "alpha": None},
+    trained=_rendered(rng),
+  )
+  depth = entry["trained"]["depth"]
   grid = results.scene_grid(entry, ["nearest_view", "trained"])
   # five rows (inputs, targets, two methods, depth) of 16-px views upscaled 8x to 128 px
   assert grid.dtype == np.uint8 and grid.shape[0] >= 5 * 128
@@ -113,6 +118,51 @@ def test_scene_grid_is_readable_upscaled_labelled_with_a_depth_colour_bar():
   bar = np.asarray(figures._colour_bar(128, (1.0, 3.0), figures._font()))
   np.testing.assert_array_equal(bar[0, 0], export.to_uint8(export.depth_ramp(1.0)))
   np.testing.assert_array_equal(bar[-1, 0], export.to_uint8(export.depth_ramp(0.0)))
+
+
+def test_training_pictures_are_the_grid_and_histograms_of_the_first_set(tmp_path):
+  """`write_training_pictures` (`train.log_image_every`): at each step, the scene's grid as
+  `train/images` and histograms of its first Gaussian set (a dynamic model's [1, Vt] sets: the
+  first target's time) without their non-finite values, read back from the event file."""
+  import io
+
+  from PIL import Image
+  from tensorboard_events import summaries
+  from tensorboardX import SummaryWriter
+
+  from tokengs_jax.gaussians import Gaussians
+
+  rng = np.random.default_rng(0)
+  n = 12
+  means = rng.normal(size=(1, 2, n, 3)).astype(np.float32)
+  means[0, 0, 0, 0] = np.nan  # a broken Gaussian: left out of the distances, not fatal
+  scales = rng.uniform(0.01, 0.5, size=(1, 2, n, 3)).astype(np.float32)
+  gaussians = Gaussians(
+    means=means,
+    opacities=rng.uniform(size=(1, 2, n)).astype(np.float32),
+    scales=scales,
+    quats=rng.normal(size=(1, 2, n, 4)).astype(np.float32),
+    colors=rng.uniform(size=(1, 2, n, 3)).astype(np.float32),
+  )
+  entry = _kept_scene(rng, prediction={**_rendered(rng), "gaussians": gaussians})
+  writer = SummaryWriter(str(tmp_path))
+  for step in (3, 6):
+    results.write_training_pictures(writer, entry, "prediction", step)
+  writer.close()
+  read = summaries(tmp_path)
+  names = ("opacity", "log_scale", "distance")
+  assert read.keys() == {"train/images"} | {f"gaussian/{name}" for name in names}
+  assert all(sorted(steps) == [3, 6] for steps in read.values())
+  image = read["train/images"][6].image
+  decoded = np.asarray(Image.open(io.BytesIO(image.encoded_image_string)))
+  np.testing.assert_array_equal(decoded, results.scene_grid(entry, ["prediction"]))
+  distances = np.linalg.norm(means[0, 0, 1:], axis=-1)
+  opacity, log_scale, distance = (read[f"gaussian/{name}"][3].histo for name in names)
+  assert (opacity.num, log_scale.num, distance.num) == (n, 3 * n, n - 1)
+  assert opacity.sum == pytest.approx(gaussians.opacities[0, 0].sum(), rel=1e-5)
+  np.testing.assert_allclose(np.diff(opacity.bucket_limit), 0.02)  # fixed bins of [0, 1]
+  assert log_scale.min == pytest.approx(np.log(scales[0, 0].min()), rel=1e-5)
+  assert (distance.min, distance.max) == pytest.approx((distances.min(), distances.max()))
 
 
 def test_names_from_data_become_safe_distinct_file_names_inside_their_folder(tmp_path):

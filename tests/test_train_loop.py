@@ -245,6 +245,35 @@ def test_a_host_array_reaching_the_compiled_step_is_an_error_not_a_silent_copy(m
     train(toy_loss, toy_params(), ToyBatches(), OPTIM, LoopConfig(total_steps=2), log_fn=quiet)
 
 
+def test_the_image_hook_runs_every_image_every_steps_with_that_steps_params():
+  """`image_fn` sees the step count and the parameters that step produced (fetched between two
+  steps, outside the compiled one); a period of 0, or no hook, calls nothing."""
+  seen = []
+
+  def hook(step, state):
+    seen.append((step, int(jax.device_get(state.step)), jax.device_get(state.params)))
+
+  config = LoopConfig(total_steps=6, image_every=2)
+  train(toy_loss, toy_params(), ToyBatches(), OPTIM, config, log_fn=quiet, image_fn=hook)
+  assert [(step, state_step) for step, state_step, _ in seen] == [(2, 2), (4, 4), (6, 6)]
+  again, _ = train(
+    toy_loss, toy_params(), ToyBatches(), OPTIM, LoopConfig(total_steps=4), log_fn=quiet
+  )  # the same first four steps without a hook
+  kernels = [np.asarray(jax.device_get(p)["dense1"]["kernel"]) for p in (seen[0][2], seen[1][2])]
+  np.testing.assert_array_equal(kernels[1], jax.device_get(again.params)["dense1"]["kernel"])
+  assert not np.array_equal(kernels[0], kernels[1])
+  train(
+    toy_loss,
+    toy_params(),
+    ToyBatches(),
+    OPTIM,
+    LoopConfig(total_steps=3),
+    log_fn=quiet,
+    image_fn=lambda step, state: seen.append(step),
+  )
+  assert len(seen) == 3  # image_every 0: never called
+
+
 # ---- end to end: the TokenGS objective with the real model and renderer --------------------------
 
 

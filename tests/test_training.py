@@ -1,5 +1,5 @@
-"""experiments.training: how a run ends when the loop cannot go on; gradient accumulation and
-the periodic held-out evaluation."""
+"""experiments.training: how a run ends when the loop cannot go on; gradient accumulation, the
+periodic held-out evaluation and the training pictures (TensorBoard)."""
 
 import dataclasses
 import json
@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from tensorboard_events import summaries
 
 import tokengs_jax.train
 from experiments import training
@@ -61,7 +62,14 @@ def test_accumulation_and_periodic_evaluation_flags_reach_the_optimiser_and_the_
   from experiments.config import optim_config
 
   experiment = _parse(
-    "--train.grad-accum-steps", "2", "--train.eval-every", "3", "--train.checkpoint-every", "5"
+    "--train.grad-accum-steps",
+    "2",
+    "--train.eval-every",
+    "3",
+    "--train.checkpoint-every",
+    "5",
+    "--train.log-image-every",
+    "4",
   )
   assert optim_config(experiment).accumulation_steps == 2
   assert optim_config(experiment).total_steps == experiment.train.steps  # optimiser updates
@@ -72,6 +80,7 @@ def test_accumulation_and_periodic_evaluation_flags_reach_the_optimiser_and_the_
     6,
     10,
   )
+  assert loop.image_every == 8
   assert training._loop_config(_parse()).eval_every == 0  # off by default
   assert optim_config(_parse()).accumulation_steps == 1
   for argv, said in [
@@ -79,6 +88,7 @@ def test_accumulation_and_periodic_evaluation_flags_reach_the_optimiser_and_the_
     (("--train.grad-accum-steps", "3"), "batch_size 2 does not split into grad_accum_steps 3"),
     (("--train.eval-every", "-1"), "eval_every must be >= 0"),
     (("--train.eval-every", "2", "--train.eval-scenes", "0"), "eval_scenes >= 1"),
+    (("--train.log-image-every", "-1"), "log_image_every must be >= 0"),
   ]:
     with pytest.raises(SystemExit):
       _parse(*argv)
@@ -138,6 +148,7 @@ def test_a_run_scores_held_out_scenes_every_eval_every_steps_with_accumulation(t
       grad_accum_steps=2,
       eval_every=2,
       eval_scenes=1,
+      log_image_every=2,
     ),
   )
   tasks.execute("train", experiment)
@@ -147,3 +158,63 @@ def test_a_run_scores_held_out_scenes_every_eval_every_steps_with_accumulation(t
   for entry in evaluated:
     assert math.isfinite(entry["eval/psnr"]) and 0 < entry["eval/ssim"] <= 1
   assert [entry["step"] for entry in history if "loss" in entry] == [1, 2, 3, 4]
+  # `train.log_image_every`: the first test scene's grid and Gaussian histograms, at the same
+  # optimiser steps
+  pictures = {
+    tag: sorted(steps)
+    for tag, steps in summaries(tmp_path / "out" / "tensorboard").items()
+    if not tag.startswith(("train/", "eval/")) or tag == "train/images"
+  }
+  tags = ["train/images", "gaussian/opacity", "gaussian/log_scale", "gaussian/distance"]
+  assert pictures == {tag: [2, 4] for tag in tags}
+
+
+def test_training_pictures_are_off_at_0_or_without_a_writer_and_a_failure_ends_only_them(
+  tmp_path, capsys
+):
+  """`train.log_image_every` 0 (or a process that writes no results: no writer) draws nothing
+  and the loop gets no image period; a picture that fails says so once and stops the pictures,
+  never the training."""
+  off = dataclasses.replace(_experiment(tmp_path), train=TrainSettings(log_image_every=0))
+  assert training._loop_config(off).image_every == 0
+  assert training.training_pictures(off, list, None, object()) is None
+  assert training.training_pictures(_experiment(tmp_path), list, None, None) is None
+  asked = []
+
+  def missing():
+    asked.append(1)
+    raise FileNotFoundError("no test split in /data")
+
+  pictures = training.training_pictures(_experiment(tmp_path), missing, None, object())
+  pictures(100, {})
+  pictures(200, {})
+  said = capsys.readouterr().out
+  assert said.count("not written") == 1 and len(asked) == 1
+  assert "training pictures at step 100: FileNotFoundError: no test split in /data" in said
+
+
+def test_a_dynamic_models_training_pictures_show_it_at_the_targets_times(tmp_path):
+  """A time-conditioned model is drawn as evaluation draws it (each target at its own time);
+  its histograms are of the Gaussians at the first target's time."""
+  from scenes import DYNAMIC_CONFIG, dynamic_batch, dynamic_params
+  from tensorboardX import SummaryWriter
+
+  from tokengs_jax import evaluation
+
+  params = dynamic_params()
+  batch = dynamic_batch([[0.0, 1.0]], [[0.2, 0.9]])
+  writer = SummaryWriter(str(tmp_path))
+  pictures = training.training_pictures(
+    _experiment(tmp_path),
+    lambda: [("scene", batch)],
+    lambda trained: evaluation.feed_forward(trained, DYNAMIC_CONFIG),
+    writer,
+  )
+  pictures(7, params)
+  writer.close()
+  read = summaries(tmp_path)
+  assert read["train/images"].keys() == {7}
+  at_times = evaluation.gaussians_for_batch(params, batch, DYNAMIC_CONFIG)  # [1, 2]
+  distances = [np.linalg.norm(np.asarray(at_times.means[0, t]), axis=-1) for t in (0, 1)]
+  assert not np.allclose(distances[0], distances[1])  # the dynamic Gaussians moved
+  assert read["gaussian/distance"][7].histo.sum == pytest.approx(distances[0].sum(), rel=1e-5)

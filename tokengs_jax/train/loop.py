@@ -33,6 +33,7 @@ class LoopConfig:
       checkpoint (the step itself already refuses a non-finite update).
     checkpoint_every: save period in steps (0: only at the end); needs `checkpoint_dir`.
     eval_every: eval hook period (0: never).
+    image_every: image hook period (0: never).
     checkpoint_dir: where checkpoints go; an existing checkpoint there is resumed from.
     max_to_keep: checkpoints kept.
     async_checkpoint: background writes.
@@ -43,6 +44,7 @@ class LoopConfig:
   log_every: int = 10
   checkpoint_every: int = 1000
   eval_every: int = 0
+  image_every: int = 0
   checkpoint_dir: str | None = None
   max_to_keep: int = 3
   async_checkpoint: bool = True
@@ -98,6 +100,7 @@ def train(
   precision: Precision | None = None,
   eval_fn: Callable[[TrainState], dict] | None = None,
   log_fn: Callable[[int, dict], None] = _print_log,
+  image_fn: Callable[[int, TrainState], None] | None = None,
 ) -> tuple[TrainState, list[dict]]:
   """Trains `params` on `batches`, resuming from `loop_config.checkpoint_dir` when it holds one.
 
@@ -114,6 +117,8 @@ def train(
     precision: compute-dtype policy (default `Precision()`: no cast).
     eval_fn: `state -> dict of scalars`, called every `eval_every` steps and logged as "eval/...".
     log_fn: `(step, metrics) -> None`; default prints one line.
+    image_fn: `(step, state) -> None`, called every `image_every` steps between two steps, outside
+      the compiled one (e.g. renders of the current parameters); must not keep the `state`.
 
   Returns:
     `(final state, history)`; history is the list of logged dicts (each with "step") of the whole
@@ -158,14 +163,21 @@ def train(
       )
       if save_now or is_last or step % loop_config.log_every == 0:
         log.drain(step)
-      # Before the save, so the checkpoint's history holds this step's evaluation.
-      if eval_fn is not None and _every(loop_config.eval_every, step):
-        log.evaluation(step, eval_fn(state))
+      _periodic_hooks(loop_config, step, state, log, eval_fn, image_fn)
       if save_now:
         _save(checkpointer, state, batches, log, step)
       if not is_last and (signum := stop_request.agreed()):
         _stop(signum, step, state, batches, log, checkpointer)
     return state, history
+
+
+def _periodic_hooks(loop_config: LoopConfig, step: int, state, log, eval_fn, image_fn) -> None:
+  """The eval and image hooks due at `step`, run before its save (so the checkpoint's history
+  holds this step's evaluation)."""
+  if eval_fn is not None and _every(loop_config.eval_every, step):
+    log.evaluation(step, eval_fn(state))
+  if image_fn is not None and _every(loop_config.image_every, step):
+    image_fn(step, state)
 
 
 def _initial_state(params, optimizer, mesh: Mesh, seed: int) -> TrainState:
