@@ -69,6 +69,10 @@ class KubricExperiment(Experiment):
     dyn_aux_on_objects: the auxiliary loss scores the object pixels of the data's segmentations
       and the dynamic render's alpha against them (`losses.LossConfig.dyn_aux_on_objects`; the
       training examples then carry `target_objects`).
+    decode_times: the time the training loss decodes each supervised view's Gaussians at:
+      "first" (official: one decode at the targets' time, shared by every view, the input views
+      too under `train.use_input_supervision`) or "per_view" (each view at its own time, so input
+      supervision scores every input at its own time; a deviation, `ObjectiveConfig.decode_times`).
     background: what every render of training, token tuning and evaluation composites behind the
       Gaussians: "grey" (official `bg_color`, 0.5) or "input_mean" (each example's mean input
       colour: targets from other cameras show regions no input saw; `ObjectiveConfig.background`).
@@ -92,6 +96,7 @@ class KubricExperiment(Experiment):
   lambda_motion: float = 0.0
   dyn_aux_on_motion: bool = False
   dyn_aux_on_objects: bool = False
+  decode_times: Literal["first", "per_view"] = "first"
   background: Literal["grey", "input_mean"] = "grey"
   normalization: Literal["mean_cam", "first_cam"] = "mean_cam"
   pointmap_trim_lo: float = 0.0
@@ -419,10 +424,9 @@ class KubricTask(Task):
     )
 
   def objective(self, experiment: KubricExperiment) -> ObjectiveConfig:
-    # every target view of a Kubric example shares one time: decode once (official)
     objective = ObjectiveConfig(
       view_chunk_size=experiment.train.view_chunk_size,
-      decode_times="first",
+      decode_times=experiment.decode_times,
       use_input_supervision=experiment.train.use_input_supervision,
     )
     if experiment.background == "input_mean":

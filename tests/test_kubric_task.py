@@ -86,6 +86,9 @@ def test_kubric_presets_keep_their_loss_and_honour_the_common_train_flags(capsys
   )
   tuned = parse("--train.use-input-supervision")
   assert KubricTask().objective(tuned).use_input_supervision
+  # each supervised view decoded at its own time, the inputs at theirs (the flag reaches the loss)
+  per_view = parse("--train.use-input-supervision", "--decode-times", "per_view")
+  assert KubricTask().objective(per_view).decode_times == "per_view"
   assert "Unrecognized" in _refusal(capsys, parse, "--rgb-loss", "l2")  # the duplicate flag
   said = _refusal(capsys, parse, "--train.lambda-depth", "0.1")
   assert "lambda_depth must be 0 on Kubric" in said
