@@ -13,6 +13,7 @@ import sys
 from typing import Literal
 
 from tokengs_jax import export, model, tuning
+from tokengs_jax.data import mixing
 from tokengs_jax.data.synthetic import WalkConfig
 
 # Domain randomisation of the rooms' camera path (the issue-10 lever sweep, in git history): the
@@ -280,6 +281,15 @@ class Experiment:
       presets); None: the dataset's default (`first_cam` for RE10K, DL3DV and the synthetic set).
       The translation scale method is not a setting: every official RE10K / DL3DV preset uses
       `constant` (issue 26).
+    data_mode: the training datasets, in place of `data_dir`'s (or the synthetic set's) `train`
+      split: the official `data_mode`, each entry `NAME:REPEAT:FOLDER`
+      (`tokengs_jax.data.mixing`), e.g. `--data-mode dl3dv_scaled_0.15:6:/data/dl3dv
+      re10k_scaled_0.25:1:/data/re10k`. NAME is `re10k` or `dl3dv`, optionally `_scaled_X` (the
+      dataset's translation scale, else its default, 0.25 / 0.15); it also picks the dataset's
+      view sampler. Each scene appears REPEAT times per epoch, and batches mix the datasets.
+      FOLDER is read as `--data-dir` is. Views, image size and camera frame stay the run's.
+      Evaluation still scores `data_dir`'s test split (or the synthetic set's). Empty: off. A bad
+      entry (unknown or Kubric dataset, REPEAT < 1, a missing folder) is refused at parse time.
   """
 
   dataset: Literal["re10k", "dl3dv"] = "re10k"
@@ -295,8 +305,11 @@ class Experiment:
   synthetic: SyntheticSettings = SyntheticSettings()
   train: TrainSettings = TrainSettings()
   eval: EvalSettings = EvalSettings()
+  data_mode: tuple[str, ...] = ()
 
   def __post_init__(self):
+    for entry in self.data_mode:  # its names, counts and folders now, before any work
+      mixing.parse_data_mode(entry)
     if self.train.lambda_mask > 0:  # at parse time, not at the first traced step
       raise ValueError(
         f"train.lambda_mask must be 0 on {self.dataset} (and the synthetic set): its examples "

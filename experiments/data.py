@@ -27,7 +27,7 @@ from tokengs_jax.data import (
   make_example,
   sample_bounded,
 )
-from tokengs_jax.data import dl3dv
+from tokengs_jax.data import dl3dv, mixing
 from tokengs_jax.data.sampler import EvaluationIndexReport, validate_evaluation_index
 from tokengs_jax.data.synthetic.generate import read_true_depths
 
@@ -332,8 +332,7 @@ class _WithTrueDepths:
   def __init__(self, source: ChunkedSceneSource):
     if not isinstance(source, ChunkedSceneSource):
       raise ValueError("train.lambda_depth > 0 needs true depths: DL3DV scenes have none")
-    self.source = source
-    self.rejections = source.rejections
+    self.source, self.rejections = source, source.rejections
 
   def __len__(self) -> int:
     return len(self.source)
@@ -359,23 +358,24 @@ def local_batch_size(batch_size: int) -> int:
 
 
 def training_batches(experiment: Experiment) -> InputPipeline:
-  """This process's share of the global batch, forever, from `<root>/train` (with the scenes'
-  true depths when `train.lambda_depth > 0`)."""
+  """This process's share of the global batch, forever, from `<root>/train` or the `data_mode`
+  mix (`mixing.training_mix`), with the scenes' true depths when `train.lambda_depth > 0`."""
   local = local_batch_size(experiment.train.batch_size)  # before any data is written
-  root = data_root(experiment)
-  if data_format(experiment) == "zips":  # held-out scenes left out, as test/ is for chunks
+  root, config = data_root(experiment), example_config(experiment, training=True)
+  wrap = _WithTrueDepths if experiment.train.lambda_depth > 0 else (lambda source: source)
+  if experiment.data_mode:  # several datasets, each repeated: the official data_mode
+    source = mixing.training_mix(experiment.data_mode, config, experiment.eval_index, wrap)
+  elif data_format(experiment) == "zips":  # held-out scenes left out, as test/ is for chunks
     source = dl3dv.dl3dv_training_source(root, held_out_index=experiment.eval_index, skip_bad=True)
   else:
     source = ChunkedSceneSource(root / "train", skip_bad=bool(experiment.data_dir))
-  if experiment.train.lambda_depth > 0:
-    source = _WithTrueDepths(source)
   return InputPipeline(
-    source,
-    example_config(experiment, training=True),
+    source if experiment.data_mode else wrap(source),
+    config,
     batch_size=local,
     seed=experiment.seed,
     num_workers=experiment.train.num_workers,
-    skip_bad=bool(experiment.data_dir),
+    skip_bad=bool(experiment.data_dir or experiment.data_mode),
   )
 
 

@@ -103,6 +103,11 @@ class KubricExperiment(Experiment):
   pointmap_trim_hi: float = 1.0
 
   def __post_init__(self):
+    if self.data_mode:  # `Experiment.data_mode` mixes static datasets only
+      raise ValueError(
+        "--data-mode mixes static datasets (python -m experiments.re10k / experiments.dl3dv); "
+        "a Kubric run trains on its one dataset"
+      )
     if self.train.lambda_depth > 0:
       raise ValueError(
         "train.lambda_depth must be 0 on Kubric: its examples carry no true depth to supervise"

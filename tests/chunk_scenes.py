@@ -1,7 +1,12 @@
 """The scene dict the chunk tests write and read back (imported by them as `_scene`; no tests
-here): posed frames of colour ramps, as `write_chunk` takes them."""
+here): posed frames of colour ramps, as `write_chunk` takes them; `write_chunk_set` writes a
+chunk folder of them."""
+
+import json
 
 import numpy as np
+
+from tokengs_jax.data import write_chunk
 
 
 def chunk_scene(key="s0", frames=3, height=12, width=20, seed=0):
@@ -27,3 +32,16 @@ def chunk_scene(key="s0", frames=3, height=12, width=20, seed=0):
     "images": images,
     "timestamps": np.arange(frames) * 1000,
   }
+
+
+def write_chunk_set(folder, scenes, per_chunk=2):
+  """Writes `scenes` as a pixelSplat chunk folder (`NNNNNN.torch` of `per_chunk` scenes each +
+  `index.json`) at `folder`; returns it."""
+  folder.mkdir(parents=True, exist_ok=True)
+  index = {}
+  for start in range(0, len(scenes), per_chunk):
+    name = f"{start // per_chunk:06d}.torch"
+    write_chunk(folder / name, scenes[start : start + per_chunk])
+    index.update({scene["key"]: name for scene in scenes[start : start + per_chunk]})
+  (folder / "index.json").write_text(json.dumps(index))
+  return folder

@@ -84,3 +84,33 @@ def test_lambda_mask_reaches_the_loss_and_is_refused_on_data_without_masks(capsy
     assert "lambda_mask must be 0" in capsys.readouterr().err
   with pytest.raises(ValueError, match="no foreground masks"):
     dataclasses.replace(re10k.PRESETS["smoke"], train=config.TrainSettings(lambda_mask=0.1))
+
+
+def test_data_mode_names_the_training_datasets_and_bad_entries_are_refused_at_parse(
+  tmp_path, capsys
+):
+  """`--data-mode NAME:REPEAT:FOLDER ...` (official `data_mode`) on the static entry points: the
+  entries as given; an unknown or Kubric dataset, a repeat below 1 or a missing folder stops the
+  command line before any work, naming the entry; Kubric's own entry point refuses the flag."""
+  from chunk_scenes import chunk_scene, write_chunk_set
+  from experiments import dl3dv, kubric
+
+  write_chunk_set(tmp_path / "re10k" / "train", [chunk_scene("a")])
+  mix = (f"dl3dv_scaled_0.15:6:{tmp_path / 're10k'}", f"re10k_scaled_0.25:1:{tmp_path / 're10k'}")
+  for presets, default in ((re10k.PRESETS, "smoke"), (dl3dv.PRESETS, "synthetic-4view")):
+    assert cli.parse([], presets, default, "prog")[1].data_mode == ()
+    assert cli.parse(["--data-mode", *mix], presets, default, "prog")[1].data_mode == mix
+  bad = {
+    f"scannet:1:{tmp_path / 're10k'}": "unknown dataset 'scannet'",
+    f"kubric_scaled_1.0:100:{tmp_path / 're10k'}": "Kubric is dynamic",
+    f"re10k:0:{tmp_path / 're10k'}": "REPEAT must be an integer >= 1",
+    f"re10k:1:{tmp_path / 'absent'}": "no such folder",
+  }
+  for entry, message in bad.items():
+    with pytest.raises(SystemExit):
+      cli.parse(["smoke", "--data-mode", entry], re10k.PRESETS, "smoke", "prog")
+    err = " ".join(capsys.readouterr().err.split())  # as one line, whatever the box's width
+    assert message in err and "--data-mode" in err, err
+  with pytest.raises(SystemExit):
+    cli.parse(["--data-mode", mix[1]], kubric.PRESETS, "synthetic-tiny", "prog")
+  assert "a Kubric run trains on its one dataset" in " ".join(capsys.readouterr().err.split())

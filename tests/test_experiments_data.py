@@ -2,6 +2,7 @@
 evaluation scenes and indexes, novel targets, and training batches (depths, the split across
 processes). Named `test_experiments_data` as `test_data_*` are the tests of `tokengs_jax.data`."""
 
+import collections
 import dataclasses
 import json
 
@@ -169,3 +170,41 @@ def test_training_batches_carry_true_depths_for_the_depth_loss(tmp_path):
   assert tasks.Task().loss_config(experiment).lambda_depth == 0.1
   plain = dataclasses.replace(experiment, train=smoke.train)
   assert "target_depths" not in next(iter(data.training_batches(plain)))
+
+
+def test_a_data_mode_mix_trains_on_each_dataset_repeat_times_an_epoch(tmp_path):
+  """`data_mode` (official): two RE10K-format chunk folders, the second as DL3DV repeated 3
+  times, make the training source; an epoch holds every scene of each that many times, and a
+  few smoke training steps run on the mix (evaluation data: `--data-dir`, the first folder)."""
+  from chunk_scenes import chunk_scene, write_chunk_set
+  from tokengs_jax.data import mixing
+
+  for name in ("first", "second"):  # 30 frames: RE10K's sampler spans 25+ frames
+    scenes = [chunk_scene(f"{name}{i}", frames=30, height=16, width=24, seed=i) for i in range(2)]
+    write_chunk_set(tmp_path / name / "train", scenes)
+    write_chunk_set(tmp_path / name / "test", scenes[:1])
+  smoke = re10k.PRESETS["smoke"]
+  experiment = dataclasses.replace(
+    smoke,
+    data_dir=str(tmp_path / "first"),
+    output_dir=str(tmp_path / "out"),
+    data_mode=(f"re10k:1:{tmp_path / 'first'}", f"dl3dv_scaled_0.5:3:{tmp_path / 'second'}"),
+    train=dataclasses.replace(smoke.train, steps=2, batch_size=4, log_image_every=0),
+  )
+  pipeline = data.training_batches(experiment)
+  source = pipeline.source
+  assert isinstance(source, mixing.MixedSource)
+  assert source.counts() == {"re10k_scaled_0.25": 2, "dl3dv_scaled_0.5": 6}
+  assert [source.example_config(i, None).translation_scale for i in (0, 7)] == [0.25, 0.5]
+  batches = iter(pipeline)
+  epoch = [int(i) for _ in range(len(source) // 4) for i in next(batches)["scene_index"]]
+  assert collections.Counter(source.locate(i) for i in epoch) == {
+    (0, 0): 1,
+    (0, 1): 1,
+    (1, 0): 3,
+    (1, 1): 3,
+  }
+  tasks.execute("train", experiment)
+  history = json.loads((tmp_path / "out" / "train_history.json").read_text())
+  losses = [entry["loss"] for entry in history if "loss" in entry]
+  assert len(losses) == 2 and all(np.isfinite(losses))

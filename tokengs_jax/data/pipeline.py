@@ -353,10 +353,12 @@ class _BuildExample:
     self.source, self.config, self.seed, self.batch_size = source, config, seed, batch_size
     self.evaluation_index, self.select_views = evaluation_index, select_views
     self.skip_bad = skip_bad
+    self.config_at = getattr(source, "example_config", None)  # per scene (`mixing.MixedSource`)
 
   def __call__(self, position: int, scene_index: int):
     rng = np.random.default_rng([self.seed, position])  # same example for the same position
     step = position // self.batch_size
+    config = self.config_at(scene_index, self.config) if self.config_at else self.config
     try:
       record = self.source[scene_index]
       views = None
@@ -364,7 +366,7 @@ class _BuildExample:
         views = evaluation_views(self.evaluation_index, record["key"], len(record["images"]))
       elif self.select_views is not None:
         views = self.select_views(record, rng, step)
-      example = make_example(record, self.config, rng, step=step, views=views)
+      example = make_example(record, config, rng, step=step, views=views)
     except (BadExampleError, *_DATA_ERRORS) as error:
       if not self.skip_bad:
         raise
@@ -378,7 +380,8 @@ class InputPipeline:
   """A grain pipeline of fixed-shape batches from a random-access source of scene records.
 
   Args:
-    source: `len()` + `[i]` -> scene record.
+    source: `len()` + `[i]` -> scene record; one with `example_config(i, config)` (a
+      `mixing.MixedSource`) builds scene `i`'s example with the config that returns.
     config: how examples are built.
     batch_size: examples per batch on this process.
     seed: shuffling and per-example randomness (views, flips) derive from it and the position.
