@@ -10,7 +10,8 @@ Laid out by role (`docs/design.md` has a line per module):
   results folder), `weights` (params on disk, a command's starting weights).
 - per dataset: `kubric_task` (Kubric's settings and `Task`).
 - figures: `figures` (picture grids and charts, PIL), `dynamic_pictures` (Kubric's dynamic
-  pictures and scene-flow scores).
+  pictures and scene-flow scores), `dynamic_videos` (Kubric's videos, as the official
+  `render_kubric_dyn.py`'s).
 - baselines: `pixel_baseline` (the pixel-aligned model); the copy baselines and every score are
   `tokengs_jax.evaluation`'s.
 - data: `pretrained/` (the shipped weights, with provenance).

@@ -23,7 +23,10 @@ objects tumbling along curved paths, held-out photographs, a low tinted sun, ano
 
 Besides the common results folder, the evaluation writes `dynamic/`: in-between times, the
 static/dynamic split, scene-flow trajectories and their error against the generator's object
-motion (`experiments.dynamic_pictures`; the numbers are metrics.json's `scene_flow`).
+motion (`experiments.dynamic_pictures`; the numbers are metrics.json's `scene_flow`), and with
+`--eval.video-frames N` > 0 (default 24, at most the clip: 12 frames here) `videos/`: the eight
+videos of the official `scripts/render_kubric_dyn.py` of the first `--eval.media-scenes` scenes
+(`experiments.dynamic_videos`).
 
 Presets:
 - `synthetic-tiny` (default): writes Kubric-4D-layout tars of synthetic dynamic scenes to

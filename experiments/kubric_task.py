@@ -13,7 +13,7 @@ from typing import Literal
 
 import numpy as np
 
-from experiments import data, dynamic_pictures, weights
+from experiments import data, dynamic_pictures, dynamic_videos, weights
 from experiments.config import SSIM_LOSS, Experiment, TrainSettings
 from experiments.tasks import Task, TrainedBaseline
 from tokengs_jax import evaluation, losses
@@ -441,12 +441,13 @@ class KubricTask(Task):
   def extra_visuals(
     self, experiment: KubricExperiment, config, params, examples, writer, step
   ) -> dict:
-    """`dynamic/`'s pictures and the scene-flow scores; none for a static model (no time
-    embedding: its Gaussians do not move)."""
+    """`dynamic/`'s pictures, the scene-flow scores and (`eval.video_frames` > 0) the official
+    videos of the first `eval.media_scenes` scenes (`experiments.dynamic_videos`); none for a
+    static model (no time embedding: its Gaussians do not move)."""
     if not config.time_embedding:
       return {}
     out = pathlib.Path(experiment.output_dir) / "dynamic"
-    return {
+    visuals = {
       "dynamic": dynamic_pictures.write_pictures(
         out,
         params,
@@ -459,3 +460,23 @@ class KubricTask(Task):
       ),
       "scene_flow": dynamic_pictures.scene_flow_report(out, params, config, examples),
     }
+    if experiment.eval.video_frames > 0:
+      visuals["videos"] = self._videos(experiment, config, params, examples)
+    return visuals
+
+  def _videos(self, experiment: KubricExperiment, config, params, examples) -> dict:
+    """`dynamic_videos.write_scene_videos` of the first `eval.media_scenes` (0: all) of the
+    evaluated `examples`, from their records in the held-out source."""
+    _, test = self.sources(experiment)
+    count = experiment.eval.media_scenes
+    keys = [key for key, _ in (examples if count == 0 else examples[:count])]
+    return dynamic_videos.write_scene_videos(
+      pathlib.Path(experiment.output_dir) / "videos",
+      params,
+      config,
+      self.objective(experiment),
+      [(key, test[test.keys.index(key)]) for key in keys],
+      kubric_example_config(experiment, training=False),
+      experiment.eval.video_frames,
+      per_scene=count != 1,
+    )
