@@ -101,11 +101,18 @@ class TrainSettings:
       evaluation grids) and histograms of its Gaussians' opacity, log-scale and distance from
       the scene's origin (`gaussian/...`); 0: never. Written outside the compiled step
       (`experiments.training.training_pictures`).
+    ema_decay: keep an exponential moving average of the weights with this decay
+      (`OptimConfig.ema_decay`: `ema = d * ema + (1 - d) * params` after every optimiser step,
+      starting from the run's initial weights); 0: off (default; neither the paper nor the
+      official code has one). When on, the run's `params.msgpack`, its evaluation, the periodic
+      `eval_every` score and the `log_image_every` pictures use the averaged weights (the run
+      prints so); the last step's raw weights stay in the final checkpoint
+      (`checkpoints/<step>/`, `state.params`). In [0, 1).
 
   Bad settings (a negative or non-finite loss weight, an unknown `rgb_loss`, a batch that does
-  not split into `grad_accum_steps` micro-batches, a negative period) raise ValueError on
-  construction (`losses.LossConfig`'s checks for the loss), so the command line refuses them
-  before any work.
+  not split into `grad_accum_steps` micro-batches, a negative period, an `ema_decay` outside
+  [0, 1)) raise ValueError on construction (`losses.LossConfig`'s checks for the loss), so the
+  command line refuses them before any work.
   """
 
   steps: int = 1500
@@ -133,6 +140,7 @@ class TrainSettings:
   eval_every: int = 0
   eval_scenes: int = 2
   log_image_every: int = 100
+  ema_decay: float = 0.0
 
   def __post_init__(self):
     self.loss_config()  # its checks, at parse time
@@ -149,6 +157,8 @@ class TrainSettings:
       )
     if self.log_image_every < 0:
       raise ValueError(f"log_image_every must be >= 0, got {self.log_image_every}")
+    if not 0.0 <= self.ema_decay < 1.0:  # also refuses NaN
+      raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
 
   def loss_config(self):
     """The training loss (`losses.LossConfig`): these weights, the library's defaults (official
@@ -342,6 +352,7 @@ def optim_config(experiment: Experiment):
     total_steps=t.steps,
     warmup_steps=min(t.warmup_steps, max(t.steps - 1, 0)),
     accumulation_steps=t.grad_accum_steps,
+    ema_decay=t.ema_decay,
   )
 
 

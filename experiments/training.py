@@ -191,7 +191,8 @@ def train_model(
   128 + the signal's number (`SystemExit`), and the same command resumes. A checkpoint that
   cannot be written (disk full, permission denied) ends the run with its one-line reason, status 1.
   The history's and TensorBoard's steps are optimiser steps (`train.grad_accum_steps` loop steps
-  each).
+  each). With `train.ema_decay` > 0 the returned params (and those `evaluate` and `pictures` see)
+  are the moving average of the weights (`tokengs_jax.train.trained_params`), and the run says so.
 
   loss_fn: `(params, batch, key, step) -> (loss, aux)`.
   batches: iterator of this process's batches.
@@ -200,7 +201,7 @@ def train_model(
   pictures: `(step, params) -> None` (`training_pictures`), run every `train.log_image_every`
     steps; None: none.
   """
-  from tokengs_jax.train import CheckpointWriteError, TrainingStopped, train
+  from tokengs_jax.train import CheckpointWriteError, TrainingStopped, train, trained_params
 
   if experiment.train.steps == 0:
     print("[train] 0 steps: the starting weights are the trained ones", flush=True)
@@ -208,10 +209,19 @@ def train_model(
 
   micro = experiment.train.grad_accum_steps
   loss_fn, batches = _accumulated(loss_fn, batches, micro)
-  eval_fn = None if evaluate is None else lambda state: evaluate(jax.device_get(state.params))
+  # The weights handed on (evaluated, pictured, returned): the moving average when one is kept.
+  eval_fn = None if evaluate is None else lambda s: evaluate(jax.device_get(trained_params(s)))
 
   def image_fn(step, state):  # the loop's steps are micro-steps
-    pictures(step // micro, jax.device_get(state.params))
+    pictures(step // micro, jax.device_get(trained_params(state)))
+
+  if experiment.train.ema_decay > 0:
+    print(
+      f"[train] EMA of weights, decay {experiment.train.ema_decay:g}: the saved params.msgpack, "
+      "the evaluation, eval_every and the training pictures use the averaged weights; the last "
+      "step's raw weights stay in the final checkpoint (checkpoints/, state.params)",
+      flush=True,
+    )
 
   logger = _TrainLogger(experiment.train.steps, writer, micro_steps=micro)
   start = time.perf_counter()
@@ -235,4 +245,4 @@ def train_model(
     logger.close()
   seconds = time.perf_counter() - start
   history = [in_optimiser_steps(entry, micro) for entry in history]
-  return jax.device_get(state.params), history, seconds
+  return jax.device_get(trained_params(state)), history, seconds

@@ -1,5 +1,6 @@
 """Checkpoints (`train.checkpoint`): per-array checksums, restore walking back past damaged steps
-with a log line, and data states saved and restored per process."""
+with a log line, data states saved and restored per process, the parameters' moving average with
+or without one saved."""
 
 import json
 import logging
@@ -174,3 +175,55 @@ def test_data_states_are_saved_and_restored_per_process(tmp_path):
     np.testing.assert_array_equal(restored.params["w"], params["w"])
   with pytest.raises(FileNotFoundError, match=r"process 0 of 3 .*process_0-of-2\.json"):
     Checkpointer(directory, process_index=0, process_count=3).restore(state)
+
+
+def _averaged(state):
+  """`state` keeping a parameter average that differs from its params."""
+  return state.replace(ema_params=jax.tree.map(lambda leaf: leaf * 0.5 - 1.0, state.params))
+
+
+def test_the_parameter_average_round_trips_and_a_checkpoint_without_one_still_loads(
+  tmp_path, caplog
+):
+  """Saved and restored with the state (checksummed as any array); a step saved without one
+  restores into a state that keeps one with the average starting from the restored params; a run
+  that keeps none drops a saved one. Both logged."""
+  directory = tmp_path / "run"
+  with Checkpointer(directory, async_save=False) as checkpointer:
+    checkpointer.save(state_at(2), {"position": 2})  # written without an average
+    checkpointer.save(_averaged(state_at(4)), {"position": 4})
+  like = _averaged(state_at(0))
+  with Checkpointer(directory) as checkpointer, caplog.at_level(logging.WARNING):
+    restored, data_state = checkpointer.restore(like)
+    assert int(restored.step) == 4 and data_state == {"position": 4} and not caplog.records
+    chex.assert_trees_all_equal(jax.device_get(restored), jax.device_get(_averaged(state_at(4))))
+
+    restored, _ = checkpointer.restore(like, step=2)
+    chex.assert_trees_all_equal(
+      jax.device_get(restored.ema_params), jax.device_get(restored.params)
+    )
+    chex.assert_trees_all_equal(jax.device_get(restored.params), jax.device_get(state_at(2).params))
+    assert "step 2" in caplog.text and "holds no parameter average" in caplog.text
+    caplog.clear()
+
+    restored, _ = checkpointer.restore(state_at(0))  # a run without an average
+    assert restored.ema_params is None and int(restored.step) == 4
+    chex.assert_trees_all_equal(jax.device_get(restored.params), jax.device_get(state_at(4).params))
+    assert "holds a parameter average this run does not keep: dropped" in caplog.text
+
+
+def test_a_damaged_average_is_caught_by_its_checksum(tmp_path, caplog):
+  directory = tmp_path / "run"
+  with Checkpointer(directory, async_save=False) as checkpointer:
+    checkpointer.save(_averaged(state_at(2)), {"position": 2})
+    checkpointer.save(_averaged(state_at(4)), {"position": 4})
+  manifest = directory / "4" / "checksums" / data_state_file(0, 1)
+  sums = json.loads(manifest.read_text())
+  name = next(key for key in sums if key.startswith(".ema_params") and "big" in key)
+  sums[name] = {key: crc ^ 1 for key, crc in sums[name].items()}
+  manifest.write_text(json.dumps(sums))
+  with caplog.at_level(logging.WARNING):
+    restored, _ = Checkpointer(directory).restore(_averaged(state_at(0)))
+  assert int(restored.step) == 2 and "checksum mismatch in 1 array(s): .ema_params['big']" in (
+    caplog.text
+  )

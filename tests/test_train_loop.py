@@ -1,7 +1,8 @@
-"""The training loop (`train.loop`): exact resume from a checkpoint (past a damaged one), the
-training log kept across resumes, loud stop on non-finite values, a clean stop on SIGTERM/SIGINT;
-end to end, the TokenGS objective with the real model and renderer, static (tiny preset; slow:
-renderer compiles) and dynamic (the loop on generated Kubric-like scenes)."""
+"""The training loop (`train.loop`): exact resume from a checkpoint (past a damaged one; with the
+parameters' moving average), the training log kept across resumes, loud stop on non-finite
+values, a clean stop on SIGTERM/SIGINT; end to end, the TokenGS objective with the real model and
+renderer, static (tiny preset; slow: renderer compiles) and dynamic (the loop on generated
+Kubric-like scenes)."""
 
 import dataclasses
 import logging
@@ -89,6 +90,32 @@ def test_resume_is_exact(tmp_path):
   jax.tree.map(
     np.testing.assert_array_equal, jax.device_get(full.opt_state), jax.device_get(resumed.opt_state)
   )
+
+
+def test_a_resumed_run_keeps_its_parameter_average_exactly(tmp_path):
+  """`OptimConfig.ema_decay`: the average is in the checkpoint, so a run stopped and resumed ends
+  with the same average as one that was not (and it is not the params)."""
+  optim = dataclasses.replace(OPTIM, ema_decay=0.9)
+  full, _ = train(
+    toy_loss, toy_params(), ToyBatches(), optim, LoopConfig(total_steps=8), log_fn=quiet
+  )
+  directory = str(tmp_path / "run")
+  for total in (4, 8):
+    resumed, _ = train(
+      toy_loss,
+      toy_params(),
+      ToyBatches(),
+      optim,
+      LoopConfig(total_steps=total, checkpoint_dir=directory),
+      log_fn=quiet,
+    )
+  assert int(resumed.step) == 8
+  jax.tree.map(
+    np.testing.assert_array_equal,
+    jax.device_get(full.ema_params),
+    jax.device_get(resumed.ema_params),
+  )
+  assert not np.array_equal(full.ema_params["gs_tokens"], full.params["gs_tokens"])
 
 
 def test_non_finite_stops_and_keeps_last_good_checkpoint(tmp_path):

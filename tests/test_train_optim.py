@@ -6,6 +6,7 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from toy_training import noiseless_loss, run_steps, toy_batch, toy_params
 
 from tokengs_jax.train import OptimConfig, learning_rate_schedule, make_mesh, make_optimizer
@@ -91,3 +92,11 @@ def test_accumulation_equals_full_batch():
     jax.device_get(state_acc.params),
   )
   assert not np.allclose(state_full.params["dense1"]["kernel"], toy_params()["dense1"]["kernel"])
+
+
+def test_the_average_decay_is_off_by_default_and_outside_0_to_1_refused():
+  assert OptimConfig().ema_decay == 0.0
+  assert OptimConfig(ema_decay=0.999).ema_decay == 0.999
+  for bad in (-0.1, 1.0, 1.5, float("nan")):
+    with pytest.raises(ValueError, match="ema_decay must be in"):
+      OptimConfig(ema_decay=bad)

@@ -1,5 +1,6 @@
 """`train.state`: a fresh `TrainState` holds the parameters, the optimiser's initial state, step 0
-and the seed's key, and is a pytree that jit maps and `replace` updates."""
+and the seed's key (and, when asked, the parameters' moving average), and is a pytree that jit maps
+and `replace` updates."""
 
 import dataclasses
 
@@ -9,7 +10,7 @@ import numpy as np
 import optax
 import pytest
 
-from tokengs_jax.train.state import TrainState, create_train_state
+from tokengs_jax.train.state import TrainState, create_train_state, ema_update, trained_params
 
 PARAMS = {"w": jnp.arange(6.0).reshape(2, 3), "b": jnp.ones(3)}
 
@@ -46,3 +47,15 @@ def test_the_state_is_a_pytree_jit_maps_and_replace_updates():
   np.testing.assert_array_equal(after.rng, state.rng)
   with pytest.raises(dataclasses.FrozenInstanceError):
     after.step = jnp.zeros((), jnp.int32)
+
+
+def test_the_parameter_average_starts_as_a_copy_of_the_params_and_is_absent_when_off():
+  assert create_train_state(PARAMS, optax.sgd(0.5), seed=0).ema_params is None
+  state = create_train_state(PARAMS, optax.sgd(0.5), seed=0, ema_decay=0.9)
+  jax.tree.map(np.testing.assert_array_equal, state.ema_params, PARAMS)
+  assert state.ema_params["w"] is not PARAMS["w"]  # its own buffers: the step donates both
+  assert trained_params(state) is state.ema_params
+  assert trained_params(state.replace(ema_params=None)) is state.params
+  moved = ema_update(state.ema_params, {"w": PARAMS["w"] + 10.0, "b": PARAMS["b"]}, 0.9)
+  np.testing.assert_allclose(moved["w"], PARAMS["w"] + 1.0, rtol=1e-6)
+  np.testing.assert_array_equal(moved["b"], PARAMS["b"])

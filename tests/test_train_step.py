@@ -1,5 +1,7 @@
 """The sharded training step (`train.step`) on a toy regression model: one vs four devices, the
-loss's arguments, non-finite gradients skipped, bfloat16 compute."""
+loss's arguments, non-finite gradients skipped, bfloat16 compute, the parameters' moving average."""
+
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -114,3 +116,53 @@ def test_bf16_compute_keeps_float32_state():
   # bf16 has an 8-bit mantissa: same loss to ~1%, not bit-equal
   np.testing.assert_allclose(metrics[0]["loss"], metrics32[0]["loss"], rtol=2e-2)
   assert metrics[0]["loss"] != metrics32[0]["loss"]
+
+
+def _steps_keeping_an_average(config, batches, mesh):
+  """The toy's steps with `config.ema_decay`: (final state, the params before and after each)."""
+  optimizer = make_optimizer(config)
+  state = jax.jit(
+    lambda p: create_train_state(p, optimizer, 0, config.ema_decay),
+    out_shardings=NamedSharding(mesh, P()),
+  )(toy_params())
+  step = make_train_step(noiseless_loss, optimizer, mesh, ema_decay=config.ema_decay)
+  seen = [jax.device_get(state.params)]
+  for batch in batches:
+    state, _ = step(state, shard_batch(batch, mesh), jax.random.PRNGKey(7))
+    seen.append(jax.device_get(state.params))
+  return state, seen
+
+
+@pytest.mark.parametrize("accumulation", [1, 2])
+def test_the_parameter_average_is_the_hand_computed_one_over_the_optimiser_updates(accumulation):
+  """`ema = d * ema + (1 - d) * params` after each optimiser update (with accumulation, not after
+  the micro-steps between two), starting from the initial params; sharded as the params."""
+  decay = 0.8
+  config = OptimConfig(
+    learning_rate=5e-2, schedule="constant", ema_decay=decay, accumulation_steps=accumulation
+  )
+  state, seen = _steps_keeping_an_average(config, [toy_batch(i) for i in range(4)], make_mesh())
+  expected = seen[0]
+  for params in seen[accumulation::accumulation]:  # the params after each optimiser update
+    expected = jax.tree.map(lambda ema, new: decay * ema + (1 - decay) * new, expected, params)
+  jax.tree.map(
+    lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7),
+    jax.device_get(state.ema_params),
+    expected,
+  )
+  kernel = np.asarray(state.ema_params["dense1"]["kernel"])
+  assert not np.allclose(kernel, seen[-1]["dense1"]["kernel"])  # an average, not the params
+  assert not np.allclose(kernel, seen[0]["dense1"]["kernel"])
+  for ema, param in zip(jax.tree.leaves(state.ema_params), jax.tree.leaves(state.params)):
+    assert ema.sharding == param.sharding and ema.dtype == param.dtype
+
+
+def test_without_a_decay_the_state_keeps_no_average():
+  config = OptimConfig(learning_rate=5e-2, schedule="constant")
+  state, _ = _steps_keeping_an_average(config, [toy_batch(0)], make_mesh())
+  assert state.ema_params is None
+  with_average = dataclasses.replace(config, ema_decay=0.5)
+  kept, _ = _steps_keeping_an_average(with_average, [toy_batch(0)], make_mesh())
+  assert len(jax.tree.leaves(kept)) == len(jax.tree.leaves(state)) + len(
+    jax.tree.leaves(state.params)
+  )

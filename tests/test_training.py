@@ -1,5 +1,6 @@
 """experiments.training: how a run ends when the loop cannot go on; gradient accumulation, the
-periodic held-out evaluation and the training pictures (TensorBoard)."""
+periodic held-out evaluation, the training pictures (TensorBoard) and the weights' moving
+average."""
 
 import dataclasses
 import json
@@ -218,3 +219,42 @@ def test_a_dynamic_models_training_pictures_show_it_at_the_targets_times(tmp_pat
   distances = [np.linalg.norm(np.asarray(at_times.means[0, t]), axis=-1) for t in (0, 1)]
   assert not np.allclose(distances[0], distances[1])  # the dynamic Gaussians moved
   assert read["gaussian/distance"][7].histo.sum == pytest.approx(distances[0].sum(), rel=1e-5)
+
+
+def test_the_ema_flag_reaches_the_optimiser_and_the_run_hands_on_the_averaged_weights(
+  tmp_path, monkeypatch, capsys
+):
+  """`--train.ema-decay D` (issue 26): off by default, refused outside [0, 1) at parse time; when
+  on, `train_model` returns (to be saved as params.msgpack and evaluated) the average, and says
+  so."""
+  from experiments.config import optim_config
+  from tokengs_jax.train import TrainState
+
+  assert optim_config(_parse()).ema_decay == 0.0
+  assert optim_config(_parse("--train.ema-decay", "0.999")).ema_decay == 0.999
+  for bad in ("-0.5", "1", "1.5", "nan"):
+    with pytest.raises(SystemExit):
+      _parse("--train.ema-decay", bad)
+    assert "ema_decay must be in [0, 1)" in " ".join(
+      capsys.readouterr().err.replace("│", " ").split()
+    ), bad
+
+  state = TrainState(
+    params={"w": np.zeros(2)}, opt_state=(), step=np.int32(3), rng=np.zeros(2, np.uint32)
+  )
+  monkeypatch.setattr(
+    tokengs_jax.train,
+    "train",
+    lambda *args, **kwargs: (state.replace(ema_params={"w": np.ones(2)}), []),
+  )
+  experiment = _experiment(tmp_path)
+  averaged = dataclasses.replace(
+    experiment, train=dataclasses.replace(experiment.train, ema_decay=0.9)
+  )
+  params, _, _ = training.train_model(averaged, {}, None, iter(()))
+  np.testing.assert_array_equal(params["w"], np.ones(2))
+  assert "[train] EMA of weights, decay 0.9: the saved params.msgpack" in capsys.readouterr().out
+  monkeypatch.setattr(tokengs_jax.train, "train", lambda *args, **kwargs: (state, []))
+  params, _, _ = training.train_model(experiment, {}, None, iter(()))
+  np.testing.assert_array_equal(params["w"], np.zeros(2))
+  assert "EMA" not in capsys.readouterr().out

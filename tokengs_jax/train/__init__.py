@@ -10,7 +10,7 @@ from tokengs_jax.train.checkpoint_files import CheckpointWriteError
 from tokengs_jax.train.distributed import barrier, initialize, make_mesh, replicate, shard_batch
 from tokengs_jax.train.loop import LoopConfig, NonFiniteError, TrainingStopped, train
 from tokengs_jax.train.optim import OptimConfig, learning_rate_schedule, make_optimizer
-from tokengs_jax.train.state import TrainState, create_train_state
+from tokengs_jax.train.state import TrainState, create_train_state, ema_update, trained_params
 from tokengs_jax.train.step import Precision, make_train_step, train_step_fn
 from tokengs_jax.train.tokens import (
   dynamic_tokens_from_static,
@@ -31,6 +31,7 @@ __all__ = [
   "barrier",
   "create_train_state",
   "dynamic_tokens_from_static",
+  "ema_update",
   "expand_tokens",
   "initialize",
   "learning_rate_schedule",
@@ -41,6 +42,7 @@ __all__ = [
   "shard_batch",
   "train",
   "train_step_fn",
+  "trained_params",
   "split_gaussians",
   "transplant_params",
 ]

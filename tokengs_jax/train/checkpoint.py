@@ -2,7 +2,10 @@
 
 A checkpoint (one step directory, written atomically by orbax: a temporary directory renamed
 once every process has written its part) holds three items:
-- "state": params, optimiser state, step, RNG (array pytree, `StandardCheckpointHandler`);
+- "state": params, optimiser state, step, RNG and, when the run keeps one, the parameters'
+  moving average (array pytree, `StandardCheckpointHandler`); a `TrainState` restores whether or
+  not the checkpoint holds an average: one the run does not keep is dropped, one the checkpoint
+  lacks starts from the restored params (both logged);
 - "data": one JSON file per process, `data/process_{i}-of-{n}.json` (the layout of grain's own
   orbax handler), with that process's host-side state (the loop stores its input iterator
   position and the training log). In a multi-host run each process reads its own shard of the
@@ -36,6 +39,7 @@ import zlib
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 from jax.experimental import multihost_utils
@@ -48,6 +52,7 @@ from tokengs_jax.train.checkpoint_files import (
   step_bytes,
   write_error,
 )
+from tokengs_jax.train.state import TrainState
 
 log = logging.getLogger(__name__)
 
@@ -324,7 +329,21 @@ class Checkpointer:
       + "\nMove the directory away to start afresh, or point checkpoint_dir elsewhere."
     )
 
+  def _saved_average(self, step: int, default: bool) -> bool:
+    """Whether step `step`'s state holds a parameter average (`TrainState.ema_params`);
+    `default` when its metadata does not say (then orbax's restore names the damage)."""
+    try:
+      tree = ocp.StandardCheckpointHandler().metadata(self.directory / str(step) / "state").tree
+    except Exception:  # a damaged step: its restore below fails with the reason
+      return default
+    return isinstance(tree, dict) and tree.get("ema_params") is not None
+
   def _restore_verified(self, step: int, abstract):
+    wants = saved = None
+    if isinstance(abstract, TrainState):  # restore what was saved; fit it to the run below
+      wants = abstract.ema_params is not None
+      saved = self._saved_average(step, default=wants)
+      abstract = abstract.replace(ema_params=abstract.params if saved else None)
     restored = self._manager.restore(
       step,
       args=ocp.args.Composite(
@@ -350,6 +369,20 @@ class Checkpointer:
         self.directory,
         name,
       )
+    if wants and not saved:
+      log.warning(
+        "checkpoint step %d in %s holds no parameter average: it starts from the restored params",
+        step,
+        self.directory,
+      )
+      state = state.replace(ema_params=jax.tree.map(jnp.copy, state.params))
+    elif saved and not wants:
+      log.warning(
+        "checkpoint step %d in %s holds a parameter average this run does not keep: dropped",
+        step,
+        self.directory,
+      )
+      state = state.replace(ema_params=None)
     return state, host["iterator"]
 
   def _read_own_files(self, step: int) -> None:

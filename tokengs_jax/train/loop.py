@@ -111,7 +111,7 @@ def train(
     batches: iterator of this process's batches (dicts of `[B_local, ...]` numpy arrays), all of
       the first batch's shapes (the step is compiled once, ahead of its first run). If it has
       `get_state`/`set_state` (grain), its position is checkpointed and restored (per process).
-    optim_config: optimiser and schedule.
+    optim_config: optimiser and schedule (with `ema_decay` > 0 the state keeps `ema_params`).
     loop_config: loop settings.
     mesh: device mesh; default all devices on "data".
     precision: compute-dtype policy (default `Precision()`: no cast).
@@ -131,7 +131,7 @@ def train(
   """
   mesh = make_mesh() if mesh is None else mesh
   optimizer = make_optimizer(optim_config)
-  state = _initial_state(params, optimizer, mesh, loop_config.seed)
+  state = _initial_state(params, optimizer, mesh, loop_config.seed, optim_config.ema_decay)
 
   checkpointer = _checkpointer(loop_config)
   # Leaving the blocks waits for a pending save and closes the manager, also on an error, and then
@@ -139,7 +139,7 @@ def train(
   with _StopRequest(mesh) as stop_request, checkpointer or contextlib.nullcontext():
     state, history = _resume(checkpointer, state, batches)
     train_step = make_train_step(
-      loss_fn, optimizer, mesh, precision=Precision() if precision is None else precision
+      loss_fn, optimizer, mesh, precision=precision or Precision(), ema_decay=optim_config.ema_decay
     )
     # A separate buffer: the state (and its rng) is donated to each step.
     key = jnp.copy(state.rng)
@@ -180,10 +180,12 @@ def _periodic_hooks(loop_config: LoopConfig, step: int, state, log, eval_fn, ima
     image_fn(step, state)
 
 
-def _initial_state(params, optimizer, mesh: Mesh, seed: int) -> TrainState:
-  """A fresh, replicated `TrainState` of `params`, built on the devices."""
+def _initial_state(params, optimizer, mesh: Mesh, seed: int, ema_decay: float) -> TrainState:
+  """A fresh, replicated `TrainState` of `params` (with their moving average when
+  `ema_decay` > 0), built on the devices."""
   init_state = jax.jit(
-    lambda p: create_train_state(p, optimizer, seed), out_shardings=NamedSharding(mesh, P())
+    lambda p: create_train_state(p, optimizer, seed, ema_decay),
+    out_shardings=NamedSharding(mesh, P()),
   )
   return init_state(replicate(jax.device_get(params), mesh))
 

@@ -42,6 +42,10 @@ class OptimConfig:
       dynamic) and the latent-bottleneck query table.
     grad_clip_norm: global-norm clip of the (accumulated) gradient; None disables it.
     accumulation_steps: micro-batches averaged per optimiser update.
+    ema_decay: keep an exponential moving average of the parameters in the training state
+      (`TrainState.ema_params`), updated after every optimiser update (not every micro-batch) as
+      `ema = ema_decay * ema + (1 - ema_decay) * params`, starting equal to the initial params;
+      0 (default): off, no average kept. Not in the paper or the official code.
   """
 
   learning_rate: float = 4e-4
@@ -61,6 +65,11 @@ class OptimConfig:
   no_decay_names: tuple[str, ...] = ("gs_tokens", "latents")
   grad_clip_norm: float | None = 1.0
   accumulation_steps: int = 1
+  ema_decay: float = 0.0
+
+  def __post_init__(self):
+    if not 0.0 <= self.ema_decay < 1.0:  # also refuses NaN
+      raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
 
 
 def _cosine_anneal(start, end, fraction):

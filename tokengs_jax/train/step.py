@@ -20,7 +20,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from tokengs_jax.train.optim import current_learning_rate
-from tokengs_jax.train.state import TrainState
+from tokengs_jax.train.state import TrainState, ema_update
 
 # (params, batch, key, step [] int32) -> (scalar loss, aux dict of scalars)
 LossFn = Callable[[Any, dict, jax.Array, jax.Array], tuple[jax.Array, dict]]
@@ -50,8 +50,29 @@ def cast_floating(tree, dtype):
   return jax.tree.map(cast, tree)
 
 
+def _with_average(state: TrainState, decay: float) -> TrainState:
+  """`state` with its parameter average moved towards its (just updated) params, when it keeps
+  one. Under gradient accumulation (`optax.MultiSteps`) only on the micro-steps that updated the
+  parameters, so the decay counts optimiser updates."""
+  if state.ema_params is None:
+    return state
+  if not decay > 0:
+    raise ValueError("the state keeps a parameter average (ema_params) but ema_decay is 0")
+
+  def average(ema):
+    return ema_update(ema, state.params, decay)
+
+  if isinstance(state.opt_state, optax.MultiStepsState):
+    updated = state.opt_state.mini_step == 0
+    return state.replace(ema_params=jax.lax.cond(updated, average, lambda e: e, state.ema_params))
+  return state.replace(ema_params=average(state.ema_params))
+
+
 def train_step_fn(
-  loss_fn: LossFn, optimizer: optax.GradientTransformation, precision: Precision = Precision()
+  loss_fn: LossFn,
+  optimizer: optax.GradientTransformation,
+  precision: Precision = Precision(),
+  ema_decay: float = 0.0,
 ):
   """The unjitted step `(state, batch, key) -> (state, metrics)`.
 
@@ -59,7 +80,9 @@ def train_step_fn(
   is passed explicitly for step-scheduled terms (the dynamic auxiliary weight). When the loss or
   the gradient's global norm is non-finite (a NaN or infinity in any gradient, or a norm that
   overflows float32) the returned state is the input state (update skipped, step not advanced)
-  and `metrics["finite"]` is False; the loop turns that into a loud stop.
+  and `metrics["finite"]` is False; the loop turns that into a loud stop. A state that keeps a
+  parameter average (`TrainState.ema_params`, from `create_train_state(..., ema_decay)`) has it
+  moved with `ema_decay` after each kept optimiser update; a state without one is left without.
   """
 
   def step(state: TrainState, batch: dict, key: jax.Array):
@@ -79,9 +102,10 @@ def train_step_fn(
 
     def apply_update(state):
       updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
-      return state.replace(
+      state = state.replace(
         params=optax.apply_updates(state.params, updates), opt_state=opt_state, step=state.step + 1
       )
+      return _with_average(state, ema_decay)
 
     # A branch rather than a select per leaf: the update runs only when it is kept, and the
     # state is written in place (a select keeps both versions alive, so XLA copied the params).
@@ -106,6 +130,7 @@ def make_train_step(
   precision: Precision = Precision(),
   state_sharding=None,
   donate: bool = True,
+  ema_decay: float = 0.0,
 ):
   """Jits the step with shardings over `mesh` and the state buffers donated.
 
@@ -117,6 +142,9 @@ def make_train_step(
     precision: compute-dtype policy.
     state_sharding: sharding (or pytree prefix of shardings) for the state; default replicated.
     donate: donate the input state's buffers (the caller must not reuse the passed state).
+    ema_decay: decay of the state's parameter average (`OptimConfig.ema_decay`), used when the
+      state keeps one (`TrainState.ema_params`); a `state_sharding` pytree then gives it the
+      params' shardings.
 
   Returns:
     `train_step(state, batch, key) -> (state, metrics)`; batch leaves `[B, ...]` with B divisible
@@ -126,7 +154,7 @@ def make_train_step(
   batch_sharding = NamedSharding(mesh, P("data"))
   state_sharding = replicated if state_sharding is None else state_sharding
   return jax.jit(
-    train_step_fn(loss_fn, optimizer, precision),
+    train_step_fn(loss_fn, optimizer, precision, ema_decay),
     in_shardings=(state_sharding, batch_sharding, replicated),
     out_shardings=(state_sharding, replicated),
     donate_argnums=(0,) if donate else (),
