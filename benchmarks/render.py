@@ -148,7 +148,7 @@ def stage_times(gaussians, height, width, config, repeats):
 
   def composite(attrs):
     return rasterize.rasterize_tiles(
-      attrs, bins.gaussian_ids, bins.tile_starts, bins.tile_ends, tiling
+      attrs, bins.gaussian_ids, bins.tile_starts, bins.tile_ends, tiling, bins.shared_lists
     )
 
   attrs = camera.attrs[0]

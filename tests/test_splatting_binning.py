@@ -1,6 +1,6 @@
 """Binning (`splatting.binning`): the ellipse-tile bound never exceeds a tile's true minimum;
 sub-tile lists (`binning.split_tiles`) are the brute-force filter of their tiles' lists and render
-what whole tiles render."""
+what whole tiles render; the depth ranking (`binning.depth_order`) is the stable argsort."""
 
 import dataclasses
 import functools
@@ -175,3 +175,23 @@ def test_sub_tiles_render_what_whole_tiles_render(budget, split_below, monkeypat
       np.testing.assert_array_equal(getattr(out.stats, name), getattr(whole.stats, name))
   if budget is not None:  # the tight budget does cut this scene, and the flag says so
     assert bool(whole.stats.truncated[0]) and bool(whole.stats.overflow[0])
+
+
+@pytest.mark.parametrize("num", [1, 5, 1000, 2**16, 2**16 + 3])
+def test_depth_order_is_the_stable_argsort(num):
+  # ties, both zeros (tied, as the float sort ties them), negatives, the culled (+inf) and
+  # subnormals (XLA:CPU compares them as 0); 2**16 is the largest N of the packed path, 2**16 + 3
+  # takes the argsort.
+  rng = np.random.default_rng(num)
+  keys = rng.uniform(0.02, 9.0, num).astype(np.float32)
+  keys[::7] = np.inf
+  keys[1::13] = keys[0]
+  keys[2::17] = -0.0
+  keys[3::19] = 0.0
+  keys[4::23] = -rng.uniform(0, 3, keys[4::23].shape)
+  keys[5::29] = np.float32(1e-42)
+  order = jax.jit(binning.depth_order)(jnp.asarray(keys))
+  assert order.dtype == jnp.int32
+  np.testing.assert_array_equal(order, jnp.argsort(jnp.asarray(keys), stable=True))
+  normal = np.where(np.abs(keys) < 1e-37, 0.0, keys)
+  np.testing.assert_array_equal(order, np.argsort(normal, kind="stable"))

@@ -1,9 +1,17 @@
-"""The compositor (`splatting.rasterize`): its halving ladder of block sizes."""
+"""The compositor (`splatting.rasterize`): its halving ladder of block sizes; the backward replays
+the lists the forward compacted and gives the gradients of the full lists."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from render_scenes import HEIGHT, INTR, W2C, WIDTH, random_scene
+
+from tokengs_jax.splatting import RenderConfig, pipeline, rasterize
 
 
 def test_compositor_block_sizes_halve_down_to_eight():
-  from tokengs_jax.splatting import rasterize
-
   def sizes(tiles_per_step):
     tiling = rasterize.Tiling(32, 32, 8, 4, 4, 1, 32, tiles_per_step, 0.999, 1 / 255, 1e-4)
     return rasterize.step_sizes(tiling)
@@ -11,3 +19,55 @@ def test_compositor_block_sizes_halve_down_to_eight():
   assert sizes(128) == (128, 64, 32, 16, 8)
   assert sizes(35) == (35, 17, 8)
   assert sizes(3) == (3,)  # no ladder below 16: `test_chunking_...` compares the two paths
+
+
+def _binned_scene(config):
+  """A scene of opaque Gaussians whose pixels saturate part-way through their tiles' lists:
+  (attrs [N, 10], TileBins of the sub-tiles, Tiling)."""
+  g = random_scene(11, num=500)
+  g = dataclasses.replace(g, opacities=np.maximum(g.opacities, 0.9))
+  camera = jax.tree.map(
+    lambda x: x[None],
+    pipeline._project(g, W2C, INTR, 0.025, 125.0, height=HEIGHT, width=WIDTH, config=config),
+  )
+  tiles = -(-HEIGHT // config.tile_size) * -(-WIDTH // config.tile_size)
+  ladder = config.budget_ladder(g.means.shape[0], tiles)
+  bins = pipeline._bin(camera, height=HEIGHT, width=WIDTH, config=config, ladder=ladder)
+  s = config.subtile_size
+  tiling = rasterize.Tiling(
+    HEIGHT, WIDTH, s, -(-WIDTH // s), -(-HEIGHT // s), 1, config.chunk_size,
+    config.tiles_per_step, config.max_alpha, config.alpha_threshold, config.transmittance_stop,
+  )  # fmt: skip
+  return camera.attrs[0], jax.tree.map(lambda x: x[0], bins), tiling
+
+
+def test_compacted_backward_gives_the_full_lists_gradients():
+  config = RenderConfig(chunk_size=8, tiles_per_step=5)  # many chunks, steps of several sizes
+  attrs, bins, tiling = _binned_scene(config)
+  assert not bool(bins.shared_lists)  # split sub-tile lists: each tile owns its range
+  lists = (bins.gaussian_ids, bins.tile_starts, bins.tile_ends)
+  weights = np.random.default_rng(0).uniform(0, 1, (3, 4)).astype(np.float32)
+
+  def grad(compact):
+    def loss(attrs):
+      accum, final_t, _, _ = rasterize.rasterize_tiles(
+        attrs, *lists, tiling._replace(compact_backward=compact), bins.shared_lists
+      )
+      return jnp.sum(accum * weights[0]) + jnp.sum(final_t * weights[1, 0])
+
+    return jax.jit(jax.grad(loss))(attrs)
+
+  full, compacted = grad(False), grad(True)
+  np.testing.assert_allclose(compacted, full, rtol=1e-5, atol=1e-6 * np.abs(full).max())
+  # the compaction happened: the backward replays fewer chunks than the forward composited
+  out, (ids, kept) = rasterize._forward(attrs, *lists, tiling, compact=True)
+  assert int(jnp.sum(-(-kept // tiling.chunk_size))) < int(jnp.sum(out[2]))
+  assert int(jnp.sum(kept)) < int(jnp.sum(jnp.minimum(
+    bins.tile_ends - bins.tile_starts, out[2] * tiling.chunk_size
+  )))  # fmt: skip
+  # each compacted list is an in-order subsequence of its tile's list
+  for t in range(bins.tile_starts.shape[0]):
+    start, end = int(bins.tile_starts[t]), int(bins.tile_ends[t])
+    listed = list(np.asarray(bins.gaussian_ids[start:end]))
+    for gaussian in np.asarray(ids[start : start + int(kept[t])]):
+      listed = listed[listed.index(gaussian) + 1 :]  # ValueError if out of order or absent

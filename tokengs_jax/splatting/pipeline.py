@@ -246,6 +246,7 @@ def _composite(cameras: _Camera, *, height: int, width: int, config: RenderConfi
     (bins.tile_starts + camera * length).reshape(-1),
     (bins.tile_ends + camera * length).reshape(-1),
     tiling,
+    jnp.any(bins.shared_lists),
   )
   split = lambda x: x.reshape((num_cameras, num_tiles) + x.shape[1:])
   to_images = jax.vmap(functools.partial(tiles_to_image, tiling=tiling))
