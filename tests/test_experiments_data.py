@@ -15,14 +15,19 @@ from small_experiments import small_smoke as _small_smoke
 from small_experiments import tiny_kubric as _tiny_kubric
 
 
-def test_evaluation_scenes_read_a_list_format_index(tmp_path):
-  """A Long-LRM list index (official DL3DV eval form): its context list, every frame a target."""
+def _one_scene_smoke(tmp_path):
+  """The smoke preset on one training and one test scene under `tmp_path / "data"`."""
   smoke = re10k.PRESETS["smoke"]
-  experiment = dataclasses.replace(
+  return dataclasses.replace(
     smoke,
     synthetic_dir=str(tmp_path / "data"),
     synthetic=dataclasses.replace(smoke.synthetic, num_train=1, num_test=1, workers=1),
   )
+
+
+def test_evaluation_scenes_read_a_list_format_index(tmp_path):
+  """A Long-LRM list index (official DL3DV eval form): its context list, every frame a target."""
+  experiment = _one_scene_smoke(tmp_path)
   data.ensure_synthetic(experiment)
   key = data.evaluation_scenes(experiment)[0][0]
   index = tmp_path / "index.json"
@@ -31,7 +36,7 @@ def test_evaluation_scenes_read_a_list_format_index(tmp_path):
     dataclasses.replace(experiment, eval_index=str(index))
   )
   assert got_key == key
-  frames = smoke.synthetic.frames
+  frames = experiment.synthetic.frames
   assert batch["context_images"].shape[1] == 2 and batch["target_images"].shape[1] == frames
   for view, frame in enumerate([1, 7]):  # the listed inputs are frames 1 and 7 of the targets
     np.testing.assert_array_equal(
@@ -45,12 +50,7 @@ def test_evaluation_scenes_read_a_list_format_index(tmp_path):
 
 
 def test_a_synthetic_set_written_with_other_settings_is_not_reused(tmp_path):
-  smoke = re10k.PRESETS["smoke"]
-  experiment = dataclasses.replace(
-    smoke,
-    synthetic_dir=str(tmp_path / "data"),
-    synthetic=dataclasses.replace(smoke.synthetic, num_train=1, num_test=1, workers=1),
-  )
+  experiment = _one_scene_smoke(tmp_path)
   root = data.ensure_synthetic(experiment)
   assert data.ensure_synthetic(experiment) == root  # same settings: reused
   other_walk = dataclasses.replace(
@@ -68,12 +68,7 @@ def test_a_synthetic_set_written_with_other_settings_is_not_reused(tmp_path):
 
 
 def test_an_index_matching_no_scene_fails_before_any_work_and_lists_unknown_keys(tmp_path):
-  smoke = re10k.PRESETS["smoke"]
-  experiment = dataclasses.replace(
-    smoke,
-    synthetic_dir=str(tmp_path / "data"),
-    synthetic=dataclasses.replace(smoke.synthetic, num_train=1, num_test=1, workers=1),
-  )
+  experiment = _one_scene_smoke(tmp_path)
   data.ensure_synthetic(experiment)
   key = data.evaluation_scenes(experiment)[0][0]
   index = tmp_path / "index.json"
