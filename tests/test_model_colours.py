@@ -288,8 +288,10 @@ def _dynamic_inputs_model(**overrides):
   )
   config = model.preset("tiny", **{**fields, **overrides})
   params = model.init_params(jax.random.key(1), config)
-  embed = params["patch_time_embed_tgt"]["proj"]
-  embed["kernel"] = jax.random.normal(jax.random.key(2), embed["kernel"].shape)
+  # under linear motion the velocities are what time moves (zero at initialisation too)
+  moves = params["patch_time_embed_tgt"]["proj"] if "patch_time_embed_tgt" in params else None
+  moves = moves or params["motion_head"]
+  moves["kernel"] = jax.random.normal(jax.random.key(2), moves["kernel"].shape)
   return config, params
 
 
@@ -315,6 +317,30 @@ def test_dynamic_gaussians_read_the_views_at_the_views_times():
   np.testing.assert_allclose(rgb[:, :first][still_seen], np.asarray(still)[still_seen], atol=1e-5)
   # the trajectories move, so reading every view at the target-time centres would differ
   assert float(jnp.abs(at[0][:, first:, :3] - at[1][:, first:, :3]).max()) > 1e-4
+
+
+def test_linear_motion_reads_each_view_where_the_moved_gaussian_was_then():
+  """`dynamic_motion="linear"`: a dynamic Gaussian's colour is read in view v at its centre moved
+  to view v's time (what a decode at that time puts there), static ones where they are."""
+  config, params = _dynamic_inputs_model(dynamic_motion="linear", clip_head_readout_std=0.02)
+  head = config.replace(gaussian_colours="head")
+  views = _plane_views(size=(32, 32))
+  views = views.replace(images=jax.random.uniform(jax.random.key(5), views.images.shape))
+  c2w = invert_rigid(views.world_to_camera)
+  times, target = jnp.array([[0.0, 1.0]]), jnp.array([0.3])
+  first = config.num_static_gaussians
+  encoded = model.encode_views(params, views.images, c2w, views.intrinsics, config, times=times)
+  got = model.decode(params, encoded, config, times=target)
+  flat = model.decode(params, encoded, head, times=target)
+  at = jnp.stack(
+    [model.decode(params, encoded, head, times=times[:, v])[:, first:] for v in range(2)], axis=1
+  )
+  np.testing.assert_allclose(
+    np.asarray(got), np.asarray(with_input_colours(flat, views, at)), rtol=0, atol=1e-6
+  )
+  # the views' times matter: read at the target-time centres the colours differ
+  at_target = with_input_colours(flat, views, None)
+  assert float(jnp.abs(got[:, first:, 11:] - at_target[:, first:, 11:]).max()) > 1e-3
 
 
 @pytest.mark.parametrize("tuned", [False, True])

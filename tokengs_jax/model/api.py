@@ -166,6 +166,7 @@ def decode(
   tokens: jax.Array | None = None,
   times: jax.Array | None = None,
   viewer_c2w: jax.Array | None = None,
+  static_scene: bool = False,
 ) -> jax.Array:
   """Decoder + head: cached encoder output -> flat Gaussians.
 
@@ -179,6 +180,10 @@ def decode(
     viewer_c2w: [B, Vr, 4, 4] camera-to-world of the cameras the Gaussians will be rendered
       from: one set per camera, coloured for it where `config.viewer_dependent` (else the same
       set repeated). None: one set, colours from the views' mean.
+    static_scene: (static, a Python bool) the scene does not move: the dynamic branch is
+      skipped entirely and only the static Gaussians are returned, equal to the first
+      `config.num_static_gaussians` of the full decode. A model without dynamic tokens returns
+      what it always does.
 
   Returns:
     [B, T * dec_patch_size², 14] float32 in the official flat layout
@@ -187,7 +192,7 @@ def decode(
   """
   viewers = None if viewer_c2w is None else jnp.asarray(viewer_c2w, jnp.float32)[..., :3, 3]
   return TokenGS(config).apply(
-    {"params": params}, encoded, tokens, times, viewers, method=TokenGS.decode
+    {"params": params}, encoded, tokens, times, viewers, static_scene, method=TokenGS.decode
   )
 
 
@@ -300,6 +305,7 @@ def reconstruct(
   times: jax.Array | None = None,
   target_times: jax.Array | None = None,
   viewer_c2w: jax.Array | None = None,
+  static_scene: bool = False,
 ) -> Gaussians:
   """Images in [0, 1] and cameras -> Gaussians (`encode_views` + `decode`).
 
@@ -313,9 +319,12 @@ def reconstruct(
     target_times: [B] normalised time at which to decode the dynamic Gaussians.
     viewer_c2w: [B, Vr, 4, 4] the cameras they will be rendered from (`decode`): batch shape
       [B, Vr], one set per camera, each coloured for its camera where `config.viewer_dependent`.
+    static_scene: (static) skip the dynamic branch of a dynamic model (`decode`): the static
+      Gaussians alone, `config.num_static_gaussians` per scene.
 
   Returns:
-    `tokengs_jax.gaussians.Gaussians` with N = config.num_gaussians Gaussians per scene.
+    `tokengs_jax.gaussians.Gaussians` with N = config.num_gaussians Gaussians per scene
+    (`config.num_static_gaussians` for a `static_scene`).
 
   Raises:
     ValueError / TypeError: at trace time, for inputs of the wrong shape / dtype; outside jit
@@ -326,5 +335,7 @@ def reconstruct(
   if target_times is not None:
     check_times("target_times", target_times, images.shape[:1], "[B]")
   return Gaussians.from_flat(
-    decode(params, encoded, config, times=target_times, viewer_c2w=viewer_c2w)
+    decode(
+      params, encoded, config, times=target_times, viewer_c2w=viewer_c2w, static_scene=static_scene
+    )
   )

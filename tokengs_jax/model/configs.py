@@ -19,6 +19,9 @@ import jax.numpy as jnp
 ENCODER_LAYER_SCALE_INIT = 0.01  # init_values of every encoder ViT block
 LATENT_LAYER_SCALE_INIT = 0.01  # init_values of every latent-bottleneck block
 LATENT_INIT_STD = 0.02  # std of the learnt scene latents
+# Normalised time at which `dynamic_motion="linear"` decodes the dynamic Gaussians: the middle of
+# the example's min-max normalised span, so no time is further than 0.5 from it.
+LINEAR_MOTION_REFERENCE_TIME = 0.5
 LAYER_NORM_EPS = 1e-5  # torch.nn.LayerNorm default, used by every norm of the network
 # ImageNet statistics the official data provider normalises encoder RGB with.
 IMAGE_MEAN = (0.485, 0.456, 0.406)
@@ -85,6 +88,13 @@ class ModelConfig:
       `viewer_colour_sharpness`). 0 averages the views, each read where the Gaussian was at its
       time: the colour then agrees across views only on a trajectory that follows what they saw
       (not in the paper; measured without a gain, docs/experiments.md "Session 16").
+    dynamic_motion: how the dynamic Gaussians depend on the target time. "decoded" (official):
+      the dynamic tokens are conditioned on it and decoded again for every time. "linear" (not
+      in the paper): they are decoded once, unconditioned, into Gaussians at the middle of the
+      example's normalised time span (`LINEAR_MOTION_REFERENCE_TIME`) plus a velocity each
+      (`motion_head`, zero at initialisation); at time t a Gaussian's centre is
+      centre + velocity (t - 0.5), everything else unchanged. Its centres move continuously by
+      construction and its scene flow is the velocity.
   """
 
   patch_size: int = 8
@@ -120,6 +130,7 @@ class ModelConfig:
   viewer_colour_sharpness: float = 100.0
   input_occlusion_tolerance: float | None = None
   dynamic_colour_sharpness: float | None = None
+  dynamic_motion: str = "decoded"
 
   def __post_init__(self):
     if self.enc_embed_dim % self.enc_num_heads:
@@ -156,6 +167,13 @@ class ModelConfig:
       value = getattr(self, name)
       if value is not None and not math.isfinite(value):
         raise ValueError(f"{name} must be finite, got {value!r}")
+    if self.dynamic_motion not in ("decoded", "linear"):
+      raise ValueError(f"dynamic_motion must be 'decoded' or 'linear', got {self.dynamic_motion!r}")
+    if self.dynamic_motion == "linear" and not (self.num_dynamic_gs_tokens and self.time_embedding):
+      raise ValueError(
+        'dynamic_motion="linear" moves the dynamic Gaussians: it needs num_dynamic_gs_tokens > 0 '
+        "and time_embedding (the image tokens carry their views' times)"
+      )
     if self.matmul_dtype not in (None, "float32", "bfloat16"):
       raise ValueError(
         f"matmul_dtype must be None, 'float32' or 'bfloat16', got {self.matmul_dtype!r}"

@@ -10,7 +10,9 @@ Official counterparts: `TokenGS` (`tokengs/models/tokengs.py`) and `EncDecBackbo
                      latent_kv_proj], decoder_blocks_i},
   activation_head/deconv, gs_tokens, [gs_tokens_dynamic]
 
-There are no positional embeddings: the Plücker rays are the only position signal.
+plus, under `dynamic_motion="linear"` (not in the paper), `motion_head` (the dynamic Gaussians'
+velocities) and no `patch_time_embed_tgt`. There are no positional embeddings: the Plücker rays
+are the only position signal.
 """
 
 from __future__ import annotations
@@ -23,7 +25,12 @@ import jax
 import jax.numpy as jnp
 
 from tokengs_jax.model.colours import InputViews, with_input_colours
-from tokengs_jax.model.configs import LATENT_INIT_STD, LATENT_LAYER_SCALE_INIT, ModelConfig
+from tokengs_jax.model.configs import (
+  LATENT_INIT_STD,
+  LATENT_LAYER_SCALE_INIT,
+  LINEAR_MOTION_REFERENCE_TIME,
+  ModelConfig,
+)
 from tokengs_jax.model.decoder import DecoderBlock, block_causal_mask
 from tokengs_jax.model.encoder import EncoderBlock, block_class
 from tokengs_jax.model.head import GaussianHead, activate
@@ -159,7 +166,7 @@ class EncDecBackbone(nn.Module):
     """Decoder blocks.
 
     Args:
-      tokens: [B, T, C], static then dynamic.
+      tokens: [B, T, C], static then dynamic (T = num_gs_tokens: the static ones alone).
       keys, values: [B, heads, N, d] shared keys/values.
 
     Returns:
@@ -167,7 +174,7 @@ class EncDecBackbone(nn.Module):
       (keys, values) [B, heads, num_gs_tokens, d], for `decode_dynamic`.
     """
     num_static = self.config.num_gs_tokens
-    mask = block_causal_mask(num_static, self.config.num_dynamic_gs_tokens)
+    mask = block_causal_mask(num_static, tokens.shape[1] - num_static)
     if mask is not None:
       mask = jnp.asarray(mask)
     static_kv = []
@@ -217,7 +224,16 @@ class TokenGS(nn.Module):
     if cfg.time_embedding:
       # No norm and zero init: a pretrained static model is unchanged until they learn.
       self.patch_time_embed = PatchEmbed(c, p, use_norm=False, zero_init=True, **dtypes)
-      self.patch_time_embed_tgt = PatchEmbed(c, p, use_norm=False, zero_init=True, **dtypes)
+      if cfg.dynamic_motion == "decoded":
+        self.patch_time_embed_tgt = PatchEmbed(c, p, use_norm=False, zero_init=True, **dtypes)
+    if cfg.dynamic_motion == "linear":
+      # Zero init: the dynamic Gaussians start still, as the static Gaussians they are copied from.
+      self.motion_head = nn.Dense(
+        3 * cfg.gaussians_per_token,
+        dtype=cfg.compute_dtype,
+        param_dtype=jnp.float32,
+        kernel_init=nn.initializers.zeros,
+      )
     self.enc_dec_backbone = EncDecBackbone(cfg)
     self.activation_head = GaussianHead(cfg)
     token_init = nn.initializers.normal(cfg.gs_token_std)
@@ -308,12 +324,20 @@ class TokenGS(nn.Module):
     return self._decode_tokens(encoded, tokens, target_times)[0]
 
   def _decode_tokens(
-    self, encoded: EncoderOutput, tokens: jax.Array | None, target_times: jax.Array | None
+    self,
+    encoded: EncoderOutput,
+    tokens: jax.Array | None,
+    target_times: jax.Array | None,
+    static_scene: bool = False,
   ) -> tuple[jax.Array, list[tuple[jax.Array, jax.Array]]]:
-    """`decode_tokens`, and the static tokens' per-block keys/values (`EncDecBackbone.decode`)."""
+    """`decode_tokens` (the static tokens alone for a `static_scene`), and the static tokens'
+    per-block keys/values (`EncDecBackbone.decode`)."""
     cfg = self.config
     tokens = self._input_tokens(encoded, tokens)
-    if cfg.time_embedding and target_times is not None:
+    if static_scene:
+      # Static tokens never attend to dynamic ones, so dropping these changes nothing else.
+      tokens = tokens[:, : cfg.num_gs_tokens]
+    elif cfg.time_embedding and target_times is not None and cfg.dynamic_motion == "decoded":
       time_token = self._target_time_token(target_times)
       if cfg.num_dynamic_gs_tokens:
         # Only the dynamic tokens see the target time; the static part stays time-invariant.
@@ -338,14 +362,23 @@ class TokenGS(nn.Module):
     tokens: jax.Array | None = None,
     target_times: jax.Array | None = None,
     viewers: jax.Array | None = None,
+    static_scene: bool = False,
   ) -> jax.Array:
     """Flat Gaussians [B, T * p², 14] (see `decode_tokens` for the arguments), or with `viewers`
     [B, Vr, 3] (centres of the cameras they will be rendered from) one set per camera,
     [B, Vr, T * p², 14]: coloured for that camera under `input_colour_weights="viewer"`, else
-    the same set repeated."""
-    decoded, static_kv = self._decode_tokens(encoded, tokens, target_times)
-    flat = activate(self.activation_head(decoded), self.config)
-    if self.config.gaussian_colours == "inputs":
+    the same set repeated. A `static_scene` skips the dynamic branch (tokens, head, motion and
+    the re-decodes at the input times): the static Gaussians alone, exactly the first
+    `num_static_gaussians` of the full decode, time-invariant."""
+    cfg = self.config
+    decoded, static_kv = self._decode_tokens(encoded, tokens, target_times, static_scene)
+    flat = activate(self.activation_head(decoded), cfg)
+    at_input_times = None
+    if cfg.dynamic_motion == "linear" and not static_scene:
+      flat, at_input_times = self._linear_motion(encoded, decoded, flat, target_times)
+    elif not static_scene and cfg.gaussian_colours == "inputs":
+      at_input_times = self._dynamic_at_input_times(encoded, tokens, target_times, static_kv)
+    if cfg.gaussian_colours == "inputs":
       if encoded.views is None:
         raise ValueError(
           'gaussian_colours="inputs" reads colours from the input views: encode with '
@@ -354,15 +387,42 @@ class TokenGS(nn.Module):
       flat = with_input_colours(
         flat,
         encoded.views,
-        self._dynamic_at_input_times(encoded, tokens, target_times, static_kv),
-        viewers if self.config.viewer_dependent else None,
-        self.config.viewer_colour_sharpness,
-        self.config.input_occlusion_tolerance,
-        self.config.dynamic_colour_sharpness,
+        at_input_times,
+        viewers if cfg.viewer_dependent else None,
+        cfg.viewer_colour_sharpness,
+        cfg.input_occlusion_tolerance,
+        cfg.dynamic_colour_sharpness,
       )
     if viewers is not None and flat.ndim == 3:  # the same set for every camera
       flat = jnp.broadcast_to(flat[:, None], (flat.shape[0], viewers.shape[1]) + flat.shape[1:])
     return flat
+
+  def _linear_motion(
+    self,
+    encoded: EncoderOutput,
+    decoded: jax.Array,
+    flat: jax.Array,
+    target_times: jax.Array | None,
+  ) -> tuple[jax.Array, jax.Array | None]:
+    """`dynamic_motion="linear"`: the Gaussians [B, N, 14] moved to the target time, and the
+    dynamic ones [B, V, Nd, 14] at each input view's time (None without a target time or the
+    views' times, as `_dynamic_at_input_times`). Without a target time they stay at the
+    reference time."""
+    cfg = self.config
+    if target_times is None:
+      return flat, None
+    velocity = self.motion_head(decoded[:, cfg.num_gs_tokens :]).astype(jnp.float32)
+    velocity = velocity.reshape(velocity.shape[0], -1, 3)  # [B, Nd, 3], Gaussian = token p² + k
+    static, dynamic = flat[:, : cfg.num_static_gaussians], flat[:, cfg.num_static_gaussians :]
+
+    def moved(times: jax.Array) -> jax.Array:  # [B, K] -> [B, K, Nd, 14]
+      shift = (times - LINEAR_MOTION_REFERENCE_TIME)[:, :, None, None] * velocity[:, None]
+      at_times = jnp.broadcast_to(dynamic[:, None], shift.shape[:-1] + dynamic.shape[-1:])
+      return at_times.at[..., :3].add(shift)
+
+    flat = jnp.concatenate([static, moved(target_times[:, None])[:, 0]], axis=1)
+    views_times = None if encoded.views is None else encoded.views.times
+    return flat, None if views_times is None else moved(views_times)
 
   def _dynamic_at_input_times(
     self,
@@ -380,7 +440,8 @@ class TokenGS(nn.Module):
     Gaussians as decoding every token at each time, with Nd tokens per time instead of T (the
     Kubric default's train step: 203 -> 128 CPU ms; docs/benchmarks.md, "Dynamic Gaussians at
     the input times")."""
-    cfg, times = self.config, encoded.views.times
+    cfg = self.config
+    times = None if encoded.views is None else encoded.views.times
     if not cfg.num_dynamic_gs_tokens or target_times is None or times is None:
       return None
     dynamic = self._input_tokens(encoded, tokens)[:, cfg.num_gs_tokens :]
