@@ -1,9 +1,16 @@
 """Small experiments shared by the tests of `experiments/` (test_tasks, test_experiments_data,
-test_kubric_task): the `smoke` preset on 2 + 1 scenes, the Kubric default on 1 + 1 tiny ones."""
+test_kubric_task): the `smoke` preset on 2 + 1 scenes, the Kubric default on 1 + 1 tiny ones;
+and the entry points run end to end in a subprocess (test_re10k, test_dl3dv,
+test_kubric_entry_point)."""
 
 import dataclasses
+import pathlib
+import subprocess
+import sys
 
 from experiments import re10k
+
+REPO = pathlib.Path(__file__).resolve().parent.parent
 
 
 def small_smoke(tmp_path, eval_changes=None, **train_changes):
@@ -35,3 +42,19 @@ def tiny_kubric(tmp_path, **changes):
     synthetic=SyntheticSettings(num_train=1, num_test=1, frames=4, num_ood=0, workers=1),
     **changes,
   )
+
+
+def run_entry_point(*args, timeout=600):
+  """`python ARGS` (`-m experiments.re10k run ...`, or `-c SCRIPT ...`) from the repository's
+  root, asserted to succeed (the tail of its stderr if not); its completed process (`stdout`,
+  `stderr` as text)."""
+  completed = subprocess.run(
+    [sys.executable, *map(str, args)],
+    cwd=REPO,
+    capture_output=True,
+    text=True,
+    timeout=timeout,
+    check=False,
+  )
+  assert completed.returncode == 0, completed.stderr[-4000:]
+  return completed

@@ -4,17 +4,13 @@ end (slow), and its flags' data on a folder of scene zips (the reader itself: te
 import dataclasses
 import json
 import math
-import pathlib
 import shutil
-import subprocess
-import sys
 
 import numpy as np
 import pytest
+from small_experiments import run_entry_point
 
 from experiments import cli, data, tasks
-
-REPO = pathlib.Path(__file__).resolve().parent.parent
 
 
 # Held out by the index (DepthSplat form: key -> context / target frames); the others train.
@@ -69,16 +65,7 @@ def test_dl3dv_entry_point_trains_and_evaluates_on_scene_zips(tmp_path, dl3dv_zi
   folder, index = dl3dv_zips
   out, log = tmp_path / "run", tmp_path / "reads.txt"
   argv = ["run", "synthetic-2view", "--data-dir", str(folder), "--eval-index", str(index)]
-  completed = subprocess.run(
-    [sys.executable, "-c", _LOGGING_TRAINING_READS, str(log), *argv, "--output-dir", str(out)]
-    + DL3DV_SMOKE,
-    cwd=REPO,
-    capture_output=True,
-    text=True,
-    timeout=600,
-    check=False,
-  )
-  assert completed.returncode == 0, completed.stderr[-4000:]
+  run_entry_point("-c", _LOGGING_TRAINING_READS, log, *argv, "--output-dir", out, *DL3DV_SMOKE)
   payload = json.loads((out / "metrics.json").read_text())
   for method in ("trained", "untrained", "nearest_view"):
     scenes = payload["metrics"][method]["per_scene"]

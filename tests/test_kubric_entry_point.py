@@ -3,16 +3,12 @@ test_kubric is the Kubric reader's (`tokengs_jax.data.kubric`)."""
 
 import json
 import math
-import pathlib
-import subprocess
-import sys
 
 import jax
 import pytest
+from small_experiments import run_entry_point
 
 from tokengs_jax import model
-
-REPO = pathlib.Path(__file__).resolve().parent.parent
 
 
 @pytest.mark.slow
@@ -35,65 +31,56 @@ def test_kubric_entry_point_end_to_end(tmp_path):
   start = weights.save_params(
     tmp_path / "static.msgpack", model.init_params(jax.random.key(3), static)
   )
-  completed = subprocess.run(
-    [
-      sys.executable,
-      "-m",
-      "experiments.kubric",
-      "--checkpoint",
-      str(start),
-      "--output-dir",
-      str(out),
-      "--synthetic-dir",
-      str(tmp_path / "data"),
-      "--synthetic.num-train",
-      "2",
-      "--synthetic.num-test",
-      "1",
-      "--synthetic.frames",
-      "6",
-      "--synthetic.workers",
-      "1",
-      "--num-cameras",
-      "2",
-      "--max-gap",
-      "4",
-      "--train.steps",
-      "2",
-      "--train.batch-size",
-      "2",
-      "--train.log-every",
-      "1",
-      "--eval.num-scenes",
-      "1",
-      "--eval.video-frames",
-      "2",
-      "--eval.tuning-steps",
-      "2",
-      "--flow-times",
-      "3",
-      "--model.dec-patch-size",
-      "4",
-      "--model.num-dynamic-gs-tokens",
-      "2",
-      "--model.enc-depth",
-      "1",
-      "--model.dec-depth",
-      "1",
-      "--model.enc-embed-dim",
-      "32",
-      "--model.enc-num-heads",
-      "2",
-      "--model.num-gs-tokens",
-      "4",
-    ],
-    cwd=REPO,
-    capture_output=True,
-    text=True,
-    timeout=600,
-    check=False,
+  completed = run_entry_point(
+    "-m",
+    "experiments.kubric",
+    "--checkpoint",
+    start,
+    "--output-dir",
+    out,
+    "--synthetic-dir",
+    tmp_path / "data",
+    "--synthetic.num-train",
+    "2",
+    "--synthetic.num-test",
+    "1",
+    "--synthetic.frames",
+    "6",
+    "--synthetic.workers",
+    "1",
+    "--num-cameras",
+    "2",
+    "--max-gap",
+    "4",
+    "--train.steps",
+    "2",
+    "--train.batch-size",
+    "2",
+    "--train.log-every",
+    "1",
+    "--eval.num-scenes",
+    "1",
+    "--eval.video-frames",
+    "2",
+    "--eval.tuning-steps",
+    "2",
+    "--flow-times",
+    "3",
+    "--model.dec-patch-size",
+    "4",
+    "--model.num-dynamic-gs-tokens",
+    "2",
+    "--model.enc-depth",
+    "1",
+    "--model.dec-depth",
+    "1",
+    "--model.enc-embed-dim",
+    "32",
+    "--model.enc-num-heads",
+    "2",
+    "--model.num-gs-tokens",
+    "4",
   )
-  assert completed.returncode == 0, completed.stderr[-4000:]
   assert "gs_tokens_dynamic: from static gs_tokens" in completed.stdout
   payload = json.loads((out / "metrics.json").read_text())
   assert set(payload["metrics"]) == {

@@ -3,15 +3,11 @@ re-evaluated from its folder)."""
 
 import json
 import math
-import pathlib
-import subprocess
-import sys
 
 import numpy as np
+from small_experiments import run_entry_point
 
 from tokengs_jax import export
-
-REPO = pathlib.Path(__file__).resolve().parent.parent
 
 
 # The `smoke` preset's sizes as flags, to run another preset at its scale.
@@ -35,26 +31,17 @@ def test_entry_point_end_to_end(tmp_path):
   run's weights as the shipped ones were (`experiments.weights ship`), and re-evaluate the run
   from its folder alone (`eval --from-run`) to the same scores."""
   out = tmp_path / "results"
-  completed = subprocess.run(
-    [
-      sys.executable,
-      "-m",
-      "experiments.re10k",
-      "run",
-      "pretrain",
-      "--output-dir",
-      str(out),
-      "--synthetic-dir",
-      str(tmp_path / "data"),
-      *SMOKE_SCALE,
-    ],
-    cwd=REPO,
-    capture_output=True,
-    text=True,
-    timeout=600,
-    check=False,
+  run_entry_point(
+    "-m",
+    "experiments.re10k",
+    "run",
+    "pretrain",
+    "--output-dir",
+    out,
+    "--synthetic-dir",
+    tmp_path / "data",
+    *SMOKE_SCALE,
   )
-  assert completed.returncode == 0, completed.stderr[-4000:]
   payload = json.loads((out / "metrics.json").read_text())
   assert set(payload["metrics"]) == {
     "mean_colour",
@@ -100,29 +87,14 @@ def test_entry_point_end_to_end(tmp_path):
   ply = export.read_ply(out / "gaussians.ply")
   assert ply["means"].shape == (64, 3) and np.isfinite(ply["means"]).all()
 
-  shipped = subprocess.run(
-    [sys.executable, "-m", "experiments.weights", "ship", str(out), str(tmp_path / "shipped")],
-    cwd=REPO,
-    capture_output=True,
-    text=True,
-    check=False,
-  )
-  assert shipped.returncode == 0, shipped.stderr[-4000:]
+  run_entry_point("-m", "experiments.weights", "ship", out, tmp_path / "shipped")
   provenance = json.loads((tmp_path / "shipped" / "provenance.json").read_text())
   assert set(provenance["files"]) == {"params.msgpack", "pixel_aligned.msgpack"}
   assert provenance["experiment"] == payload["experiment"]
   assert provenance["command"].startswith("python -m experiments.re10k run pretrain")
 
   # re-evaluated from its folder alone (`eval --from-run`): the same settings, the same scores
-  again = subprocess.run(
-    [sys.executable, "-m", "experiments.re10k", "eval", "--from-run", str(out)],
-    cwd=REPO,
-    capture_output=True,
-    text=True,
-    timeout=600,
-    check=False,
-  )
-  assert again.returncode == 0, again.stderr[-4000:]
+  run_entry_point("-m", "experiments.re10k", "eval", "--from-run", out)
   rescored = json.loads((out / "eval" / "metrics.json").read_text())
   assert rescored["experiment"] == {
     **payload["experiment"],
