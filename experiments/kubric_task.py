@@ -360,8 +360,11 @@ class KubricTask(Task):
   ) -> list[tuple[str, dict]]:
     """(key, batch of one) per (position, views) of `chosen`; besides `make_example`'s fields the
     batches carry `context_cameras` / `target_cameras` and `target_motion_masks`
-    (`evaluation_fields`)."""
-    config = kubric_example_config(experiment, training=False)
+    (`evaluation_fields`), and `target_masks`, the targets' foreground masks (their PNG alpha):
+    the evaluation's masked metrics, omitted with a note where every alpha is opaque."""
+    config = dataclasses.replace(
+      kubric_example_config(experiment, training=False), target_masks=True
+    )
     examples = []
     for position, views in chosen:
       record = source[position]

@@ -4,8 +4,9 @@ Every writer here writes only on the process that writes results
 (`tokengs_jax.evaluation.writes_results()`, process 0); elsewhere it does nothing.
 
 metrics.json: the run's settings and facts, plus the first (primary) test set's `metrics`
-(method -> {"mean", "per_scene", "seconds"}) and `checks`; further test sets go under
-`other_test_sets` (name -> {"metrics", "checks"}). metrics.md has one table per test set.
+(method -> {"mean", "per_scene", "seconds"}), `checks` and, where the set has any, `notes`
+(`Evaluation.notes`: scores its data could not give); further test sets go under
+`other_test_sets` (name -> {"metrics", "checks", "notes"}). metrics.md has one table per test set.
 
 Names read from data (scene keys) never become paths as they are: `data_path` makes them safe
 file names inside their folder. Pictures and exports run in `media_step`s, after metrics.json.
@@ -104,11 +105,13 @@ def _set_payload(result: evaluation.Evaluation) -> dict:
       for name, s in result.scores.items()
     },
     "checks": evaluation.checks(summary),
+    **({"notes": result.notes} if result.notes else {}),
   }
 
 
 def _set_summary(name: str, result: evaluation.Evaluation) -> list[str]:
-  """Markdown: the set's mean table, the methods that scored nothing, the checks."""
+  """Markdown: the set's mean table, the methods that scored nothing, the notes (scores the
+  data could not give), the checks."""
   summary = result.summary()
   columns = list(dict.fromkeys(c for values in summary.values() for c in values))
   count = max((len(s.per_scene) for s in result.scores.values()), default=0)
@@ -120,6 +123,8 @@ def _set_summary(name: str, result: evaluation.Evaluation) -> list[str]:
   unscored = [method for method, values in summary.items() if not values]
   if unscored:
     text.append(f"\nScored no scene: {', '.join(unscored)}.\n")
+  if result.notes:
+    text += ["\nNotes:\n"] + [f"- {k}: {v}\n" for k, v in result.notes.items()]
   checks = evaluation.checks(summary)
   if checks:
     text += ["\nChecks:\n"] + [f"- {k}: {v}\n" for k, v in checks.items()]

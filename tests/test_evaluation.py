@@ -468,3 +468,50 @@ def _scored_rgb(method: evaluation.Method, batch: dict) -> np.ndarray:
     height=HEIGHT,
     width=WIDTH,
   ).rgb
+
+
+def test_masked_metrics_score_the_foreground_of_every_method():
+  """Batches carrying foreground masks (Kubric's alpha): the official masked PSNR / SSIM per
+  view; an empty mask leaves its view out, a scene without masks is scored over all pixels."""
+  rng = np.random.default_rng(12)
+  masked = _batch(rng, [0, 4], [1, 2])
+  masks = np.zeros((1, 2, HEIGHT, WIDTH), np.float32)
+  masks[0, 0, 3:11, 2:9] = 1.0
+  masks[0, 0, 3:11, 9] = 0.4  # a soft edge; the second view shows no foreground
+  masked["target_masks"] = masks
+  unmasked = _batch(rng, [0, 4], [2])  # no masks: the official all-ones mask
+  scenes = [("masked", masked), ("unmasked", unmasked)]
+  methods = {"splats": evaluation.Method(gaussians=lambda b: _gaussians((1,)))}
+  methods.update(evaluation.baselines())
+  scored = evaluation.evaluate(scenes, methods, evaluation.Scorer(lpips=False))
+  assert scored.notes == {}
+  for name, scores in scored.scores.items():
+    views = scores.per_view[0]
+    prediction = np.clip(_scored_rgb(methods[name], masked)[0, 0], 0.0, 1.0)
+    target = masked["target_images"][0, 0]
+    psnr = metrics.masked_psnr(prediction, target, masks[0, 0])
+    ssim = metrics.masked_ssim(prediction, target, masks[0, 0])
+    np.testing.assert_allclose(views["psnr_masked"][0], psnr, rtol=1e-5)
+    np.testing.assert_allclose(views["ssim_masked"][0], ssim, rtol=1e-5, atol=1e-6)
+    assert np.isnan(views["psnr_masked"][1]) and np.isnan(views["ssim_masked"][1])
+    assert scores.per_scene[0]["psnr_masked"] == pytest.approx(float(views["psnr_masked"][0]))
+    assert "lpips_masked" not in views  # no LPIPS scorer
+    whole = scores.per_scene[1]  # scored over all its pixels
+    assert whole["psnr_masked"] == pytest.approx(whole["psnr"], rel=1e-5)
+    assert whole["ssim_masked"] == pytest.approx(whole["ssim"], rel=1e-5)
+    summary = scores.summary()
+    expected = np.mean([float(views["psnr_masked"][0]), whole["psnr"]])
+    assert summary["psnr_masked"] == pytest.approx(expected, rel=1e-5)
+
+
+def test_opaque_masks_give_no_masked_metrics_and_say_so():
+  rng = np.random.default_rng(13)
+  opaque = _batch(rng, [0, 4], [1, 2])
+  opaque["target_masks"] = np.ones((1, 2, HEIGHT, WIDTH), np.float32)
+  scorer = evaluation.Scorer(lpips=False)
+  scored = evaluation.evaluate([("opaque", opaque)], evaluation.baselines(), scorer)
+  assert scored.notes == {"masked metrics": evaluation.OPAQUE_MASKS_NOTE}
+  for scores in scored.scores.values():
+    assert not set(evaluation.MASKED_METRICS) & set(scores.summary())
+  plain = evaluation.evaluate([("plain", _batch(rng, [0, 4], [2]))], evaluation.baselines(), scorer)
+  assert plain.notes == {}  # a set without masks has nothing to explain

@@ -4,18 +4,21 @@ times), the moving-pixel masks (from the generator's truth, else the image rule)
 truth carried into the example's frame, and the batches `experiments.kubric` scores."""
 
 import dataclasses
+import io
 import json
 import tarfile
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from experiments import cli
 from experiments import kubric as kubric_experiment
+from experiments import results
 from experiments.kubric_task import KubricExperiment, KubricTask
 from experiments.config import SyntheticSettings
 from experiments.tasks import execute
-from tokengs_jax import scene_flow
+from tokengs_jax import evaluation, metrics, scene_flow
 from tokengs_jax.data import (
   DATASET_PRESETS,
   EvaluationIndexError,
@@ -129,6 +132,75 @@ def test_experiment_batches_never_score_an_input_view(data_root):
     assert inside.any() and not set(batch["target_times"][0]) & set(context_times)
     assert set(batch["target_cameras"][0]) - set(batch["context_cameras"][0])  # a new viewpoint
     assert batch["target_motion_masks"].any()  # the synthetic objects move
+
+
+# ----------------------------------------------------------------------------------------------
+# Foreground masks (the PNG alpha): the official masked metrics
+
+
+def _copy_with_alpha(data_root, root, alpha: np.ndarray) -> kubric.KubricSceneSource:
+  """Scene 0 of `data_root`'s test split copied to `root/v0` with `alpha` (uint8 [H, W]) as the
+  alpha channel of every `rgba_*.png`.  -> the copy's source."""
+  scene = root / "v0" / "scene_000000"
+  scene.mkdir(parents=True)
+  for camera in range(CAMERAS):
+    name = f"output_{camera:03d}.tar"
+    with (
+      tarfile.open(data_root / "test" / "scene_000000" / name) as source,
+      tarfile.open(scene / name, "w") as copy,
+    ):
+      for member in source.getmembers():
+        data = source.extractfile(member).read()
+        if "rgba_" in member.name:
+          rgba = np.array(Image.open(io.BytesIO(data)).convert("RGBA"))
+          rgba[..., 3] = alpha
+          png = io.BytesIO()
+          Image.fromarray(rgba, "RGBA").save(png, format="PNG")
+          data = png.getvalue()
+        member.size = len(data)
+        copy.addfile(member, io.BytesIO(data))
+  return kubric.KubricSceneSource(root, ["v0"], num_cameras=CAMERAS)
+
+
+def test_evaluation_batches_carry_the_alpha_and_score_the_foreground(data_root, tmp_path):
+  alpha = np.zeros((H, W), np.uint8)
+  alpha[3:12, 2:9] = 255
+  alpha[3:12, 9] = 100  # an antialiased edge: a soft weight
+  source = _copy_with_alpha(data_root, tmp_path, alpha)
+  experiment = _experiment(data_root)
+  chosen = KubricTask._default_views(experiment, source, 0, experiment.seed)
+  scenes = KubricTask._evaluation_scenes(experiment, source, chosen, experiment.seed)
+  ((_, batch),) = scenes
+  vt = batch["target_images"].shape[1]
+  assert batch["target_masks"].shape == (1, vt, H, W)
+  for view in range(vt):  # the data's own size: no resize, no flip in evaluation
+    np.testing.assert_allclose(batch["target_masks"][0, view], alpha / 255.0, atol=1e-6)
+  methods = evaluation.baselines(dynamic=True)
+  scored = evaluation.evaluate(scenes, methods, evaluation.Scorer(lpips=False))
+  assert scored.notes == {}
+  for name, scores in scored.scores.items():
+    prediction = np.clip(methods[name].images(batch)[0], 0.0, 1.0)
+    expected = metrics.masked_psnr(prediction, batch["target_images"][0], alpha / 255.0)
+    np.testing.assert_allclose(scores.per_view[0]["psnr_masked"], expected, rtol=1e-5)
+    assert {"psnr_masked", "ssim_masked"} <= set(scores.summary())
+
+
+def test_opaque_kubric_data_omits_the_masked_metrics_and_says_so(data_root, tmp_path):
+  """The synthetic generator writes opaque RGBA: every mask is 1, so no masked column, and
+  metrics.json / metrics.md say why."""
+  experiment = _experiment(data_root)
+  scenes = KubricTask().evaluation_scenes(experiment)
+  assert all(np.all(batch["target_masks"] == 1.0) for _, batch in scenes)
+  scored = evaluation.evaluate(
+    scenes, {"nearest_view": evaluation.baselines()["nearest_view"]}, evaluation.Scorer(False)
+  )
+  assert "psnr_masked" not in scored.scores["nearest_view"].summary()
+  payload = results.write_metrics(tmp_path, {"test": scored}, {"title": "t"})
+  assert payload["notes"] == {"masked metrics": evaluation.OPAQUE_MASKS_NOTE}
+  assert json.loads((tmp_path / "metrics.json").read_text())["notes"] == payload["notes"]
+  assert f"- masked metrics: {evaluation.OPAQUE_MASKS_NOTE}" in results.summary_text(
+    {"test": scored}
+  )
 
 
 # ----------------------------------------------------------------------------------------------

@@ -150,3 +150,77 @@ def test_masked_psnr_scores_only_the_masked_pixels():
   np.testing.assert_allclose(metrics.masked_psnr(pred, target, full), metrics.psnr(pred, target))
   # clipped to [0, 1] and capped as psnr
   assert float(metrics.masked_psnr(target[1] + 5.0, np.ones_like(target[1]), full[1])) == 100.0
+
+
+# ----------------------------------------------------------------------------------------------
+# Foreground (official masked) metrics: soft masks, empty masks, an all-ones mask
+
+
+def test_masked_psnr_weights_soft_masks_by_their_values():
+  target = np.full((1, 1, 3, 3), 0.5, np.float32)
+  pred = target.copy()
+  pred[0, 0, 0] += 0.2  # weight 0.5, squared error 0.04 in each channel
+  pred[0, 0, 1] += 0.1  # weight 1, squared error 0.01
+  pred[0, 0, 2] += 0.4  # weight 0: not scored
+  mask = np.array([[[0.5, 1.0, 0.0]]], np.float32)
+  # official masked_mean: sum(m e) / sum(m), over channels too: (0.5 * 0.12 + 0.03) / 4.5 = 0.02
+  expected = -10.0 * np.log10(0.02)
+  assert float(metrics.masked_psnr(pred, target, mask)[0]) == pytest.approx(expected, abs=1e-4)
+  tiny = np.array([[[0.25, 0.0, 0.0]]], np.float32)  # a weight sum under 1 is still a mean
+  expected = -10.0 * np.log10(0.04)
+  assert float(metrics.masked_psnr(pred, target, tiny)[0]) == pytest.approx(expected, abs=1e-4)
+
+
+def test_masked_ssim_is_skimage_on_the_masked_images():
+  rng = np.random.default_rng(7)
+  target = rng.uniform(0, 1, (2, 40, 36, 3)).astype(np.float32)
+  pred = np.clip(target + rng.normal(0, 0.15, target.shape), 0, 1).astype(np.float32)
+  mask = np.zeros((2, 40, 36), np.float32)
+  mask[:, 8:20, 6:18] = 1.0
+  mask[:, 8:20, 18] = 0.5  # a soft edge
+  values = np.asarray(jax.jit(metrics.masked_ssim)(pred, target, mask))
+  for i in range(2):
+    m = mask[i, ..., None]
+    np.testing.assert_allclose(values[i], _skimage_ssim(pred[i] * m, target[i] * m), atol=2e-5)
+  # errors outside the mask (and its window) do not count
+  outside = pred.copy()
+  outside[:, 8:20, 6:19] = target[:, 8:20, 6:19]
+  assert np.all(np.asarray(metrics.masked_ssim(outside, target, mask)) == pytest.approx(1.0))
+  assert np.asarray(metrics.ssim(outside, target)).max() < 0.95
+
+
+def test_masked_metrics_are_nan_for_an_empty_mask_and_unmasked_for_a_full_one():
+  rng = np.random.default_rng(8)
+  target = rng.uniform(0, 1, (2, 16, 16, 3)).astype(np.float32)
+  pred = np.clip(target + rng.normal(0, 0.2, target.shape), 0, 1).astype(np.float32)
+  mask = np.ones((2, 16, 16), np.float32)
+  mask[1] = 0.0
+  params = lpips_lib.load_vgg_params()
+  scores = {
+    "psnr": (metrics.masked_psnr(pred, target, mask), metrics.psnr(pred, target)),
+    "ssim": (metrics.masked_ssim(pred, target, mask), metrics.ssim(pred, target)),
+    "lpips": (
+      metrics.masked_lpips(pred, target, mask, params),
+      metrics.lpips(pred, target, params),
+    ),
+  }
+  for name, (masked, unmasked) in scores.items():
+    masked, unmasked = np.asarray(masked), np.asarray(unmasked)
+    assert masked.shape == (2,), name
+    np.testing.assert_allclose(masked[0], unmasked[0], rtol=1e-6, err_msg=name)
+    assert np.isnan(masked[1]), name  # nothing to score
+
+
+def test_masked_lpips_is_lpips_of_the_masked_images():
+  rng = np.random.default_rng(9)
+  target = rng.uniform(0, 1, (16, 16, 3)).astype(np.float32)
+  pred = np.clip(target + rng.normal(0, 0.2, target.shape), 0, 1).astype(np.float32)
+  mask = np.zeros((16, 16), np.float32)
+  mask[2:9, 3:12] = 1.0
+  params = lpips_lib.load_vgg_params()
+  m = mask[..., None]
+  masked = float(metrics.masked_lpips(pred, target, mask, params))
+  assert masked == pytest.approx(float(metrics.lpips(pred * m, target * m, params)), rel=1e-6)
+  # an error outside the mask is not seen
+  outside = np.where(m > 0, pred, 1.0 - target)
+  assert float(metrics.masked_lpips(outside, target, mask, params)) == pytest.approx(masked)

@@ -8,10 +8,11 @@ Entry points (`experiments.*`), the studies and the tests all score through `eva
     evaluation.scores["trained"].summary()            # {"psnr": ..., "ssim": ..., "lpips": ...}
 
 A `Method` either gives Gaussians for a batch (`gaussians`, rendered at the target cameras by
-`render_targets`, the single place where evaluation renders, with the objective the method's model
-was trained with: its background, near / far) or predicts the target images directly (the image
-baselines). Scores follow the pixelSplat / MVSplat protocol: per target view, averaged per scene
-over its targets, then over scenes (`metrics.mean_over_scenes`).
+`render_targets` (`tokengs_jax.renders`), the single place where evaluation renders, with the
+objective the method's model was trained with: its background, near / far) or predicts the
+target images directly (the image baselines). Scores follow the pixelSplat / MVSplat protocol:
+per target view, averaged per scene over its targets, then over scenes
+(`metrics.mean_over_scenes`).
 
 Clipping policy: the scorer clips predictions and targets to [0, 1] once, before every metric.
 The protocol's PSNR clips (pixelSplat `compute_psnr`), and a render composited over the
@@ -30,6 +31,14 @@ Moving pixels (`motion_scores`), where a batch carries `target_motion_masks` (Ku
 is the PSNR over the pixels where the scene moved, for every method. A target view without a
 moving pixel is left out of its scene's mean, and a scene without any out of the mean over scenes
 (which then averages the scenes where something moved).
+
+Foreground masks, where a test set's batches carry `target_masks` [1, Vt, H, W] in [0, 1] (Kubric:
+the targets' PNG alpha / 255): `psnr_masked`, `ssim_masked` (and `lpips_masked` with LPIPS), the
+official evaluation's masked metrics (`metrics.masked_psnr` / `masked_ssim` / `masked_lpips`), for
+every method. A view with an empty mask is left out of its scene's mean, a scene without
+foreground out of the mean over scenes. A set whose masks are 1 everywhere (opaque alpha, as the
+synthetic generator writes) has no foreground to restrict to: its masked scores would repeat the
+unmasked ones, so they are omitted and `Evaluation.notes` says so.
 
 Geometry (`geometry_scores`), for methods that render: `holes`, the share of target pixels left
 uncovered (alpha < 0.5), and where a test set knows its true depth (`target_depths`, written by
@@ -62,9 +71,9 @@ from tokengs_jax.copies import (
   nearest_view_images,
   same_camera_images,
 )
-from tokengs_jax.camera import invert_rigid
 from tokengs_jax.gaussians import Gaussians
-from tokengs_jax.objective import ObjectiveConfig, render_settings
+from tokengs_jax.objective import ObjectiveConfig
+from tokengs_jax.renders import Rendered as Rendered, render_targets
 
 Scene = tuple[str, dict]  # (scene key, batch of one in the data contract)
 
@@ -213,79 +222,7 @@ def baselines(dynamic: bool = False) -> dict[str, Method]:
 
 
 # ----------------------------------------------------------------------------------------------
-# Rendering and scoring
-
-
-@dataclasses.dataclass(frozen=True)
-class Rendered:
-  """Host arrays of rendered views: rgb [..., V, H, W, 3], depth and alpha [..., V, H, W, 1]."""
-
-  rgb: np.ndarray
-  depth: np.ndarray
-  alpha: np.ndarray
-
-
-def render_targets(
-  gaussians: Gaussians,
-  c2w,
-  intrinsics,
-  *,
-  height: int,
-  width: int,
-  render_config: splatting.RenderConfig | None = None,
-  objective: ObjectiveConfig = ObjectiveConfig(),
-  context_images=None,
-  compact: bool = False,
-) -> Rendered:
-  """Renders cameras as training supervises them (the objective's background, near / far).
-
-  The single render of evaluation (scores, grids, fly-throughs, studies): exact by construction
-  (`splatting.render_exact` re-renders any camera whose intersection budget overflowed).
-
-  Args:
-    gaussians: batch shape [B] (seen by every camera) or [B, V] (set v seen by camera v only).
-    c2w: [B, V, 4, 4] camera-to-world.
-    intrinsics: [B, V, 4] in pixels.
-    height, width: image size.
-    render_config: renderer settings (default `RenderConfig()`).
-    objective: background and near / far (default: the official grey background).
-    context_images: [B, Vi, H, W, 3] the input views, behind an "input_mean" background.
-    compact: first move out the Gaussians no camera can draw (`splatting.compaction`; the same
-      images, exactly). Off by default: on the shipped defaults it does not pay
-      (docs/benchmarks.md, "Skipping what a scene does not need").
-  """
-  render_config = splatting.RenderConfig() if render_config is None else render_config
-  gaussians = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), gaussians)
-  world_to_camera = invert_rigid(jnp.asarray(c2w, jnp.float32))
-  intrinsics = jnp.asarray(intrinsics, jnp.float32)
-  per_view = len(gaussians.batch_shape) == world_to_camera.ndim - 2
-  if per_view:  # each set seen by its own camera: a batch [B, V] of single-camera renders
-    world_to_camera, intrinsics = world_to_camera[..., None, :, :], intrinsics[..., None, :]
-  settings = render_settings(objective, context_images, world_to_camera)
-  if compact:
-    gaussians = splatting.compaction.compact_for_cameras(
-      gaussians,
-      world_to_camera,
-      intrinsics,
-      height=height,
-      width=width,
-      near=settings["near"],
-      far=settings["far"],
-      config=render_config,
-    )
-  result = splatting.render_exact(
-    gaussians,
-    world_to_camera,
-    intrinsics,
-    height=height,
-    width=width,
-    config=render_config,
-    **settings,
-  )
-  views = [np.asarray(x) for x in (result.rgb, result.depth, result.alpha)]
-  if per_view:
-    views = [x[..., 0, :, :, :] for x in views]
-  return Rendered(*views)
+# Scoring
 
 
 class Scorer:
@@ -308,10 +245,32 @@ class Scorer:
       scores["lpips"] = metrics.lpips(pred, target, params=self.lpips_params)
     return {name: np.asarray(value) for name, value in scores.items()}
 
+  def masked(self, pred, target, masks) -> dict[str, np.ndarray]:
+    """`psnr_masked`, `ssim_masked` (and `lpips_masked`) of views [V, H, W, 3] over their
+    foreground masks [V, H, W] in [0, 1], per view (NaN where a view's mask is empty), after the
+    same clipping."""
+    pred, target = (jnp.clip(jnp.asarray(x, jnp.float32), 0.0, 1.0) for x in (pred, target))
+    masks = jnp.asarray(masks, jnp.float32)
+    scores = {
+      "psnr_masked": _masked_psnr(pred, target, masks),
+      "ssim_masked": _masked_ssim(pred, target, masks),
+    }
+    if self.lpips_params is not None:
+      scores["lpips_masked"] = metrics.masked_lpips(pred, target, masks, self.lpips_params)
+    return {name: np.asarray(value) for name, value in scores.items()}
+
 
 _psnr = jax.jit(metrics.psnr)
 _ssim = jax.jit(metrics.ssim)
 _masked_psnr = jax.jit(metrics.masked_psnr)
+_masked_ssim = jax.jit(metrics.masked_ssim)
+
+# The foreground-mask scores (`Scorer.masked`), and why a set has none although it has masks.
+MASKED_METRICS = ("psnr_masked", "ssim_masked", "lpips_masked")
+OPAQUE_MASKS_NOTE = (
+  "omitted: every target's foreground mask is 1 everywhere (opaque alpha), so the masked scores "
+  "would repeat psnr / ssim / lpips"
+)
 
 
 @dataclasses.dataclass
@@ -350,10 +309,12 @@ class Evaluation:
     scores: method name -> MethodScores.
     kept: for the first `keep` scenes, {"key", "batch", method: {"rgb", "depth", "alpha",
       "gaussians"}} (host arrays; depth / alpha / gaussians None for image methods).
+    notes: what -> why, for scores the set's data could not give (metrics.json, metrics.md).
   """
 
   scores: dict[str, MethodScores]
   kept: list[dict]
+  notes: dict[str, str] = dataclasses.field(default_factory=dict)
 
   def summary(self) -> dict[str, dict[str, float]]:
     return {name: scores.summary() for name, scores in self.scores.items()}
@@ -410,15 +371,38 @@ def motion_scores(prediction: dict, batch: dict) -> dict[str, np.ndarray]:
   }
 
 
+def has_foreground(batch: dict) -> bool:
+  """Whether a batch carries foreground masks (`target_masks`) that leave something out: a
+  weight below 1 somewhere (masks of 1 everywhere, an opaque alpha, restrict nothing)."""
+  masks = batch.get("target_masks")
+  return masks is not None and bool(np.any(np.asarray(masks) < 1.0))
+
+
+def _target_masks(batch: dict) -> np.ndarray:
+  """A batch of one's foreground masks [Vt, H, W]; 1 everywhere for a batch without them (as
+  the official evaluation scores a scene without masks among scenes with masks)."""
+  if "target_masks" in batch:
+    return np.asarray(batch["target_masks"][0], np.float32)
+  return np.ones(batch["target_images"].shape[1:-1], np.float32)
+
+
 def _scene_means(views: dict[str, np.ndarray], batch: dict) -> dict[str, float]:
   """A scene's scores: each metric's mean over its target views, but `psnr_moving` only over the
-  views with a moving pixel, and absent when none has one (the mean over scenes then covers the
-  scenes where something moved)."""
-  means = {name: float(np.mean(v)) for name, v in views.items() if name != "psnr_moving"}
+  views with a moving pixel and the masked metrics only over the views with foreground; such a
+  metric is absent when no view has any (the mean over scenes then covers the other scenes)."""
+  counted = {}
   if "psnr_moving" in views:
-    moving = np.asarray(batch["target_motion_masks"][0]).any(axis=(-2, -1))
-    if moving.any():
-      means["psnr_moving"] = float(np.mean(views["psnr_moving"][moving]))
+    counted["psnr_moving"] = np.asarray(batch["target_motion_masks"][0]).any(axis=(-2, -1))
+  if any(name in views for name in MASKED_METRICS):
+    foreground = _target_masks(batch).sum(axis=(-2, -1)) > 0
+    counted.update(dict.fromkeys(MASKED_METRICS, foreground))
+  means = {}
+  for name, values in views.items():
+    chosen = counted.get(name)
+    if chosen is None:
+      means[name] = float(np.mean(values))
+    elif chosen.any():
+      means[name] = float(np.mean(np.asarray(values)[chosen]))
   return means
 
 
@@ -448,9 +432,16 @@ def evaluate(
     scorer: the metrics.
     render_config: renderer settings.
     keep: for the first `keep` scenes, keep the predictions (grids, video, PLY).
+
+  Where a scene carries foreground masks that mask something (`has_foreground`), every scene is
+  also scored over its masks (`Scorer.masked`; a scene without masks over all its pixels).
   """
   scores = {name: MethodScores() for name in methods}
   kept = []
+  masked = any(has_foreground(batch) for _, batch in scenes)
+  notes = {}
+  if not masked and any("target_masks" in batch for _, batch in scenes):
+    notes["masked metrics"] = OPAQUE_MASKS_NOTE
   for position, (key, batch) in enumerate(scenes):
     entry = {"key": key, "batch": batch}
     for name, method in methods.items():
@@ -459,6 +450,10 @@ def evaluate(
       views = scorer(prediction["rgb"][0], batch["target_images"][0])
       views.update(geometry_scores(prediction, batch))
       views.update(motion_scores(prediction, batch))
+      if masked:
+        views.update(
+          scorer.masked(prediction["rgb"][0], batch["target_images"][0], _target_masks(batch))
+        )
       scores[name].seconds += time.perf_counter() - start
       scores[name].predict_seconds.append(predict_seconds)
       scores[name].render_seconds.append(render_seconds)
@@ -468,7 +463,7 @@ def evaluate(
         entry[name] = _on_host(prediction)
     if position < keep:
       kept.append(entry)
-  return Evaluation(scores, kept)
+  return Evaluation(scores, kept, notes)
 
 
 def evaluate_sets(

@@ -6,7 +6,13 @@
 - LPIPS VGG v0.1 with `normalize=True` (see `tokengs_jax.lpips`), on the images as given.
 - Geometry, for methods that render (numpy): `holes` (share of pixels with alpha < 0.5) and, where
   the test set knows its true depth, `depth_errors` (AbsRel, delta < 1.25).
-- `masked_psnr`: PSNR over the pixels of a mask (dynamic scenes: where the scene moved).
+- `masked_psnr`: PSNR over the pixels of a mask, weighted by it where it is soft (dynamic scenes:
+  where the scene moved; Kubric: the targets' foreground, their PNG alpha).
+- `masked_ssim`, `masked_lpips`: SSIM and LPIPS of both images multiplied by the mask. With
+  `masked_psnr` these are the official evaluation's metrics of a batch carrying foreground masks
+  (`tokengs/utils/metrics.py` `MetricsCalculator(mask=)`). Every masked metric is NaN for an image
+  whose mask is empty (nothing to score), where the official code reports +inf PSNR, SSIM 1 and
+  LPIPS 0; callers leave such images out of their means.
 
 Every metric takes `[..., H, W, 3]` images in [0, 1] and returns one score per image `[...]`; all
 are jit-able and differentiable. Scores are averaged per scene over its targets, then over scenes
@@ -186,17 +192,61 @@ def mean_over_scenes(scores_per_scene: Sequence[np.ndarray]) -> float:
   return float(np.mean([np.mean(np.asarray(s, np.float64)) for s in scores_per_scene]))
 
 
-def masked_psnr(pred: jax.Array, target: jax.Array, mask: jax.Array) -> jax.Array:
-  """PSNR in dB over the pixels where `mask` is set (all three channels), clipped and capped as
-  `psnr`; NaN where the mask is empty (nothing to score: callers leave such images out of their
-  means). The evaluation's `psnr_moving` (issue 24): the mask marks where the scene moved.
+def _mask_weight(mask: jax.Array) -> jax.Array:
+  """[..., H, W] mask (bool, or float weights in [0, 1]) -> float32 [..., H, W, 1]."""
+  return jnp.asarray(mask, jnp.float32)[..., None]
 
-  pred, target: [..., H, W, 3]; mask: [..., H, W] bool -> [...].
+
+def _empty(mask: jax.Array) -> jax.Array:
+  """True per image whose mask has no weight.  [..., H, W] -> [...]."""
+  return jnp.sum(jnp.asarray(mask, jnp.float32), axis=(-2, -1)) <= 0
+
+
+def masked_psnr(pred: jax.Array, target: jax.Array, mask: jax.Array) -> jax.Array:
+  """PSNR in dB over the pixels of `mask`, clipped and capped as `psnr`: the squared error's mean
+  over the three channels weighted by the mask, sum(m (p - t)^2) / (3 sum(m)), as the official
+  masked PSNR (`masked_mean`). NaN where the mask is empty (official: +inf).
+
+  Uses: the evaluation's `psnr_moving` (issue 24; the mask marks where the scene moved) and
+  `psnr_masked` (the targets' foreground masks).
+
+  pred, target: [..., H, W, 3]; mask: [..., H, W] bool or float in [0, 1] -> [...].
   """
   pred = jnp.clip(jnp.asarray(pred, jnp.float32), 0.0, 1.0)
   target = jnp.clip(jnp.asarray(target, jnp.float32), 0.0, 1.0)
-  weight = jnp.broadcast_to(jnp.asarray(mask, jnp.float32)[..., None], pred.shape)
+  weight = jnp.broadcast_to(_mask_weight(mask), pred.shape)
   count = jnp.sum(weight, axis=(-3, -2, -1))
-  mse = jnp.sum(weight * (pred - target) ** 2, axis=(-3, -2, -1)) / jnp.maximum(count, 1.0)
+  error = jnp.sum(weight * (pred - target) ** 2, axis=(-3, -2, -1))
+  mse = error / jnp.where(count > 0, count, 1.0)
   value = -10.0 * jnp.log10(jnp.maximum(mse, 10.0 ** (-PSNR_CAP_DB / 10.0)))
   return jnp.where(count > 0, value, jnp.nan)
+
+
+def masked_ssim(pred: jax.Array, target: jax.Array, mask: jax.Array) -> jax.Array:
+  """`ssim` of both images multiplied by `mask` (the official masked SSIM): outside the mask both
+  are 0 and agree, so a prediction is judged on the masked pixels and the window around them.
+  NaN where the mask is empty (official: 1, two black images).
+
+  pred, target: [..., H, W, 3]; mask: [..., H, W] bool or float in [0, 1] -> [...].
+  """
+  weight = _mask_weight(mask)
+  value = ssim(jnp.asarray(pred, jnp.float32) * weight, jnp.asarray(target, jnp.float32) * weight)
+  return jnp.where(_empty(mask), jnp.nan, value)
+
+
+def masked_lpips(pred: jax.Array, target: jax.Array, mask: jax.Array, params=None) -> jax.Array:
+  """`lpips` of both images multiplied by `mask`. NaN where the mask is empty.
+
+  The official masked LPIPS multiplies the images the same way, then takes a masked mean of
+  LPIPS's output, which is one value per image: its weight is the mask resized bilinearly to one
+  pixel (the centre pixels' mean: 2x2 of an even size), so the official score is 0 for an image
+  whose centre is background. Ours is the LPIPS of the masked images wherever the mask is not
+  empty.
+
+  pred, target: [..., H, W, 3]; mask: [..., H, W] bool or float in [0, 1] -> [...].
+  """
+  weight = _mask_weight(mask)
+  value = lpips(
+    jnp.asarray(pred, jnp.float32) * weight, jnp.asarray(target, jnp.float32) * weight, params
+  )
+  return jnp.where(_empty(mask), jnp.nan, value)
