@@ -22,7 +22,9 @@ use, with the defaults' evaluation views), it reports per scene:
 Per-target sets (viewer-dependent colours, a dynamic model's sets at each target time) are each
 judged against their own camera, as the evaluation renders them. `--time` times, side by side in
 one run, each scene's evaluation render (`evaluation.render_targets`) with and without
-`compact=True`, and the target set with the most to drop rendered alone, full and compacted.
+`compact=True`, the target set with the most to drop rendered alone, full and compacted, and for
+the dynamic (Kubric) model its prediction at the first target's time with and without
+`static_scene=True` (the dynamic branch skipped, as for a scene known not to move).
 """
 
 from __future__ import annotations
@@ -182,6 +184,29 @@ def timings(gaussians, batch, objective, repeats: int) -> dict:
   return row
 
 
+def static_scene_timings(params, batch, config, repeats: int) -> dict:
+  """Seconds of a dynamic model's prediction (`model.reconstruct` at the first target's time,
+  coloured for its camera) in full and with the dynamic branch skipped (`static_scene=True`)."""
+  from tokengs_jax import model
+
+  arguments = (params, batch["context_images"], batch["context_c2w"], batch["context_intrinsics"])
+  keywords = dict(
+    times=batch["context_times"],
+    target_times=batch["target_times"][:, 0],
+    viewer_c2w=batch["target_c2w"][:, :1] if config.viewer_dependent else None,
+  )
+  row = {}
+  for static_scene in (False, True):
+    predict = jax.jit(
+      lambda *a, static_scene=static_scene: (
+        model.reconstruct(*a, config=config, static_scene=static_scene, **keywords).means
+      )
+    )
+    name = "predict_s_static_scene" if static_scene else "predict_s"
+    row[name] = _seconds(lambda predict=predict: predict(*arguments), repeats)
+  return row
+
+
 def main():
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--scenes", type=int, default=4, help="scenes per model")
@@ -206,6 +231,8 @@ def main():
         row["input_droppable"] = input_droppable(gaussians, batch, objective)
         if args.time:
           row.update(timings(gaussians, batch, objective, args.repeats))
+          if experiment.model.num_dynamic_gs_tokens:
+            row.update(static_scene_timings(params, batch, experiment.model, args.repeats))
         print(
           " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items())
         )
