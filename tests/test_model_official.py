@@ -122,6 +122,14 @@ def test_state_dict_round_trip_is_exact():
     np.testing.assert_array_equal(exported[name], value, err_msg=name)
 
 
+def test_linear_motion_weights_are_not_exported_as_official():
+  config = FULL.replace(dynamic_motion="linear")
+  params = jax.tree.map(np.zeros_like, param_shapes(config))
+  assert "motion_head" in params and "patch_time_embed_tgt" not in params
+  with pytest.raises(ValueError, match="no official counterpart"):
+    to_official_state_dict(params, config)
+
+
 def test_latent_multiscale_dynamic_names_follow_official_enc_dec():
   shapes = {
     official_name(tuple(k.key for k in path)): leaf.shape

@@ -316,7 +316,8 @@ class TokenGS(nn.Module):
       tokens: [B, T, C] Gaussian tokens to decode (None: the learnt ones). Token tuning passes
         its own; they are time-conditioned here, so pass them un-conditioned.
       target_times: [B] normalised time to decode at (time-embedding models). None leaves the
-        tokens unconditioned, as the official model does when no target time is given.
+        tokens unconditioned, as the official model does when no target time is given. Under
+        `dynamic_motion="linear"` the tokens never see it (time moves the decoded Gaussians).
 
     Returns:
       [B, T, C].

@@ -141,7 +141,16 @@ def params_from_state_dict(
 
 
 def to_official_state_dict(params: Params, config: ModelConfig) -> dict[str, np.ndarray]:
-  """params -> official state_dict (numpy float32, torch layouts), e.g. to export."""
+  """params -> official state_dict (numpy float32, torch layouts), e.g. to export.
+
+  Raises ValueError for `dynamic_motion="linear"`: the official network has no velocities and
+  conditions its dynamic tokens on the target time, so no official model computes these weights'
+  Gaussians."""
+  if config.dynamic_motion != "decoded":
+    raise ValueError(
+      f'dynamic_motion="{config.dynamic_motion}" has no official counterpart (velocities, no '
+      "target-time embedding): its weights cannot be exported as an official state_dict"
+    )
   return {
     official_name(path): np.ascontiguousarray(
       _to_torch_layout(path, np.asarray(value, np.float32), config.patch_size)
