@@ -55,6 +55,10 @@ class KubricExperiment(Experiment):
       released Kubric-4D rig, and the official loader, have 9 (the `paper` preset).
     min_gap / max_gap: frame span of an example's input views (official 3 / 23); the default
       evaluation spreads its inputs over `max_gap` frames (at most the clip).
+    context_cameras: the input views come from this many cameras in turn, each seen at several
+      times, in training and in the default evaluation (`kubric_view_selector`,
+      `default_evaluation_views`; not official); 0: distinct cameras while there are enough
+      (official).
     flow_times: times sampled for the scene-flow and in-between pictures.
     flow_tracks: dynamic Gaussians drawn in the scene-flow plot (the most opaque ones).
     train: as `Experiment`'s, its loss terms (`--train.rgb-loss`, `--train.lambda-ssim`, ...)
@@ -87,6 +91,7 @@ class KubricExperiment(Experiment):
   num_cameras: int = 4
   min_gap: int = 3
   max_gap: int = 23
+  context_cameras: int = 0
   flow_times: int = 8
   flow_tracks: int = 48
   train: TrainSettings = KUBRIC_TRAIN
@@ -103,6 +108,11 @@ class KubricExperiment(Experiment):
   pointmap_trim_hi: float = 1.0
 
   def __post_init__(self):
+    if not 0 <= self.context_cameras <= self.num_cameras:
+      raise ValueError(
+        f"context_cameras must be between 0 and num_cameras ({self.num_cameras}), "
+        f"got {self.context_cameras}"
+      )
     if self.data_mode:  # `Experiment.data_mode` mixes static datasets only
       raise ValueError(
         "--data-mode mixes static datasets (python -m experiments.re10k / experiments.dl3dv); "
@@ -181,7 +191,11 @@ def kubric_example_config(experiment: KubricExperiment, *, training: bool) -> Ex
 def kubric_views(experiment: KubricExperiment, num_targets: int):
   """The official dynamic view selection (targets <= context views, as official)."""
   return kubric_view_selector(
-    experiment.num_context_views, num_targets, experiment.min_gap, experiment.max_gap
+    experiment.num_context_views,
+    num_targets,
+    experiment.min_gap,
+    experiment.max_gap,
+    context_cameras=experiment.context_cameras,
   )
 
 
@@ -340,6 +354,7 @@ class KubricTask(Task):
         experiment.eval.num_target_views,
         experiment.max_gap,
         np.random.default_rng([seed, position]),
+        experiment.context_cameras,
       )
       chosen.append((position, views))
     return chosen

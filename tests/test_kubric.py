@@ -47,6 +47,25 @@ def _example(root, index, seed, num_context=2, num_targets=2, config=CONFIG):
   return make_example(record, config, rng, views=views)
 
 
+def test_the_selector_can_take_the_inputs_from_fewer_cameras_in_turn(kubric_root):
+  """`context_cameras=2`: four inputs from two of the drawn cameras in turn (each at two times),
+  targets at one frame from the first two; frames and the official draws otherwise unchanged."""
+  root, _ = kubric_root
+  record = kubric.KubricSceneSource(root, num_cameras=CAMERAS)[0]
+  frames = record["num_frames"]
+  for seed in range(5):
+    official = kubric.kubric_view_selector(4, 2, 2, 5)(record, np.random.default_rng(seed), 0)
+    paired = kubric.kubric_view_selector(4, 2, 2, 5, context_cameras=2)(
+      record, np.random.default_rng(seed), 0
+    )
+    np.testing.assert_array_equal(paired[0] % frames, official[0] % frames)
+    cameras = official[0] // frames
+    assert (paired[0] // frames).tolist() == [*cameras[:2], *cameras[:2]]
+    np.testing.assert_array_equal(paired[1], official[1])
+  with pytest.raises(ValueError, match="context_cameras"):
+    kubric.kubric_view_selector(4, 2, context_cameras=-1)
+
+
 def test_stored_quaternions_are_normalised_and_degenerate_ones_refused():
   quarter_turn_z = np.array([np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)])
   rotation = kubric.quat_wxyz_to_rotation(quarter_turn_z)

@@ -100,6 +100,23 @@ def test_default_views_are_novel_views_at_in_between_times(
     assert any(c not in used for c in novel[:, 0].tolist()) == (cameras > len(used))
 
 
+def test_default_views_from_fewer_cameras_see_each_at_several_times():
+  """`context_cameras=2`: the inputs alternate between two cameras over increasing frames; the
+  targets still take new times, half of them from the two cameras no input uses."""
+  for seed in range(5):
+    inputs, novel = kubric.default_evaluation_views(
+      4, 12, 4, 2, 8, np.random.default_rng(seed), context_cameras=2
+    )
+    a, b = inputs[:2, 0]
+    assert a != b and inputs[:, 0].tolist() == [a, b, a, b]
+    assert (np.diff(inputs[:, 1]) > 0).all()
+    assert not set(novel[:, 1].tolist()) & set(inputs[:, 1].tolist())
+    assert novel[0, 0] not in (a, b) and novel[1, 0] in (a, b)
+    # 0 is the official draw: the same views as before the option existed
+    official = kubric.default_evaluation_views(4, 12, 4, 2, 8, np.random.default_rng(seed))
+    assert len(set(official[0][:, 0].tolist())) == 4
+
+
 def test_default_views_need_an_in_between_frame():
   with pytest.raises(NotEnoughFramesError, match="no in-between frame"):
     kubric.default_evaluation_views(9, 24, 4, 2, 3, np.random.default_rng(0))

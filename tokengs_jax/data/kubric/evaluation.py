@@ -186,15 +186,17 @@ def default_evaluation_views(
   num_targets: int,
   max_gap: int,
   rng: np.random.Generator,
+  context_cameras: int = 0,
 ) -> ViewPairs:
   """The default protocol's views of one scene (module docstring), drawn from `rng` (the start
   frame and the camera order; give a fixed seed per scene).
 
   Context v is camera order[v] at the v-th of `num_context` frames evenly spaced over
   `min(max_gap, num_frames - 1)` frames from a random start (cameras repeat when there are fewer
-  than inputs). Targets take the frames strictly inside the span that no input uses, spread as the
-  centres of `num_targets` equal bins, and cameras alternately from those no input uses and the
-  input cameras.
+  than inputs; with `context_cameras` K > 0, the first K of the order in turn, as the training
+  sampler's option). Targets take the frames strictly inside the span that no input uses, spread
+  as the centres of `num_targets` equal bins, and cameras alternately from those no input uses and
+  the input cameras.
 
   Returns:
     (context [Vc, 2], target [Vt, 2]) (camera, frame) pairs.
@@ -212,14 +214,15 @@ def default_evaluation_views(
   start = int(rng.integers(0, num_frames - span))
   context_frames = start + np.round(np.linspace(0, span, num_context)).astype(np.int64)
   order = rng.permutation(num_cameras)
-  context_cameras = np.resize(order, num_context)
+  used = order[: context_cameras or num_context]
+  cameras = np.resize(used, num_context)
   free = np.setdiff1d(np.arange(start + 1, start + span), context_frames)
   target_frames = free[((np.arange(num_targets) + 0.5) * len(free) / num_targets).astype(np.int64)]
-  unused, inputs = order[num_context:], list(dict.fromkeys(context_cameras.tolist()))
+  unused, inputs = order[len(used) :], list(dict.fromkeys(cameras.tolist()))
   turns = [c for pair in itertools.zip_longest(unused, inputs) for c in pair if c is not None]
   target_cameras = np.resize(np.asarray(turns, np.int64), num_targets)
   return (
-    np.stack([context_cameras, context_frames], -1).astype(np.int64),
+    np.stack([cameras, context_frames], -1).astype(np.int64),
     np.stack([target_cameras, target_frames], -1).astype(np.int64),
   )
 

@@ -106,12 +106,20 @@ def kubric_view_selector(
   min_gap: int = 3,
   max_gap: int = 23,
   interp_target: bool = True,
+  context_cameras: int = 0,
 ):
   """A pipeline `select_views(record, rng, step)` doing the official dynamic sampling on the
   flattened records of `KubricSceneSource`: context v = (camera v, frame v), target v =
-  (camera v, target frame), returned as flat indices camera * F + frame."""
+  (camera v, target frame), returned as flat indices camera * F + frame.
+
+  `context_cameras` K > 0 (not official) takes the inputs from K of the drawn cameras in turn
+  (a, b, a, b, ... over the increasing input frames), so each of them is seen at several times
+  and the scene's motion shows as a difference between two images of one camera; 0 keeps the
+  official draw (distinct cameras while there are enough)."""
   if not 0 < num_targets <= num_context:
     raise ValueError(f"need 0 < targets ({num_targets}) <= context views ({num_context})")
+  if context_cameras < 0:
+    raise ValueError(f"context_cameras must be >= 0, got {context_cameras}")
 
   def select(record: dict, rng: np.random.Generator, step: int) -> tuple[np.ndarray, np.ndarray]:
     del step  # the official dynamic sampler has no warm-up
@@ -119,6 +127,8 @@ def kubric_view_selector(
     frames, cameras = sample_dynamic_indices(
       rng, num_frames, record["num_cameras"], num_context, min_gap, max_gap, interp_target
     )
+    if context_cameras:
+      cameras = np.resize(cameras[:context_cameras], num_context)
     context = cameras * num_frames + frames[:num_context]
     target = cameras[:num_targets] * num_frames + frames[-1]
     return context, target
