@@ -34,6 +34,40 @@ def gaussians_in_front(means_key, colours_key, shape, *, spread, opacity, scale)
   )
 
 
+EVAL_HEIGHT = EVAL_WIDTH = 16
+
+
+def evaluation_batch(
+  rng, context_frames, target_frames, height=EVAL_HEIGHT, width=EVAL_WIDTH
+) -> dict:
+  """A batch of one with random images, cameras along x at the frame number, and its frames."""
+  vc, vt = len(context_frames), len(target_frames)
+
+  def cameras(frames):
+    c2w = np.tile(np.eye(4, dtype=np.float32), (1, len(frames), 1, 1))
+    c2w[0, :, 0, 3] = 0.1 * np.asarray(frames, np.float32)
+    return c2w
+
+  intrinsics = np.tile(np.array([width, height, width / 2, height / 2], np.float32), (1, 1, 1))
+  return {
+    "context_images": rng.uniform(size=(1, vc, height, width, 3)).astype(np.float32),
+    "target_images": rng.uniform(size=(1, vt, height, width, 3)).astype(np.float32),
+    "context_c2w": cameras(context_frames),
+    "target_c2w": cameras(target_frames),
+    "context_intrinsics": np.repeat(intrinsics, vc, axis=1),
+    "target_intrinsics": np.repeat(intrinsics, vt, axis=1),
+    "context_frames": np.asarray([context_frames]),
+    "target_frames": np.asarray([target_frames]),
+  }
+
+
+def evaluation_gaussians(batch_shape, n=6, seed=0):
+  """`n` Gaussians per set within 0.4 of (0, 0, 2), seen by every camera of `evaluation_batch`."""
+  return gaussians_in_front(
+    *jax.random.split(jax.random.key(seed)), (*batch_shape, n), spread=0.4, opacity=0.8, scale=0.15
+  )
+
+
 def scene_of_two_examples():
   """Gaussians [2, N] that cover part of two views, and two examples' input views
   [2, 3, 16, 16, 3] of different mean colours (neither of them grey)."""

@@ -1,4 +1,5 @@
-"""tokengs_jax.evaluation: baselines, the target render, the scorer, per-scene means, checks."""
+"""tokengs_jax.evaluation: baselines, the scorer, per-scene means, checks (the target renders:
+test_renders.py)."""
 
 import jax
 import jax.numpy as jnp
@@ -10,51 +11,31 @@ from tokengs_jax.camera import invert_rigid
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.tuning import TuningConfig
 
-HEIGHT = WIDTH = 16
-
-
-def _batch(rng, context_frames, target_frames, height=HEIGHT, width=WIDTH) -> dict:
-  """A batch of one with random images, cameras along x at the frame number, and its frames."""
-  vc, vt = len(context_frames), len(target_frames)
-
-  def cameras(frames):
-    c2w = np.tile(np.eye(4, dtype=np.float32), (1, len(frames), 1, 1))
-    c2w[0, :, 0, 3] = 0.1 * np.asarray(frames, np.float32)
-    return c2w
-
-  intrinsics = np.tile(np.array([width, height, width / 2, height / 2], np.float32), (1, 1, 1))
-  return {
-    "context_images": rng.uniform(size=(1, vc, height, width, 3)).astype(np.float32),
-    "target_images": rng.uniform(size=(1, vt, height, width, 3)).astype(np.float32),
-    "context_c2w": cameras(context_frames),
-    "target_c2w": cameras(target_frames),
-    "context_intrinsics": np.repeat(intrinsics, vc, axis=1),
-    "target_intrinsics": np.repeat(intrinsics, vt, axis=1),
-    "context_frames": np.asarray([context_frames]),
-    "target_frames": np.asarray([target_frames]),
-  }
+from scenes import EVAL_HEIGHT as HEIGHT
+from scenes import EVAL_WIDTH as WIDTH
+from scenes import evaluation_batch, evaluation_gaussians
 
 
 def test_nearest_view_is_the_input_with_the_nearest_frame_index():
-  batch = _batch(np.random.default_rng(0), [0, 5, 12], [1, 3, 8, 9, 12])
+  batch = evaluation_batch(np.random.default_rng(0), [0, 5, 12], [1, 3, 8, 9, 12])
   np.testing.assert_array_equal(copies.nearest_views(batch), [[0, 1, 1, 2, 2]])
   images = copies.nearest_view_images(batch)
   assert images.shape == batch["target_images"].shape
   for view, source in enumerate([0, 1, 1, 2, 2]):
     np.testing.assert_array_equal(images[0, view], batch["context_images"][0, source])
   # a tie (frame 6 is 6 from 0 and from 12) goes to the earlier input
-  tie = _batch(np.random.default_rng(0), [0, 12], [6])
+  tie = evaluation_batch(np.random.default_rng(0), [0, 12], [6])
   np.testing.assert_array_equal(copies.nearest_views(tie), [[0]])
 
 
 def test_nearest_view_falls_back_to_camera_centres_without_frames():
-  batch = _batch(np.random.default_rng(0), [0, 10], [2, 7])
+  batch = evaluation_batch(np.random.default_rng(0), [0, 10], [2, 7])
   del batch["context_frames"], batch["target_frames"]
   np.testing.assert_array_equal(copies.nearest_views(batch), [[0, 1]])
 
 
 def test_mean_colour_and_input_average_baselines():
-  batch = _batch(np.random.default_rng(1), [0, 4], [1, 2, 3])
+  batch = evaluation_batch(np.random.default_rng(1), [0, 4], [1, 2, 3])
   mean = copies.mean_colour_images(batch)
   assert mean.shape == (1, 3, HEIGHT, WIDTH, 3)
   np.testing.assert_allclose(
@@ -67,7 +48,10 @@ def test_mean_colour_and_input_average_baselines():
 def test_baselines_are_scored_on_exactly_the_evaluated_targets():
   """Every baseline is scored once per evaluated target view, against that target, per scene."""
   rng = np.random.default_rng(2)
-  scenes = [("a", _batch(rng, [0, 8], [1, 4, 7])), ("b", _batch(rng, [2, 20], [3, 19]))]
+  scenes = [
+    ("a", evaluation_batch(rng, [0, 8], [1, 4, 7])),
+    ("b", evaluation_batch(rng, [2, 20], [3, 19])),
+  ]
   scored = evaluation.evaluate(scenes, evaluation.baselines(), evaluation.Scorer(lpips=False))
   assert list(scored.scores) == ["mean_colour", "input_average", "nearest_view"]
   for name, method in evaluation.baselines().items():
@@ -124,71 +108,9 @@ def test_only_process_zero_writes(monkeypatch):
   assert not evaluation.writes_results()
 
 
-def _gaussians(batch_shape, n=6, seed=0) -> Gaussians:
-  key = jax.random.split(jax.random.key(seed), 2)
-  means = jax.random.uniform(key[0], batch_shape + (n, 3), minval=-0.4, maxval=0.4)
-  return Gaussians(
-    means=means.at[..., 2].add(2.0),
-    opacities=jnp.full(batch_shape + (n,), 0.8),
-    scales=jnp.full(batch_shape + (n, 3), 0.15),
-    quats=jnp.tile(jnp.array([1.0, 0, 0, 0]), batch_shape + (n, 1)),
-    colors=jax.random.uniform(key[1], batch_shape + (n, 3)),
-  )
-
-
-def test_render_targets_renders_one_set_per_target_view_when_given():
-  """Gaussians [B, V]: set v is seen by camera v only (dynamic models decode one per target)."""
-  batch = _batch(np.random.default_rng(4), [0, 4], [1, 3])
-  per_view = _gaussians((1, 2))
-  rendered = evaluation.render_targets(
-    per_view, batch["target_c2w"], batch["target_intrinsics"], height=HEIGHT, width=WIDTH
-  )
-  assert rendered.rgb.shape == (1, 2, HEIGHT, WIDTH, 3) and rendered.depth.shape == (
-    1,
-    2,
-    HEIGHT,
-    WIDTH,
-    1,
-  )
-  for view in range(2):
-    one = jax.tree.map(lambda x: x[:, view], per_view)
-    alone = evaluation.render_targets(
-      one,
-      batch["target_c2w"][:, view : view + 1],
-      batch["target_intrinsics"][:, view : view + 1],
-      height=HEIGHT,
-      width=WIDTH,
-    )
-    np.testing.assert_allclose(rendered.rgb[:, view], alone.rgb[:, 0], atol=1e-6)
-  assert np.abs(rendered.rgb[0, 0] - rendered.rgb[0, 1]).max() > 1e-3
-
-
-@pytest.mark.parametrize("batch_shape", [(1,), (1, 2)])
-def test_render_targets_compacted_renders_the_same_images_exactly(batch_shape):
-  """`compact=True` moves out what no target can draw (here most of 600 Gaussians: behind the
-  cameras, off the images, transparent) and renders the same images, depth and alpha, to the bit;
-  one set for every target, or one per target."""
-  batch = _batch(np.random.default_rng(6), [0, 4], [1, 3])
-  g = _gaussians(batch_shape, n=600, seed=3)
-  spread = jax.random.uniform(jax.random.key(7), g.means.shape, minval=-6.0, maxval=6.0)
-  opacities = jnp.where(jnp.arange(600) % 7 == 0, 0.003, g.opacities)
-  g = Gaussians(g.means + spread, opacities, g.scales, g.quats, g.colors)
-  targets = batch["target_c2w"], batch["target_intrinsics"]
-  full = evaluation.render_targets(g, *targets, height=HEIGHT, width=WIDTH)
-  compacted = evaluation.render_targets(g, *targets, height=HEIGHT, width=WIDTH, compact=True)
-  assert full.alpha.max() > 0.5
-  w2c = invert_rigid(jnp.asarray(targets[0]))
-  if len(batch_shape) == 2:
-    w2c, targets = w2c[:, :, None], (None, targets[1][:, :, None])
-  small = splatting.compaction.compact_for_cameras(g, w2c, targets[1], height=HEIGHT, width=WIDTH)
-  assert small.num_gaussians < 600  # something was moved out
-  for name in ("rgb", "depth", "alpha"):
-    np.testing.assert_array_equal(getattr(compacted, name), getattr(full, name), err_msg=name)
-
-
 def test_evaluate_renders_gaussian_methods_and_keeps_pictures():
-  batch = _batch(np.random.default_rng(5), [0, 4], [1, 3])
-  gaussians = _gaussians((1,))
+  batch = evaluation_batch(np.random.default_rng(5), [0, 4], [1, 3])
+  gaussians = evaluation_gaussians((1,))
   methods = {"splats": evaluation.Method(gaussians=lambda b: gaussians), **evaluation.baselines()}
   scored = evaluation.evaluate([("s", batch)], methods, evaluation.Scorer(lpips=False), keep=1)
   expected = evaluation.render_targets(
@@ -215,9 +137,9 @@ def test_evaluation_renders_each_method_with_its_objective(monkeypatch):
   from tokengs_jax import model, tuning
   from tokengs_jax.objective import ObjectiveConfig
 
-  batch = _batch(np.random.default_rng(9), [0, 4], [1, 3])
+  batch = evaluation_batch(np.random.default_rng(9), [0, 4], [1, 3])
   batch["context_images"] *= 0.4  # a mean colour near 0.2, far from the official grey
-  gaussians = _gaussians((1,))
+  gaussians = evaluation_gaussians((1,))
   input_mean = ObjectiveConfig(background="input_mean")
   methods = {
     "grey": evaluation.Method(gaussians=lambda b: gaussians),
@@ -263,8 +185,11 @@ def test_evaluation_renders_each_method_with_its_objective(monkeypatch):
 def test_evaluate_sets_scores_each_named_set():
   rng = np.random.default_rng(6)
   sets = {
-    "test": [("a", _batch(rng, [0, 4], [2]))],
-    "ood": [("b", _batch(rng, [0, 6], [1, 5])), ("c", _batch(rng, [0, 6], [3]))],
+    "test": [("a", evaluation_batch(rng, [0, 4], [2]))],
+    "ood": [
+      ("b", evaluation_batch(rng, [0, 6], [1, 5])),
+      ("c", evaluation_batch(rng, [0, 6], [3])),
+    ],
   }
   scored = evaluation.evaluate_sets(sets, evaluation.baselines(), evaluation.Scorer(lpips=False))
   assert list(scored) == ["test", "ood"]
@@ -275,7 +200,7 @@ def test_evaluate_sets_scores_each_named_set():
 def test_feed_forward_and_tuned_methods_on_the_tiny_model(tiny):
   config, params = tiny
   rng = np.random.default_rng(7)
-  batch = _batch(rng, [0, 4], [1, 3], height=32, width=32)
+  batch = evaluation_batch(rng, [0, 4], [1, 3], height=32, width=32)
   methods = {
     "trained": evaluation.feed_forward(params, config),
     # a learning rate at which 5 steps move the untrained model's loss visibly (by about 1e-6)
@@ -297,8 +222,7 @@ def test_feed_forward_and_tuned_methods_on_the_tiny_model(tiny):
 
 def _input_view_loss(gaussians: Gaussians, batch: dict) -> float:
   """Test-time tuning's loss (the default objective and loss) of Gaussians on the input views."""
-  from tokengs_jax import losses, splatting
-  from tokengs_jax.camera import invert_rigid
+  from tokengs_jax import losses
   from tokengs_jax.objective import supervision_loss
 
   images = jnp.asarray(batch["context_images"])
@@ -357,8 +281,8 @@ def test_dynamic_methods_decode_at_each_target_views_time():
 
 
 def test_geometry_scores_for_rendering_methods_only():
-  batch = _batch(np.random.default_rng(8), [0, 4], [1, 3])
-  gaussians = _gaussians((1,))
+  batch = evaluation_batch(np.random.default_rng(8), [0, 4], [1, 3])
+  gaussians = evaluation_gaussians((1,))
   rendered = evaluation.render_targets(
     gaussians, batch["target_c2w"], batch["target_intrinsics"], height=HEIGHT, width=WIDTH
   )
@@ -376,7 +300,7 @@ def test_geometry_scores_for_rendering_methods_only():
 
 def _dynamic_batch(rng, context, target) -> dict:
   """A batch of one whose views are (camera, time) pairs; camera c sits at x = c."""
-  batch = _batch(rng, [c for c, _ in context], [c for c, _ in target])
+  batch = evaluation_batch(rng, [c for c, _ in context], [c for c, _ in target])
   del batch["context_frames"], batch["target_frames"]  # nearest_view: by camera centre
   for side, views in (("context", context), ("target", target)):
     batch[f"{side}_cameras"] = np.asarray([[c for c, _ in views]])
@@ -438,9 +362,9 @@ def test_psnr_moving_scores_every_method_over_the_moving_pixels_only():
   moving["target_motion_masks"] = masks
   still = _dynamic_batch(rng, [(0, 0.0), (1, 1.0)], [(2, 0.5)])
   still["target_motion_masks"] = np.zeros((1, 1, HEIGHT, WIDTH), bool)
-  static = _batch(rng, [0, 4], [2])  # no masks at all: no psnr_moving
+  static = evaluation_batch(rng, [0, 4], [2])  # no masks at all: no psnr_moving
   scenes = [("moving", moving), ("still", still), ("static", static)]
-  methods = {"splats": evaluation.Method(gaussians=lambda b: _gaussians((1,)))}
+  methods = {"splats": evaluation.Method(gaussians=lambda b: evaluation_gaussians((1,)))}
   methods.update(evaluation.baselines())
   scored = evaluation.evaluate(scenes, methods, evaluation.Scorer(lpips=False))
   for name, scores in scored.scores.items():
@@ -474,14 +398,14 @@ def test_masked_metrics_score_the_foreground_of_every_method():
   """Batches carrying foreground masks (Kubric's alpha): the official masked PSNR / SSIM per
   view; an empty mask leaves its view out, a scene without masks is scored over all pixels."""
   rng = np.random.default_rng(12)
-  masked = _batch(rng, [0, 4], [1, 2])
+  masked = evaluation_batch(rng, [0, 4], [1, 2])
   masks = np.zeros((1, 2, HEIGHT, WIDTH), np.float32)
   masks[0, 0, 3:11, 2:9] = 1.0
   masks[0, 0, 3:11, 9] = 0.4  # a soft edge; the second view shows no foreground
   masked["target_masks"] = masks
-  unmasked = _batch(rng, [0, 4], [2])  # no masks: the official all-ones mask
+  unmasked = evaluation_batch(rng, [0, 4], [2])  # no masks: the official all-ones mask
   scenes = [("masked", masked), ("unmasked", unmasked)]
-  methods = {"splats": evaluation.Method(gaussians=lambda b: _gaussians((1,)))}
+  methods = {"splats": evaluation.Method(gaussians=lambda b: evaluation_gaussians((1,)))}
   methods.update(evaluation.baselines())
   scored = evaluation.evaluate(scenes, methods, evaluation.Scorer(lpips=False))
   assert scored.notes == {}
@@ -506,12 +430,14 @@ def test_masked_metrics_score_the_foreground_of_every_method():
 
 def test_opaque_masks_give_no_masked_metrics_and_say_so():
   rng = np.random.default_rng(13)
-  opaque = _batch(rng, [0, 4], [1, 2])
+  opaque = evaluation_batch(rng, [0, 4], [1, 2])
   opaque["target_masks"] = np.ones((1, 2, HEIGHT, WIDTH), np.float32)
   scorer = evaluation.Scorer(lpips=False)
   scored = evaluation.evaluate([("opaque", opaque)], evaluation.baselines(), scorer)
   assert scored.notes == {"masked metrics": evaluation.OPAQUE_MASKS_NOTE}
   for scores in scored.scores.values():
     assert not set(evaluation.MASKED_METRICS) & set(scores.summary())
-  plain = evaluation.evaluate([("plain", _batch(rng, [0, 4], [2]))], evaluation.baselines(), scorer)
+  plain = evaluation.evaluate(
+    [("plain", evaluation_batch(rng, [0, 4], [2]))], evaluation.baselines(), scorer
+  )
   assert plain.notes == {}  # a set without masks has nothing to explain
