@@ -70,3 +70,25 @@ def no_pixel_decoding(monkeypatch):
     raise AssertionError(f"{image.size[0]}x{image.size[1]} pixels decoded")
 
   monkeypatch.setattr(ImageFile.ImageFile, "load", decode)
+
+
+# XLA:CPU maps each loaded executable (compiled or read from the compile cache) as 3 memory
+# mappings, held until the executable is freed, and the jit caches keep every program a test
+# compiled: a pytest-xdist worker of the default suite reached 48,300 mappings. At the kernel's
+# per-process limit (`vm.max_map_count`, 65,530 by default) LLVM's JIT fails to map the next
+# executable ("LLVM compilation error: Cannot allocate memory") and XLA then segfaults, in
+# `backend_compile_and_load` or, for a cache hit, `get_executable_and_time`: the worker
+# segfaults seen in about one warm run in two (docs/benchmarks.md, "Test suite"). So after a test
+# module, a process past a quarter of the limit clears JAX's caches (freeing those executables;
+# they come back from the compile cache where needed).
+_MAPS, _MAX_MAPS = pathlib.Path("/proc/self/maps"), pathlib.Path("/proc/sys/vm/max_map_count")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _bounded_memory_mappings():
+  yield
+  if _MAPS.exists() and _MAX_MAPS.exists():
+    with _MAPS.open("rb") as maps:
+      mappings = sum(1 for _ in maps)
+    if mappings > int(_MAX_MAPS.read_text()) // 4:
+      jax.clear_caches()
