@@ -206,6 +206,8 @@ def knob_variants(sweep: bool) -> list[tuple[str, RenderConfig]]:
     variants += [
       ("tile8 s64", RenderConfig(tile_size=8, tiles_per_step=64, intersections_per_gaussian=64))
     ]
+    variants += [("gaussian-major", RenderConfig(pixel_major=False))]  # [S, P, K] blocks
+    variants += [("rebin on ovfl", RenderConfig(rebin_on_overflow=True))]
     variants += [("bf16 inputs", default)]  # the default config on bfloat16 Gaussians
   return variants
 

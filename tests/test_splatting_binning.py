@@ -195,3 +195,43 @@ def test_depth_order_is_the_stable_argsort(num):
   np.testing.assert_array_equal(order, jnp.argsort(jnp.asarray(keys), stable=True))
   normal = np.where(np.abs(keys) < 1e-37, 0.0, keys)
   np.testing.assert_array_equal(order, np.argsort(normal, kind="stable"))
+
+
+def _walled_scene(seed, num=200, walls=4):
+  """`walls` wide, opaque, camera-facing discs in front of `num - walls` random Gaussians: every
+  pixel saturates on the discs, so a budget cut of the Gaussians behind changes nothing."""
+  g = _scene(seed, num)
+  rng = np.random.default_rng(seed)
+  means, scales, opacities, quats = (np.array(x) for x in (g.means, g.scales, g.opacities, g.quats))
+  means[:walls] = np.c_[rng.uniform(-0.1, 0.1, (walls, 2)), np.full(walls, -1.5)]
+  means[walls:, 2] = np.abs(means[walls:, 2])
+  scales[:walls], opacities[:walls], quats[:walls] = (3.0, 3.0, 0.01), 0.999, (1, 0, 0, 0)
+  return dataclasses.replace(g, means=means, scales=scales, opacities=opacities, quats=quats)
+
+
+@pytest.mark.parametrize("saturating", [True, False])
+def test_rebin_on_overflow_renders_what_the_ladder_renders(saturating):
+  """`rebin_on_overflow`: the first binning at B/4 is kept where its cut lies behind saturated
+  pixels and re-done at the size that holds every pair where it could change a pixel; images,
+  gradients and stats are those of the count-chosen ladder size (float noise)."""
+  g = _walled_scene(3) if saturating else _scene(1, num=200)
+  weights = np.random.default_rng(2).uniform(0, 1, (HEIGHT, WIDTH, 5)).astype(np.float32)
+  base = RenderConfig(chunk_size=8, tiles_per_step=5, max_intersections=1024, min_intersections=8)
+  ladder = base.budget_ladder(200, -(-HEIGHT // 16) * -(-WIDTH // 16))
+  (_, first), _ = _loss_and_grad(g, weights, dataclasses.replace(base, max_intersections=ladder[0]))
+  needed = int(first.stats.num_intersections[0])
+  assert ladder[0] < needed <= ladder[-1]  # the count-based ladder sorts above B/4
+  assert bool(first.stats.truncated[0]) and bool(first.stats.overflow[0]) != saturating
+  (_, ref), ref_grads = _loss_and_grad(g, weights, base)
+  (_, out), grads = _loss_and_grad(g, weights, dataclasses.replace(base, rebin_on_overflow=True))
+  for name in ("rgb", "alpha", "depth"):
+    np.testing.assert_allclose(getattr(out, name), getattr(ref, name), atol=1e-6, rtol=0)
+  for name in ("means", "scales", "quats", "opacities", "colors"):
+    want = np.asarray(getattr(ref_grads, name))
+    np.testing.assert_allclose(
+      getattr(grads, name), want, rtol=1e-5, atol=1e-6 * np.abs(want).max(), err_msg=name
+    )
+  for name in ("truncated", "overflow", "num_intersections", "budget"):
+    np.testing.assert_array_equal(getattr(out.stats, name), getattr(ref.stats, name))
+  if not saturating:  # the overflowing first binning was not used
+    assert float(jnp.max(jnp.abs(first.rgb - ref.rgb))) > 1e-3

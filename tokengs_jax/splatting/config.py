@@ -45,6 +45,16 @@ class RenderConfig:
       that holds the scene's pairs (docs/benchmarks.md has the measurements).
     min_intersections: floor of the default budget (small scenes, few Gaussians, large tiles).
     max_intersections: explicit budget; overrides the two above when set (`render_exact` sets it).
+    rebin_on_overflow: bin at the smallest ladder size (B/4) even when the pairs exceed it and
+      bin again at the size that holds them all only if that cut could change a pixel
+      (`stats.overflow`; `lax.cond`). Saturating scenes then sort a quarter of the buffer
+      losslessly (a cut behind saturated pixels changes nothing); scenes that overflow it bin and
+      composite twice. Same image; opt-in (docs/benchmarks.md, "Binning at B/4, re-binning on
+      overflow").
+    pixel_major: the compositor's blocks are laid out [tiles, chunk, pixels] (pixels on the
+      minor, vectorised axis; per-Gaussian reductions over a major axis) rather than [tiles,
+      pixels, chunk]. Same sums, rounded differently (~1e-7); the backward is faster on XLA:CPU
+      (docs/benchmarks.md, "Pixel-major blocks").
   """
 
   tile_size: int = 16
@@ -59,6 +69,8 @@ class RenderConfig:
   intersections_per_gaussian: float = 16.0
   min_intersections: int = 4096
   max_intersections: int | None = None
+  rebin_on_overflow: bool = False
+  pixel_major: bool = True
 
   def __post_init__(self):
     for name in ("tile_size", "subtile_size", "chunk_size", "tiles_per_step"):

@@ -203,6 +203,29 @@ def _bin(
   return jax.lax.switch(step, branches, cameras)
 
 
+def _bin_and_composite_rebinning(
+  cameras: _Camera, *, height: int, width: int, config: RenderConfig, ladder: tuple[int, ...]
+):
+  """`RenderConfig.rebin_on_overflow`: bin at the smallest ladder size even when the pairs exceed
+  it, composite, and only where that cut could change a pixel (some camera's `overflow`) bin
+  again at the size that holds them all and composite that (`lax.cond`).
+
+  -> (cameras with the first binning's lists, `_composite`'s result of the render used).
+  """
+  first = cameras._replace(
+    bins=_bin(cameras, height=height, width=width, config=config, ladder=ladder[:1])
+  )
+  composited = _composite(first, height=height, width=width, config=config)
+
+  def rebin(_):
+    full = cameras._replace(
+      bins=_bin(cameras, height=height, width=width, config=config, ladder=ladder)
+    )
+    return _composite(full, height=height, width=width, config=config)
+
+  return first, jax.lax.cond(jnp.any(composited[3]), rebin, lambda _: composited, None)
+
+
 def _composite(cameras: _Camera, *, height: int, width: int, config: RenderConfig):
   """Composites C cameras at once: their tile lists are concatenated into one flat tile axis.
 
@@ -228,6 +251,7 @@ def _composite(cameras: _Camera, *, height: int, width: int, config: RenderConfi
     config.max_alpha,
     config.alpha_threshold,
     config.transmittance_stop,
+    pixel_major=config.pixel_major,
   )
   if cameras.bins is None:  # an empty scene: nothing to bin, the image is the background
     dtype = cameras.attrs.dtype
@@ -405,11 +429,16 @@ def jitted_render(
   )
   tiles = -(-height // config.tile_size) * -(-width // config.tile_size)
   ladder = config.budget_ladder(scenes.num_gaussians, tiles)
-  if scenes.num_gaussians:
-    cameras = cameras._replace(
-      bins=_bin(cameras, height=height, width=width, config=config, ladder=ladder)
+  if scenes.num_gaussians and config.rebin_on_overflow and len(ladder) > 1:
+    cameras, composited = _bin_and_composite_rebinning(
+      cameras, height=height, width=width, config=config, ladder=ladder
     )
-  composited = _composite(cameras, height=height, width=width, config=config)
+  else:
+    if scenes.num_gaussians:
+      cameras = cameras._replace(
+        bins=_bin(cameras, height=height, width=width, config=config, ladder=ladder)
+      )
+    composited = _composite(cameras, height=height, width=width, config=config)
   out = _finish(
     cameras, *composited, background=_flat(background, 2, batch).reshape(-1, 3), budget=ladder[-1]
   )

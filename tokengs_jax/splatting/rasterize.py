@@ -2,9 +2,10 @@
 
 Tiles advance one chunk of `chunk_size` sorted Gaussians per loop step; a step takes the first S
 tiles that still have work (a compacted list; S from a halving ladder of block sizes, the
-smallest that holds them all) and evaluates [S, tile pixels, chunk] alphas, turns them into
-transmittances with a prefix sum of log(1 - alpha) (a small triangular matmul), and composites
-with one batched matmul. The loop stops
+smallest that holds them all) and evaluates [S, chunk, tile pixels] alphas (pixel-major: the pixels
+on the minor, vectorised axis; `Tiling.pixel_major=False` is the [S, pixels, chunk] layout), turns
+them into transmittances with a prefix sum of log(1 - alpha) (a small triangular matmul), and
+composites with one batched matmul. The loop stops
 as soon as no tile has both Gaussians left and a pixel that is not saturated, so empty tiles cost
 nothing beyond the first step and saturated scenes stop after a few chunks.
 
@@ -51,6 +52,27 @@ class Tiling(NamedTuple):
   # The forward of a gradient compacts each tile's list to the Gaussians that reach an open pixel,
   # so the backward replays fewer chunks (False: it replays the forward's lists; tests compare).
   compact_backward: bool = True
+  # Blocks laid out [S, K, P] (pixels on the minor, vectorised axis) rather than [S, P, K]
+  # (`RenderConfig.pixel_major`: the same sums, rounded differently).
+  pixel_major: bool = True
+
+
+def _axes(tiling: Tiling) -> tuple[int, int]:
+  """(Gaussian axis, pixel axis) of a block."""
+  return (1, 2) if tiling.pixel_major else (2, 1)
+
+
+def _per_pixel(x, tiling: Tiling):
+  """[S, P] -> broadcastable against a block."""
+  return x[:, None, :] if tiling.pixel_major else x[..., None]
+
+
+def _prefix(x, strict_upper, tiling: Tiling):
+  """Exclusive prefix sum of a block over its Gaussians (a triangular matmul)."""
+  if tiling.pixel_major:  # a batched dot: "jk,sjp->skp" made XLA transpose x to [S, P, K]
+    lower = jnp.broadcast_to(strict_upper.T, (x.shape[0],) + strict_upper.shape)
+    return jnp.matmul(lower, x, precision=PRECISION)
+  return jnp.matmul(x, strict_upper, precision=PRECISION)
 
 
 def tile_pixel_centers(tiling: Tiling, dtype):
@@ -75,7 +97,7 @@ class _Chunk(NamedTuple):
   gaussian_ids: jax.Array  # [S, K]
   slot_valid: jax.Array  # [S, K]
   attrs: jax.Array  # [S, K, D]
-  dx: jax.Array  # [S, P, K] mean - pixel centre
+  dx: jax.Array  # [S, P, K] ([S, K, P] pixel-major) mean - pixel centre
   dy: jax.Array
   vis: jax.Array  # exp(-sigma)
   raw_alpha: jax.Array  # opacity * vis (before the cap)
@@ -93,23 +115,27 @@ def _load_chunk(
   slot_valid = positions < tile_ends[:, None]
   ids = gaussian_ids[jnp.minimum(positions, gaussian_ids.shape[0] - 1)]
   data = attrs[ids]
-  dx = data[:, None, :, MEAN_X] - centres[:, :, None, 0]
-  dy = data[:, None, :, MEAN_Y] - centres[:, :, None, 1]
+  if tiling.pixel_major:
+    gauss, pixel = (lambda x: x[:, :, None]), (lambda x: x[:, None, :])
+  else:
+    gauss, pixel = (lambda x: x[:, None, :]), (lambda x: x[:, :, None])
+  dx = gauss(data[..., MEAN_X]) - pixel(centres[..., 0])
+  dy = gauss(data[..., MEAN_Y]) - pixel(centres[..., 1])
   sigma = (
-    0.5 * (data[:, None, :, CONIC_A] * dx * dx + data[:, None, :, CONIC_C] * dy * dy)
-    + data[:, None, :, CONIC_B] * dx * dy
+    0.5 * (gauss(data[..., CONIC_A]) * dx * dx + gauss(data[..., CONIC_C]) * dy * dy)
+    + gauss(data[..., CONIC_B]) * dx * dy
   )
   vis = jnp.exp(-jnp.maximum(sigma, 0.0))
-  raw_alpha = data[:, None, :, OPACITY] * vis
+  raw_alpha = gauss(data[..., OPACITY]) * vis
   alpha = jnp.minimum(tiling.max_alpha, raw_alpha)
-  keep = slot_valid[:, None, :] & (sigma >= 0) & (alpha >= tiling.alpha_threshold)
+  keep = gauss(slot_valid) & (sigma >= 0) & (alpha >= tiling.alpha_threshold)
   return _Chunk(ids, slot_valid, data, dx, dy, vis, raw_alpha, jnp.where(keep, alpha, 0.0), keep)
 
 
 class _Transmittance(NamedTuple):
-  before: jax.Array  # [S, P, K] T just before each Gaussian
-  weight: jax.Array  # [S, P, K] alpha * T_before where composited, else 0
-  include: jax.Array  # [S, P, K] composited
+  before: jax.Array  # [S, P, K] ([S, K, P] pixel-major) T just before each Gaussian
+  weight: jax.Array  # alpha * T_before where composited, else 0
+  include: jax.Array  # composited
   transmittance: jax.Array  # [S, P] after the chunk
   done: jax.Array  # [S, P] pixel stopped
 
@@ -120,17 +146,16 @@ def _transmittance(chunk: _Chunk, transmittance, done, tiling) -> _Transmittance
     jnp.ones((k, k), chunk.alpha.dtype), 1
   )  # [i, j] = i < j: exclusive prefix
   log_keep = jnp.log1p(-chunk.alpha)
-  before = transmittance[..., None] * jnp.exp(
-    jnp.matmul(log_keep, strict_upper, precision=PRECISION)
-  )
+  before = _per_pixel(transmittance, tiling) * jnp.exp(_prefix(log_keep, strict_upper, tiling))
   after = before * (1.0 - chunk.alpha)
   # T only decreases, so once a Gaussian would take T to <= stop every later one would too: this
   # mask is exactly gsplat's "stop before the Gaussian that saturates the pixel".
   saturating = chunk.keep & (after <= tiling.transmittance_stop)
-  include = chunk.keep & ~saturating & ~done[..., None]
+  include = chunk.keep & ~saturating & ~_per_pixel(done, tiling)
   weight = jnp.where(include, chunk.alpha * before, 0.0)
-  new_t = transmittance * jnp.exp(jnp.sum(jnp.where(include, log_keep, 0.0), axis=-1))
-  return _Transmittance(before, weight, include, new_t, done | jnp.any(saturating, axis=-1))
+  gauss_axis = _axes(tiling)[0]
+  new_t = transmittance * jnp.exp(jnp.sum(jnp.where(include, log_keep, 0.0), axis=gauss_axis))
+  return _Transmittance(before, weight, include, new_t, done | jnp.any(saturating, axis=gauss_axis))
 
 
 # The compositor's loop step comes in block sizes tiles_per_step, /2, /4, ... (not below this):
@@ -173,12 +198,12 @@ def _pad_ranges(tile_starts, tile_ends):
   return jnp.concatenate([tile_starts, zero]), jnp.concatenate([tile_ends, zero])
 
 
-def _compaction_writes(kept, sel, chunk, done, starts, size, length, shared):
+def _compaction_writes(kept, sel, chunk, done, starts, size, length, shared, tiling):
   """Where the chunk's slots that some open pixel keeps (alpha above the threshold where the
   pixel has not stopped) go: behind the ones kept before, in the same list. A tile's write
   position never passes its read position, so the list ahead of the loop stays intact.
   -> (kept [T + 1], (positions, ids) [size * K], `length` (dropped) past the kept slots)."""
-  needed = jnp.any(chunk.keep & ~done[..., None], axis=1)  # [S, K]
+  needed = jnp.any(chunk.keep & ~_per_pixel(done, tiling), axis=_axes(tiling)[1])  # [S, K]
   rank = jnp.cumsum(needed, axis=-1) - needed
   position = jnp.where(needed & ~shared, (starts[sel] + kept[sel])[:, None] + rank, length)
   pad = (size - sel.shape[0]) * needed.shape[-1]
@@ -213,12 +238,17 @@ def _forward(attrs, gaussian_ids, tile_starts, tile_ends, tiling, compact=False,
     chunk = _load_chunk(chunk_index[sel], attrs, ids, starts[sel], ends[sel], centres[sel], tiling)
     trans = _transmittance(chunk, transmittance[sel], done[sel], tiling)
     summed = accum[sel] + jnp.einsum(
-      "spk,skf->spf", trans.weight, chunk.attrs[..., NUM_GEOMETRY:], precision=PRECISION
+      "skp,skf->spf" if tiling.pixel_major else "spk,skf->spf",
+      trans.weight,
+      chunk.attrs[..., NUM_GEOMETRY:],
+      precision=PRECISION,
     )
     writes = ()
     if compact:
       size = tiling.tiles_per_step
-      kept, writes = _compaction_writes(kept, sel, chunk, done[sel], starts, size, length, shared)
+      kept, writes = _compaction_writes(
+        kept, sel, chunk, done[sel], starts, size, length, shared, tiling
+      )
     return (
       chunk_index.at[sel].set(chunk_index[sel] + 1),
       transmittance.at[sel].set(trans.transmittance),
@@ -286,6 +316,29 @@ def _rasterize_fwd(attrs, gaussian_ids, tile_starts, tile_ends, tiling, shared):
   return out, (attrs, ids, tile_starts, ends, num_chunks) + out[:2]
 
 
+def _geometry_grads(chunk: _Chunk, v_raw, pixel_axis):
+  """[S, K, 6] gradients of the geometry columns (mean, conic, opacity) from dL/d raw alpha.
+
+  The conic is constant over a Gaussian's pixels: the pixel moments are summed first.
+  """
+  v_sigma = -v_raw * chunk.raw_alpha
+  dx, dy = chunk.dx, chunk.dy
+  v_dx, v_dy = v_sigma * dx, v_sigma * dy
+  m_x, m_y = jnp.sum(v_dx, axis=pixel_axis), jnp.sum(v_dy, axis=pixel_axis)
+  conic_a, conic_b, conic_c = (chunk.attrs[..., i] for i in (CONIC_A, CONIC_B, CONIC_C))
+  return jnp.stack(
+    [
+      conic_a * m_x + conic_b * m_y,
+      conic_b * m_x + conic_c * m_y,
+      0.5 * jnp.sum(v_dx * dx, axis=pixel_axis),
+      jnp.sum(v_dx * dy, axis=pixel_axis),
+      0.5 * jnp.sum(v_dy * dy, axis=pixel_axis),
+      jnp.sum(v_raw * chunk.vis, axis=pixel_axis),
+    ],
+    axis=-1,
+  )
+
+
 def _rasterize_bwd(tiling, residuals, cotangents):
   attrs, gaussian_ids, tile_starts, tile_ends, num_chunks, accum, final_t = residuals
   g_accum, g_final_t, _, _ = cotangents
@@ -293,6 +346,10 @@ def _rasterize_bwd(tiling, residuals, cotangents):
   starts, ends = _pad_ranges(tile_starts, tile_ends)
   pad = lambda x: jnp.concatenate([x, jnp.zeros_like(x[:1])])
   g_accum, num_chunks = pad(g_accum), pad(num_chunks)
+  # A render that was composited but not used (`RenderConfig.rebin_on_overflow`) gets zero
+  # cotangents: nothing to replay.
+  used = jnp.any(g_accum != 0) | jnp.any(g_final_t != 0)
+  num_chunks = jnp.where(used, num_chunks, 0)
   g_total = jnp.sum(pad(accum) * g_accum, axis=-1)  # [T + 1, P]
   # T_final's own cotangent enters every alpha's gradient as -gT T_final / (1 - alpha).
   g_through_final = pad(g_final_t * final_t)
@@ -308,36 +365,30 @@ def _rasterize_bwd(tiling, residuals, cotangents):
     )
     trans = _transmittance(chunk, transmittance[sel], done[sel], tiling)
     g_out = g_accum[sel]
-    g_feat = jnp.einsum("skf,spf->spk", chunk.attrs[..., NUM_GEOMETRY:], g_out, precision=PRECISION)
+    pm = tiling.pixel_major
+    gauss_axis, pixel_axis = _axes(tiling)
+    g_feat = jnp.einsum(
+      "skf,spf->skp" if pm else "skf,spf->spk",
+      chunk.attrs[..., NUM_GEOMETRY:],
+      g_out,
+      precision=PRECISION,
+    )
     contrib = trans.weight * g_feat
     g_before = g_prefix[sel]
     # suffix_k = sum over later composited Gaussians (this chunk and the rest) of w <f, gF>
-    earlier_in_chunk = jnp.matmul(contrib, strict_upper, precision=PRECISION)
-    g_suffix = g_total[sel][..., None] - g_before[..., None] - earlier_in_chunk - contrib
+    earlier_in_chunk = _prefix(contrib, strict_upper, tiling)
+    g_suffix = _per_pixel(g_total[sel] - g_before, tiling) - earlier_in_chunk - contrib
     v_alpha = jnp.where(
       trans.include,
-      trans.before * g_feat - (g_suffix + g_through_final[sel][..., None]) / (1.0 - chunk.alpha),
+      trans.before * g_feat
+      - (g_suffix + _per_pixel(g_through_final[sel], tiling)) / (1.0 - chunk.alpha),
       0.0,
     )
     v_raw = jnp.where(chunk.raw_alpha <= tiling.max_alpha, v_alpha, 0.0)  # the cap has no slope
-    v_sigma = -v_raw * chunk.raw_alpha
-    # The conic is constant over a Gaussian's pixels: sum the pixel moments first.
-    dx, dy = chunk.dx, chunk.dy
-    v_dx, v_dy = v_sigma * dx, v_sigma * dy
-    m_x, m_y = jnp.sum(v_dx, axis=1), jnp.sum(v_dy, axis=1)
-    conic_a, conic_b, conic_c = (chunk.attrs[..., i] for i in (CONIC_A, CONIC_B, CONIC_C))
-    v_geometry = jnp.stack(
-      [
-        conic_a * m_x + conic_b * m_y,
-        conic_b * m_x + conic_c * m_y,
-        0.5 * jnp.sum(v_dx * dx, axis=1),
-        jnp.sum(v_dx * dy, axis=1),
-        0.5 * jnp.sum(v_dy * dy, axis=1),
-        jnp.sum(v_raw * chunk.vis, axis=1),
-      ],
-      axis=-1,
-    )  # [S, K, 6]
-    v_features = jnp.einsum("spk,spf->skf", trans.weight, g_out, precision=PRECISION)
+    v_geometry = _geometry_grads(chunk, v_raw, pixel_axis)
+    v_features = jnp.einsum(
+      "skp,spf->skf" if pm else "spk,spf->skf", trans.weight, g_out, precision=PRECISION
+    )
     rows = jnp.concatenate([v_geometry, v_features], axis=-1)
     rows = jnp.where(chunk.slot_valid[..., None], rows, 0.0)
     grads = grads.at[chunk.gaussian_ids.reshape(-1)].add(rows.reshape(-1, rows.shape[-1]))
@@ -345,7 +396,7 @@ def _rasterize_bwd(tiling, residuals, cotangents):
       chunk_index.at[sel].set(chunk_index[sel] + 1),
       transmittance.at[sel].set(trans.transmittance),
       done.at[sel].set(trans.done),
-      g_prefix.at[sel].set(g_before + jnp.sum(contrib, axis=-1)),
+      g_prefix.at[sel].set(g_before + jnp.sum(contrib, axis=gauss_axis)),
       grads,
     )
 
