@@ -182,8 +182,9 @@ def decode(
       set repeated). None: one set, colours from the views' mean.
     static_scene: (static, a Python bool) the scene does not move: the dynamic branch is
       skipped entirely and only the static Gaussians are returned, equal to the first
-      `config.num_static_gaussians` of the full decode. A model without dynamic tokens returns
-      what it always does.
+      `config.num_static_gaussians` of the full decode (colours too, except under
+      `input_occlusion_tolerance`, where no dynamic Gaussian hides them). A model without
+      dynamic tokens returns what it always does.
 
   Returns:
     [B, T * dec_patch_size², 14] float32 in the official flat layout

@@ -370,7 +370,9 @@ class TokenGS(nn.Module):
     [B, Vr, T * p², 14]: coloured for that camera under `input_colour_weights="viewer"`, else
     the same set repeated. A `static_scene` skips the dynamic branch (tokens, head, motion and
     the re-decodes at the input times): the static Gaussians alone, exactly the first
-    `num_static_gaussians` of the full decode, time-invariant."""
+    `num_static_gaussians` of the full decode, time-invariant (under `input_occlusion_tolerance`
+    the views' occlusion renders then hold no dynamic Gaussians, as befits a static scene, so
+    their colours can differ where a dynamic Gaussian hid them)."""
     cfg = self.config
     decoded, static_kv = self._decode_tokens(encoded, tokens, target_times, static_scene)
     flat = activate(self.activation_head(decoded), cfg)
