@@ -189,8 +189,7 @@ def kubric_example_config(experiment: KubricExperiment, *, training: bool) -> Ex
 
 
 def kubric_views(experiment: KubricExperiment, num_targets: int):
-  """The official dynamic view selection (targets <= context views, as official); the inputs
-  from `experiment.context_cameras` cameras in turn where that is set (not official)."""
+  """The official dynamic view selection (inputs from `context_cameras` cameras in turn if set)."""
   return kubric_view_selector(
     experiment.num_context_views,
     num_targets,
