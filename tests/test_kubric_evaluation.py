@@ -155,9 +155,9 @@ def test_experiment_batches_never_score_an_input_view(data_root):
 # Foreground masks (the PNG alpha): the official masked metrics
 
 
-def _copy_with_alpha(data_root, root, alpha: np.ndarray) -> kubric.KubricSceneSource:
-  """Scene 0 of `data_root`'s test split copied to `root/v0` with `alpha` (uint8 [H, W]) as the
-  alpha channel of every `rgba_*.png`.  -> the copy's source."""
+def _copy_scene(data_root, root, rewrite) -> kubric.KubricSceneSource:
+  """Scene 0 of `data_root`'s test split copied to `root/v0`, each tar member's bytes passed
+  through `rewrite(name, data)` (None leaves the member out).  -> the copy's source."""
   scene = root / "v0" / "scene_000000"
   scene.mkdir(parents=True)
   for camera in range(CAMERAS):
@@ -167,16 +167,26 @@ def _copy_with_alpha(data_root, root, alpha: np.ndarray) -> kubric.KubricSceneSo
       tarfile.open(scene / name, "w") as copy,
     ):
       for member in source.getmembers():
-        data = source.extractfile(member).read()
-        if "rgba_" in member.name:
-          rgba = np.array(Image.open(io.BytesIO(data)).convert("RGBA"))
-          rgba[..., 3] = alpha
-          png = io.BytesIO()
-          Image.fromarray(rgba, "RGBA").save(png, format="PNG")
-          data = png.getvalue()
-        member.size = len(data)
-        copy.addfile(member, io.BytesIO(data))
+        data = rewrite(member.name, source.extractfile(member).read())
+        if data is not None:
+          member.size = len(data)
+          copy.addfile(member, io.BytesIO(data))
   return kubric.KubricSceneSource(root, ["v0"], num_cameras=CAMERAS)
+
+
+def _copy_with_alpha(data_root, root, alpha: np.ndarray) -> kubric.KubricSceneSource:
+  """`_copy_scene` with `alpha` (uint8 [H, W]) as the alpha channel of every `rgba_*.png`."""
+
+  def with_alpha(name: str, data: bytes) -> bytes:
+    if "rgba_" not in name:
+      return data
+    rgba = np.array(Image.open(io.BytesIO(data)).convert("RGBA"))
+    rgba[..., 3] = alpha
+    png = io.BytesIO()
+    Image.fromarray(rgba, "RGBA").save(png, format="PNG")
+    return png.getvalue()
+
+  return _copy_scene(data_root, root, with_alpha)
 
 
 def test_evaluation_batches_carry_the_alpha_and_score_the_foreground(data_root, tmp_path):
@@ -379,20 +389,12 @@ def test_motion_masks_follow_the_images_resize_and_crop():
 
 
 def _copy_without(data_root, root, dropped: tuple[str, ...]) -> dict:
-  """Scene 0 of `data_root`'s test split copied to `root` without the tar members whose names
-  hold any of `dropped`.  -> its record."""
-  scene = root / "v0" / "scene_000000"
-  scene.mkdir(parents=True)
-  for camera in range(CAMERAS):
-    name = f"output_{camera:03d}.tar"
-    with (
-      tarfile.open(data_root / "test" / "scene_000000" / name) as source,
-      tarfile.open(scene / name, "w") as copy,
-    ):
-      for member in source.getmembers():
-        if not any(word in member.name for word in dropped):
-          copy.addfile(member, source.extractfile(member))
-  return kubric.KubricSceneSource(root, ["v0"], num_cameras=CAMERAS)[0]
+  """`_copy_scene` without the tar members whose names hold any of `dropped`.  -> its record."""
+
+  def keep(name: str, data: bytes) -> bytes | None:
+    return None if any(word in name for word in dropped) else data
+
+  return _copy_scene(data_root, root, keep)[0]
 
 
 def test_a_tar_without_depth_or_segmentation_compares_the_same_pixel(data_root, tmp_path):

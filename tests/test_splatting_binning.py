@@ -164,17 +164,26 @@ def test_sub_tiles_render_what_whole_tiles_render(budget, split_below, monkeypat
   for subtile_size in (8, 4):
     config = dataclasses.replace(base, subtile_size=subtile_size)
     (_, out), grads = _loss_and_grad(g, weights, config)
-    for name in ("rgb", "alpha", "depth"):
-      np.testing.assert_allclose(getattr(out, name), getattr(whole, name), atol=2e-5, rtol=0)
-    for name in ("means", "scales", "quats", "opacities", "colors"):
-      ref = np.asarray(getattr(whole_grads, name))
-      np.testing.assert_allclose(
-        getattr(grads, name), ref, rtol=1e-4, atol=1e-5 * np.abs(ref).max(), err_msg=name
-      )
-    for name in ("truncated", "overflow", "num_intersections", "budget"):
-      np.testing.assert_array_equal(getattr(out.stats, name), getattr(whole.stats, name))
+    _assert_same_render(
+      out, grads, whole, whole_grads, image_atol=2e-5, grad_tolerance=(1e-4, 1e-5)
+    )
   if budget is not None:  # the tight budget does cut this scene, and the flag says so
     assert bool(whole.stats.truncated[0]) and bool(whole.stats.overflow[0])
+
+
+def _assert_same_render(out, grads, ref, ref_grads, *, image_atol, grad_tolerance):
+  """`out` and its Gaussian gradients equal `ref`'s: images to `image_atol`, each gradient to
+  `grad_tolerance` = (rtol, atol as a fraction of its largest reference entry), stats exactly."""
+  for name in ("rgb", "alpha", "depth"):
+    np.testing.assert_allclose(getattr(out, name), getattr(ref, name), atol=image_atol, rtol=0)
+  rtol, atol_fraction = grad_tolerance
+  for name in ("means", "scales", "quats", "opacities", "colors"):
+    want = np.asarray(getattr(ref_grads, name))
+    np.testing.assert_allclose(
+      getattr(grads, name), want, rtol=rtol, atol=atol_fraction * np.abs(want).max(), err_msg=name
+    )
+  for name in ("truncated", "overflow", "num_intersections", "budget"):
+    np.testing.assert_array_equal(getattr(out.stats, name), getattr(ref.stats, name))
 
 
 @pytest.mark.parametrize("num", [1, 5, 1000, 2**16, 2**16 + 3])
@@ -224,14 +233,6 @@ def test_rebin_on_overflow_renders_what_the_ladder_renders(saturating):
   assert bool(first.stats.truncated[0]) and bool(first.stats.overflow[0]) != saturating
   (_, ref), ref_grads = _loss_and_grad(g, weights, base)
   (_, out), grads = _loss_and_grad(g, weights, dataclasses.replace(base, rebin_on_overflow=True))
-  for name in ("rgb", "alpha", "depth"):
-    np.testing.assert_allclose(getattr(out, name), getattr(ref, name), atol=1e-6, rtol=0)
-  for name in ("means", "scales", "quats", "opacities", "colors"):
-    want = np.asarray(getattr(ref_grads, name))
-    np.testing.assert_allclose(
-      getattr(grads, name), want, rtol=1e-5, atol=1e-6 * np.abs(want).max(), err_msg=name
-    )
-  for name in ("truncated", "overflow", "num_intersections", "budget"):
-    np.testing.assert_array_equal(getattr(out.stats, name), getattr(ref.stats, name))
+  _assert_same_render(out, grads, ref, ref_grads, image_atol=1e-6, grad_tolerance=(1e-5, 1e-6))
   if not saturating:  # the overflowing first binning was not used
     assert float(jnp.max(jnp.abs(first.rgb - ref.rgb))) > 1e-3
