@@ -73,6 +73,8 @@ class KubricExperiment(Experiment):
     dyn_aux_on_objects: the auxiliary loss scores the object pixels of the data's segmentations
       and the dynamic render's alpha against them (`losses.LossConfig.dyn_aux_on_objects`; the
       training examples then carry `target_objects`).
+    lambda_flow: weight of the scene-flow term (`losses.LossConfig.lambda_flow`; 0: off; the
+      training examples then carry `target_flows`).
     decode_times: the time the training loss decodes each supervised view's Gaussians at:
       "first" (official: one decode at the targets' time, shared by every view, the input views
       too under `train.use_input_supervision`) or "per_view" (each view at its own time, so input
@@ -101,6 +103,7 @@ class KubricExperiment(Experiment):
   lambda_motion: float = 0.0
   dyn_aux_on_motion: bool = False
   dyn_aux_on_objects: bool = False
+  lambda_flow: float = 0.0
   decode_times: Literal["first", "per_view"] = "first"
   background: Literal["grey", "input_mean"] = "grey"
   normalization: Literal["mean_cam", "first_cam"] = "mean_cam"
@@ -109,23 +112,18 @@ class KubricExperiment(Experiment):
 
   def __post_init__(self):
     if not 0 <= self.context_cameras <= self.num_cameras:
-      raise ValueError(
-        f"context_cameras must be between 0 and num_cameras ({self.num_cameras}), "
-        f"got {self.context_cameras}"
-      )
+      raise ValueError(f"context_cameras must be in 0..{self.num_cameras}: {self.context_cameras}")
     if self.data_mode:  # `Experiment.data_mode` mixes static datasets only
       raise ValueError(
         "--data-mode mixes static datasets (python -m experiments.re10k / experiments.dl3dv); "
         "a Kubric run trains on its one dataset"
       )
     if self.train.lambda_depth > 0:
+      raise ValueError("train.lambda_depth must be 0 on Kubric: its examples carry no true depth")
+    if (self.train.lambda_mask > 0 or self.lambda_flow > 0) and self.train.use_input_supervision:
       raise ValueError(
-        "train.lambda_depth must be 0 on Kubric: its examples carry no true depth to supervise"
-      )
-    if self.train.lambda_mask > 0 and self.train.use_input_supervision:
-      raise ValueError(
-        "train.lambda_mask needs every supervised view's foreground mask, and the examples carry "
-        "the targets' only: it excludes train.use_input_supervision"
+        "train.lambda_mask and lambda_flow need every supervised view's per-pixel truth, and the "
+        "examples carry the targets' only: they exclude train.use_input_supervision"
       )
     KubricTask().loss_config(self)  # the dynamic terms' checks, at parse time
     kubric_example_config(self, training=True)  # the examples' (the trim's), at parse time
@@ -146,6 +144,7 @@ class KubricExperiment(Experiment):
         ("lambda-motion", self.lambda_motion > 0),
         ("dyn-aux-on-motion", self.dyn_aux_on_motion),
         ("dyn-aux-on-objects", self.dyn_aux_on_objects),
+        ("lambda-flow", self.lambda_flow > 0),
         ("eval.static-baseline", self.eval.static_baseline),
       )
       if used
@@ -159,8 +158,7 @@ class KubricExperiment(Experiment):
   @staticmethod
   def upgrade_record(fields: dict) -> dict:
     """A run recorded before the loss terms moved to `train` (a top-level `rgb_loss`; `train`'s
-    photometric, SSIM, LPIPS, depth and opacity weights then unused): the loss it trained with,
-    in `train`."""
+    other weights then unused): the loss it trained with, in `train`."""
     if "rgb_loss" not in fields:
       return fields
     fields = dict(fields)
@@ -172,8 +170,7 @@ class KubricExperiment(Experiment):
 def kubric_example_config(experiment: KubricExperiment, *, training: bool) -> ExampleConfig:
   """The official Kubric example preset (pointmap scale) at the experiment's image size, camera
   normalisation and pointmap trim; random flips only in training, where the targets' object
-  pixels come too when the auxiliary loss scores them, and the targets' foreground masks (their
-  PNG alpha) when `train.lambda_mask` does."""
+  pixels, masks (PNG alpha) and flows come too when a loss term scores them."""
   return dataclasses.replace(
     DATASET_PRESETS["kubric"],
     image_shape=tuple(experiment.image_size),
@@ -183,7 +180,7 @@ def kubric_example_config(experiment: KubricExperiment, *, training: bool) -> Ex
     random_flip=training,
     deterministic=not training,
     target_objects=training and experiment.dyn_aux_on_objects,
-    # read (a second decode of each target PNG) only when the mask loss scores them
+    target_flows=training and experiment.lambda_flow > 0,
     target_masks=training and experiment.train.lambda_mask > 0,
   )
 
@@ -442,6 +439,7 @@ class KubricTask(Task):
       lambda_motion=experiment.lambda_motion,
       dyn_aux_on_motion=experiment.dyn_aux_on_motion,
       dyn_aux_on_objects=experiment.dyn_aux_on_objects,
+      lambda_flow=experiment.lambda_flow,
       dyn_aux_hold_steps=round(experiment.dyn_aux_hold_fraction * steps),
       dyn_aux_decay_steps=max(round(experiment.dyn_aux_decay_fraction * steps), 1),
     )

@@ -87,6 +87,11 @@ class LossConfig:
     lambda_mask: weight of `mask_loss` (official `lambda_mask`, 0 in every official preset): the
       rendered alpha against the target views' foreground masks; > 0 needs the batch's
       `target_masks` (the model losses raise ValueError without them).
+    lambda_flow: weight of the scene-flow term (`objective.flow.flow_loss`): each Gaussian's
+      velocity, rendered into the target views, against the velocity of the surface every pixel
+      sees (the batch's `target_flows`, from Kubric's depths, segmentations and object poses).
+      Not in the paper or the official code (0 there; docs/deviations.md): the photometric loss
+      alone does not make dynamic Gaussians follow small moving objects (issue 24).
 
   Every weight (`lambda_*`, `dyn_aux_min`) must be finite and >= 0.
   """
@@ -110,6 +115,7 @@ class LossConfig:
   lambda_coverage: float = 0.0
   lambda_opacity: float = 0.0
   lambda_mask: float = 0.0
+  lambda_flow: float = 0.0
 
   def __post_init__(self):
     check_weights(

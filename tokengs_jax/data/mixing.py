@@ -88,7 +88,7 @@ class MixPart:
 def _batch_shape(config: ExampleConfig) -> tuple:
   """What two configs must share for their examples to stack into one batch."""
   sampler = config.sampler
-  maps = (config.target_depths, config.target_objects, config.target_masks)
+  maps = (config.target_depths, config.target_objects, config.target_masks, config.target_flows)
   return tuple(config.image_shape), sampler.num_context_views, sampler.num_target_views, maps
 
 

@@ -12,8 +12,8 @@ planar z); `pointmap_scale` unprojects them exactly as the official provider doe
 Batches are dicts of numpy arrays (docs/design.md): `context_images [B, Vc, H, W, 3]`,
 `context_c2w [B, Vc, 4, 4]`, `context_intrinsics [B, Vc, 4]`, the same for `target_*`,
 `scene_index [B]`, and for records with `times`: `context_times [B, Vc]`, `target_times [B, Vt]`;
-`target_depths` / `target_objects` / `target_masks [B, Vt, H, W]` where `ExampleConfig` asks for
-them.
+`target_depths` / `target_objects` / `target_masks [B, Vt, H, W]`, `target_flows [B, Vt, H, W,
+3]` where `ExampleConfig` asks for them.
 """
 
 from __future__ import annotations
@@ -108,6 +108,8 @@ class ExampleConfig:
     target_masks: also return `target_masks [Vt, H, W]` float32 in [0, 1], the targets'
       foreground masks (the record's `alphas`: Kubric's PNG alpha / 255), resized and cropped as
       the images and flipped with them (the official mask loss, `losses.LossConfig.lambda_mask`).
+    target_flows: also return `target_flows [Vt, H, W, 3]` float32, the velocity each target pixel
+      sees (`targets.target_flows`; the scene-flow loss, `losses.LossConfig.lambda_flow`).
 
   The last two reproduce pixelSplat/MVSplat's RE10K filters (`src/dataset/dataset_re10k.py`:
   `max_fov: 100.0` and, with `make_baseline_1`, `baseline_epsilon: 1e-3` in
@@ -127,6 +129,7 @@ class ExampleConfig:
   target_depths: bool = False
   target_objects: bool = False
   target_masks: bool = False
+  target_flows: bool = False
   pointmap_trim_lo: float = 0.0
   pointmap_trim_hi: float = 1.0
 
@@ -201,9 +204,7 @@ def _depth(record: dict, index: int) -> np.ndarray:
 
 def field_of_view(intrinsics: np.ndarray, height: int, width: int) -> np.ndarray:
   """Horizontal and vertical field of view in degrees, as pixelSplat's `get_fov`.
-
-  intrinsics: [..., 4] pixels (fx, fy, cx, cy) of `height` x `width` frames -> [..., 2] (x, y).
-  """
+  intrinsics: [..., 4] pixels (fx, fy, cx, cy) of `height` x `width` frames -> [..., 2] (x, y)."""
   fx, fy, cx, cy = np.moveaxis(np.asarray(intrinsics, np.float64), -1, 0)
 
   def ray(u, v):  # direction through pixel (u, v), unit length
@@ -319,18 +320,26 @@ def make_example(
     "target_c2w": c2w[num_context:],
     "target_intrinsics": intrinsics[num_context:],
   }
+  frame_times = np.asarray(record.get("times", np.zeros(len(c2w_all))), np.float64)[frames]
   if "times" in record:
-    times = normalize_times(np.asarray(record["times"], np.float64)[frames])
+    times = normalize_times(frame_times)
     example["context_times"], example["target_times"] = times[:num_context], times[num_context:]
-  example.update(_target_maps(record, target, config, scale, flipped))
+  frame = (c2w[num_context:], scale, float(np.ptp(frame_times)))
+  example.update(_target_maps(record, target, config, frame, flipped))
   return example
 
 
-def _target_maps(record: dict, target, config: ExampleConfig, scale: float, flipped: bool):
-  """The targets' per-pixel truth `config` asks for, as `make_example` transformed their images
-  and cameras: "target_depths" (float32 [Vt, H, W], 0: unknown) and `targets.target_fields`."""
+def _target_maps(record: dict, target, config: ExampleConfig, frame, flipped: bool):
+  """The targets' truth `config` asks for, transformed as their images and cameras (`frame`: their
+  example c2w [Vt, 4, 4], translation scale, span of frames): "target_depths" (float32 [Vt, H, W],
+  0: unknown), "target_flows" and `targets.target_fields`."""
+  target_c2w, scale, span = frame
   try:
     maps = targets.target_fields(record, target, config, flipped)
+    if config.target_flows:
+      maps["target_flows"] = targets.target_flows(
+        record, target, target_c2w, scale, span, config, flipped
+      )
     if config.target_depths:
       depths = np.stack([_depth(record, int(i)) for i in target])
       depths = resize_and_center_crop_depth(depths, config.image_shape) * scale

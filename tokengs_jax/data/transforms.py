@@ -96,6 +96,13 @@ def resize_and_center_crop_depth(depths: np.ndarray, shape: tuple[int, int]) -> 
   return np.where(coverage > 0.999, scaled, 0.0).astype(np.float32)
 
 
+def resize_and_center_crop_values(values: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+  """Per-pixel quantities (any sign) through the same scale and crop as `resize_and_center_crop`
+  gives the images, bilinear.  values: [V, H, W] -> float32 [V, h_out, w_out]."""
+  scaled, _, _ = _scale_and_crop(np.asarray(values, np.float32), shape, Image.BILINEAR)
+  return scaled.astype(np.float32)
+
+
 def resize_and_center_crop_mask(masks: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
   """Boolean masks through the same scale and crop as `resize_and_center_crop` gives the images:
   an output pixel is set where the bilinear resize of the mask (antialiased when shrinking) is at

@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 
 from tokengs_jax.gaussians import Gaussians
+from tokengs_jax.objective import flow
 from tokengs_jax.objective.settings import ObjectiveConfig
 from tokengs_jax.objective.supervision import (
   add_coverage,
@@ -55,6 +56,7 @@ def time_conditioned_loss(
   moving: jax.Array | None = None,
   objects: jax.Array | None = None,
   masks: jax.Array | None = None,
+  flows: jax.Array | None = None,
 ):
   """Loss of time-conditioned Gaussians against views taken at different times.
 
@@ -64,40 +66,38 @@ def time_conditioned_loss(
   chunk, so peak memory holds one chunk's decodes and renders. Visibility: the Gaussians of each
   view's time projected into all views (min over views, as official), averaged over the times.
 
-  With `num_static_gaussians` set and `loss_config.lambda_dyn_aux > 0`, adds the official dynamic
-  auxiliary loss: the same loss of a render of the Gaussians `[num_static_gaussians:]` alone,
-  weighted by `losses.dynamic_aux_weight(step)`; not evaluated while that weight is 0.
-
   Args:
     gaussians_at: `(times [B, T], world_to_camera [B, T, 4, 4]) -> Gaussians [B, T]` to render
       at those times from those cameras (e.g. `model.decode_at_times`); under "first" called
       once with times [B, 1] and every view's camera: one set [B, 1] or one per view [B, V].
-    times: [B, V] normalised time of each supervision view.
-    images: [B, V, H, W, 3] supervision images in [0, 1].
-    world_to_camera: [B, V, 4, 4].
-    intrinsics: [B, V, 4] in pixels.
-    loss_config: `losses.LossConfig`.
-    render_config: `splatting.RenderConfig`.
-    objective: view chunking, background, near/far, decode_times.
-    lpips_params: VGG weights when `loss_config.lambda_lpips > 0`.
-    num_static_gaussians: where the dynamic Gaussians start (None: no auxiliary loss).
+    times: [B, V] normalised time of each view; images: [B, V, H, W, 3] its image in [0, 1].
+    world_to_camera: [B, V, 4, 4]; intrinsics: [B, V, 4] in pixels.
+    loss_config, render_config: `losses.LossConfig`, `splatting.RenderConfig`.
+    objective: view chunking, background, near/far, decode_times; lpips_params: LPIPS's VGG.
+    num_static_gaussians: where the dynamic Gaussians start. With `loss_config.lambda_dyn_aux >
+      0` the official auxiliary loss (the same loss of their render alone) is added, weighted by
+      `losses.dynamic_aux_weight(step)`, and not evaluated while that weight is 0 (None: off).
     step: [] int, the training step the auxiliary weight's schedule reads.
-    context_images: [B, Vi, H, W, 3] the input views (every "input_mean" background's colour).
+    context_images: [B, Vi, H, W, 3] the input views ("input_mean" backgrounds' colour).
     moving: [B, V, H, W] the views' moving pixels (`losses.moving_pixels`), weighted
       `1 + loss_config.lambda_motion` (None or lambda_motion 0: no motion term).
     objects: [B, V, H, W] the views' object pixels (the batch's `target_objects`), which the
       auxiliary loss scores under `loss_config.dyn_aux_on_objects`.
     masks: [B, V, H, W] foreground masks, for `loss_config.lambda_mask` (both renders' alpha).
+    flows: [B, V, H, W, 3] the velocity each view's pixel sees (`flow.flow_term`).
 
   Returns:
-    `(loss, terms)`: as `supervision_loss`, plus "dyn_aux" (the auxiliary loss, 0 while its
-    weight is 0), "dyn_aux_weight" and "dyn_aux_psnr" when the auxiliary loss is on.
+    `(loss, terms)`: as `supervision_loss`, plus "dyn_aux" (0 while its weight is 0),
+    "dyn_aux_weight", "dyn_aux_psnr" with the auxiliary loss, and "flow" with the flow term.
   """
   world_to_camera, intrinsics = world_to_camera.astype(jnp.float32), intrinsics.astype(jnp.float32)
   views, shared = _chunked_views(
     gaussians_at, times, images, world_to_camera, intrinsics, objective.decode_times
   )
   views.update(_pixel_masks(moving, objects, masks, loss_config, num_static_gaussians))
+  views, with_flow = flow.flow_term(
+    gaussians_at, views, shared, flows, loss_config, render_config, objective
+  )
   scored = functools.partial(
     _score_at_times,
     world_to_camera=world_to_camera,
@@ -113,9 +113,10 @@ def time_conditioned_loss(
     gaussians = shared if shared is not None else views.get("gaussians")
     if gaussians is None:
       gaussians = gaussians_in_float32(gaussians_at(views["times"], views["world_to_camera"]))
-    return _scored_with_dynamic_aux(
+    loss, terms = _scored_with_dynamic_aux(
       scored, gaussians, views, num_static_gaussians, step, loss_config
     )
+    return with_flow(loss, terms, gaussians, views)
 
   return mean_over_view_chunks(chunk_loss, views, objective.view_chunk_size)
 
@@ -291,7 +292,7 @@ def supervised_views(batch: dict, objective: ObjectiveConfig) -> dict:
   """
   if not objective.use_input_supervision:
     return batch
-  for name in ("target_objects", "target_masks"):
+  for name in ("target_objects", "target_masks", "target_flows"):
     if name in batch:
       raise ValueError(f"the input views carry no per-pixel truth: {name} with input supervision")
   views = dict(batch)
@@ -433,6 +434,7 @@ def dynamic_model_loss(
     moving=moving,
     objects=batch.get("target_objects"),
     masks=masks,
+    flows=batch.get("target_flows"),
   )
 
 
