@@ -1,12 +1,18 @@
 """The scene-flow term (not in the paper or the official code; docs/deviations.md).
 
 Where the data knows how every surface moves (Kubric: depth maps, segmentations and per-frame
-object poses; `data.targets.target_flows`), the dynamic Gaussians can be told. Each Gaussian's
-velocity is rendered as its colour into a target view, so a pixel reads the opacity-weighted
-velocity of the Gaussians it is drawn from, and is compared with the velocity of the surface it
-sees. The photometric loss alone did not make the dynamic Gaussians follow 1-6-pixel objects
-(issue 24: their velocities stayed at a fifth of the objects' or less); this term supervises the
-motion directly, as the segmentation-free 2D flow of other dynamic methods does, in 3D.
+object poses; `data.targets.target_flows`), the dynamic Gaussians can be told. The photometric
+loss alone did not make them follow 1-6-pixel objects (issue 24: their velocities stayed at a
+fifth of the objects' or less); this term supervises the motion directly, as other dynamic
+methods supervise 2D optical flow, in 3D.
+
+The dynamic Gaussians' velocities are rendered as their colour into a target view, so a pixel
+reads the velocity of the Gaussians it is drawn from, weighted as its colour would be, and is
+compared with alpha x the velocity of the surface it sees, on the pixels that move only. Both
+restrictions matter: a blob over a 2-pixel object covers mostly still background, so scored on
+every pixel the absolute error's best velocity is the median of its pixels', 0 (measured: the
+velocities went to 0); and the static Gaussians in front of an object would otherwise ask the
+dynamic ones to overshoot.
 
 A Gaussian's velocity is the difference quotient of its centre between the view's time and
 `FLOW_TIME_STEP` later, in the example's frame per unit of normalised time: exact for
@@ -39,13 +45,14 @@ def flow_loss(
   render_config,
   objective: ObjectiveConfig,
 ) -> jax.Array:
-  """Mean absolute error of the rendered velocity against the views' flows.
+  """Mean absolute error of the rendered velocity against alpha x the views' flows, over the
+  pixels whose flow is not 0 (and their 3 components).
 
   Only the velocity learns from it: the Gaussians' geometry and opacity enter as constants, so
   the term cannot trade image quality for a lower flow error by moving or hiding Gaussians.
 
   Args:
-    gaussians: Gaussians [B, Vc or 1, N] at the views' times.
+    gaussians: Gaussians [B, Vc or 1, N] at the views' times (the dynamic ones).
     velocity: [B, Vc or 1, N, 3] their velocities (`velocities`).
     flows: [B, Vc, H, W, 3] the velocity each view's pixel sees (0: static).
     world_to_camera: [B, Vc, 4, 4]; intrinsics: [B, Vc, 4].
@@ -74,14 +81,19 @@ def flow_loss(
     near=objective.near,
     far=objective.far,
   )
-  return jnp.mean(jnp.abs(rendered.rgb[:, :, 0] - flows))
+  moves = jnp.any(flows != 0, axis=-1, keepdims=True)
+  error = jnp.abs(rendered.rgb[:, :, 0] - rendered.alpha[:, :, 0] * flows) * moves
+  return jnp.sum(error) / jnp.maximum(3.0 * jnp.sum(moves), 1.0)
 
 
-def flow_term(gaussians_at, views: dict, shared, flows, loss_config, render_config, objective):
+def flow_term(
+  gaussians_at, views: dict, shared, flows, num_static, loss_config, render_config, objective
+):
   """(the time-conditioned loss's views, with "flows" [B, V, H, W, 3] when
   `loss_config.lambda_flow > 0`; `with_flow(loss, terms, gaussians, chunk_views) -> (loss,
   terms)`, which adds lambda_flow x the flow term "flow" of a view chunk's Gaussians
-  [B, Vc or 1, N], or returns its arguments when the term is off).
+  [B, Vc or 1, N] from `num_static` on (None: all of them), or returns its arguments when the
+  term is off).
 
   A Gaussian's velocity needs its centre `FLOW_TIME_STEP` after its view's time. Under
   `decode_times="first"` every view is rendered from one decode at the first view's time, so
@@ -97,6 +109,8 @@ def flow_term(gaussians_at, views: dict, shared, flows, loss_config, render_conf
     if later is None:
       later = gaussians_at(chunk["times"] + FLOW_TIME_STEP, chunk["world_to_camera"]).means
     terms = dict(terms)
+    if num_static is not None:
+      gaussians, later = gaussians.static_and_dynamic(num_static)[1], later[..., num_static:, :]
     terms["flow"] = flow_loss(
       gaussians,
       velocities(gaussians, later.astype(jnp.float32)),

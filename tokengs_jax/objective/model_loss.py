@@ -74,9 +74,9 @@ def time_conditioned_loss(
     world_to_camera: [B, V, 4, 4]; intrinsics: [B, V, 4] in pixels.
     loss_config, render_config: `losses.LossConfig`, `splatting.RenderConfig`.
     objective: view chunking, background, near/far, decode_times; lpips_params: LPIPS's VGG.
-    num_static_gaussians: where the dynamic Gaussians start. With `loss_config.lambda_dyn_aux >
-      0` the official auxiliary loss (the same loss of their render alone) is added, weighted by
-      `losses.dynamic_aux_weight(step)`, and not evaluated while that weight is 0 (None: off).
+    num_static_gaussians: where the dynamic Gaussians start (the flow term's; None: all). With
+      `lambda_dyn_aux > 0` the official auxiliary loss (the loss of their render alone) is added,
+      weighted by `losses.dynamic_aux_weight(step)`, not evaluated while that is 0 (None: off).
     step: [] int, the training step the auxiliary weight's schedule reads.
     context_images: [B, Vi, H, W, 3] the input views ("input_mean" backgrounds' colour).
     moving: [B, V, H, W] the views' moving pixels (`losses.moving_pixels`), weighted
@@ -96,7 +96,7 @@ def time_conditioned_loss(
   )
   views.update(_pixel_masks(moving, objects, masks, loss_config, num_static_gaussians))
   views, with_flow = flow.flow_term(
-    gaussians_at, views, shared, flows, loss_config, render_config, objective
+    gaussians_at, views, shared, flows, num_static_gaussians, loss_config, render_config, objective
   )
   scored = functools.partial(
     _score_at_times,
