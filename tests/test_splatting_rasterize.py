@@ -4,6 +4,7 @@ the lists the forward compacted and gives the gradients of the full lists; both 
 
 import dataclasses
 import functools
+import re
 
 import jax
 import jax.numpy as jnp
@@ -105,3 +106,35 @@ def test_block_layouts_composite_the_same_sums():
       getattr(grads, name), want, rtol=1e-5, atol=1e-5 * np.abs(want).max(), err_msg=name
     )
   jax.tree.map(np.testing.assert_array_equal, out.stats, ref.stats)
+
+
+def _loop_copies(hlo: str) -> list[tuple[int, ...]]:
+  """Shapes of the `copy` instructions outside the entry computation (loop bodies, branches)."""
+  shapes, in_entry = [], False
+  for line in hlo.splitlines():
+    if line and not line[0].isspace() and line.rstrip().endswith("{"):
+      in_entry = line.startswith("ENTRY")
+    match = re.search(r"= \w+\[([\d,]*)\]\S* copy\(", line)
+    if match and not in_entry:
+      shapes.append(tuple(int(d) for d in match.group(1).split(",") if d))
+  return shapes
+
+
+def test_loop_steps_do_not_copy_the_whole_state():
+  """The per-tile state, the id list and the gradients are written outside the step's
+  `lax.switch`: written inside, XLA:CPU copied each of them whole at every step (O(tiles) a step,
+  O(tiles²) a render; issue 27). Checked on the compiled forward and forward+backward."""
+  tiling = rasterize.Tiling(40, 56, 8, 7, 5, 1, 8, 16, 0.999, 1 / 255, 1e-4)  # 35 tiles, 2 sizes
+  num, length = 37, 389
+  whole = {tiling.tiles_x * tiling.tiles_y + 1, num, length}  # leading sizes of the state
+
+  def composite(attrs, ids, starts, ends):
+    return rasterize.rasterize_tiles(attrs, ids, starts, ends, tiling, False)
+
+  def loss(*args):
+    return jnp.sum(composite(*args)[0]) + jnp.sum(composite(*args)[1])
+
+  args = (jnp.zeros((num, 10)), jnp.zeros((length,), jnp.int32)) + (jnp.zeros(35, jnp.int32),) * 2
+  for fn in (composite, jax.grad(loss)):
+    copies = _loop_copies(jax.jit(fn).lower(*args).compile().as_text())
+    assert not [shape for shape in copies if shape and shape[0] in whole], copies

@@ -173,24 +173,43 @@ def step_sizes(tiling: Tiling) -> tuple[int, ...]:
   return tuple(sizes)
 
 
-def _step_on_active_tiles(active, state, step, tiling):
-  """`step(sel, state)` on the compacted list `sel` [S] of the first S active tiles (padded with
-  the empty tile T), S the smallest of `step_sizes` that holds every active tile (else the
-  largest): one `lax.switch` per loop step, so a tail of a few long lists costs small blocks."""
+def _step_on_active_tiles(active, step, tiling):
+  """`step(sel)` on the compacted list `sel` [S] of the first S active tiles (padded with the
+  empty tile T), S the smallest of `step_sizes` that holds every active tile (else the largest):
+  one `lax.switch` per loop step, so a tail of a few long lists costs small blocks.
+
+  `step(sel)` -> (rows, extra): rows, a pytree of the selected tiles' new state [S, ...]; extra,
+  a pytree whose shapes do not depend on S. Returns (index [S_max], rows padded to [S_max, ...],
+  extra) with S_max = tiling.tiles_per_step; index is `sel`, then T + 1 (out of range: a scatter
+  with mode="drop" skips the padding). The caller scatters the rows into its loop state outside
+  the switch: a state array passed through the branches and updated there was copied whole at
+  every step (XLA:CPU), O(tiles) per step and so O(tiles²) a render (issue 27: 0.2 of the 0.8 s
+  forward at 1024²); the branches only read the state.
+  """
+  sizes = step_sizes(tiling)
+  out_of_range = active.shape[0]
 
   def on(size):
-    def run(state):
+    def run(_):
       sel = jnp.nonzero(active, size=size, fill_value=active.shape[0] - 1)[0]
-      return step(sel, state)
+      rows, extra = step(sel)
+      pad = sizes[0] - size
+      index = jnp.pad(sel, (0, pad), constant_values=out_of_range)
+      rows = jax.tree.map(lambda x: jnp.pad(x, ((0, pad),) + ((0, 0),) * (x.ndim - 1)), rows)
+      return index, rows, extra
 
     return run
 
-  sizes = step_sizes(tiling)
   if len(sizes) == 1:
-    return on(sizes[0])(state)
+    return on(sizes[0])(None)
   # sizes descend, so the count of sizes >= the active count, minus one, indexes the smallest.
   fits = jnp.sum(jnp.asarray(sizes) >= jnp.sum(active))
-  return jax.lax.switch(jnp.maximum(fits - 1, 0), [on(size) for size in sizes], state)
+  return jax.lax.switch(jnp.maximum(fits - 1, 0), [on(size) for size in sizes], None)
+
+
+def _scatter_rows(state, index, rows):
+  """state (a tuple of [T + 1, ...] arrays) with rows [S_max, ...] written at index [S_max]."""
+  return tuple(x.at[index].set(r, mode="drop") for x, r in zip(state, rows, strict=True))
 
 
 def _pad_ranges(tile_starts, tile_ends):
@@ -202,7 +221,8 @@ def _compaction_writes(kept, sel, chunk, done, starts, size, length, shared, til
   """Where the chunk's slots that some open pixel keeps (alpha above the threshold where the
   pixel has not stopped) go: behind the ones kept before, in the same list. A tile's write
   position never passes its read position, so the list ahead of the loop stays intact.
-  -> (kept [T + 1], (positions, ids) [size * K], `length` (dropped) past the kept slots)."""
+  -> (the selected tiles' new kept counts [S], (positions, ids) [size * K], `length` (dropped)
+  past the kept slots)."""
   needed = jnp.any(chunk.keep & ~_per_pixel(done, tiling), axis=_axes(tiling)[1])  # [S, K]
   rank = jnp.cumsum(needed, axis=-1) - needed
   position = jnp.where(needed & ~shared, (starts[sel] + kept[sel])[:, None] + rank, length)
@@ -211,7 +231,7 @@ def _compaction_writes(kept, sel, chunk, done, starts, size, length, shared, til
     jnp.pad(position.reshape(-1), (0, pad), constant_values=length),
     jnp.pad(chunk.gaussian_ids.reshape(-1), (0, pad)),
   )
-  return kept.at[sel].set(kept[sel] + jnp.sum(needed, axis=-1, dtype=kept.dtype)), writes
+  return kept[sel] + jnp.sum(needed, axis=-1, dtype=kept.dtype), writes
 
 
 def _forward(attrs, gaussian_ids, tile_starts, tile_ends, tiling, compact=False, shared=False):
@@ -233,8 +253,9 @@ def _forward(attrs, gaussian_ids, tile_starts, tile_ends, tiling, compact=False,
     chunk_index, _, _, tile_done, _, _ = state[0]
     return jnp.any(active(chunk_index, tile_done))
 
-  def step(ids, sel, state):
-    chunk_index, transmittance, done, tile_done, accum, kept = state
+  def step(ids, state, sel):
+    """The selected tiles' next chunk: (their new state rows [S, ...], compaction writes)."""
+    chunk_index, transmittance, done, _, accum, kept = state
     chunk = _load_chunk(chunk_index[sel], attrs, ids, starts[sel], ends[sel], centres[sel], tiling)
     trans = _transmittance(chunk, transmittance[sel], done[sel], tiling)
     summed = accum[sel] + jnp.einsum(
@@ -243,31 +264,32 @@ def _forward(attrs, gaussian_ids, tile_starts, tile_ends, tiling, compact=False,
       chunk.attrs[..., NUM_GEOMETRY:],
       precision=PRECISION,
     )
-    writes = ()
+    kept_rows, writes = kept[sel], ()
     if compact:
       size = tiling.tiles_per_step
-      kept, writes = _compaction_writes(
+      kept_rows, writes = _compaction_writes(
         kept, sel, chunk, done[sel], starts, size, length, shared, tiling
       )
-    return (
-      chunk_index.at[sel].set(chunk_index[sel] + 1),
-      transmittance.at[sel].set(trans.transmittance),
-      done.at[sel].set(trans.done),
-      tile_done.at[sel].set(jnp.all(trans.done, axis=-1)),
-      accum.at[sel].set(summed),
-      kept,
-    ), writes
+    rows = (
+      chunk_index[sel] + 1,
+      trans.transmittance,
+      trans.done,
+      jnp.all(trans.done, axis=-1),
+      summed,
+      kept_rows,
+    )
+    return rows, writes
 
   def body(state):
     (chunk_index, _, _, tile_done, _, _), ids = state
-    # The list is rewritten outside the switch: passed through its branches it was copied whole
-    # at every step.
-    new, writes = _step_on_active_tiles(
-      active(chunk_index, tile_done), state[0], functools.partial(step, ids), tiling
+    # The state and the list are written outside the switch: passed through its branches and
+    # written there they were copied whole at every step.
+    index, rows, writes = _step_on_active_tiles(
+      active(chunk_index, tile_done), functools.partial(step, ids, state[0]), tiling
     )
     if compact:
       ids = ids.at[writes[0]].set(writes[1], mode="drop")
-    return new, ids
+    return _scatter_rows(state[0], index, rows), ids
 
   init = (
     jnp.zeros(starts.shape, jnp.int32),
@@ -358,8 +380,9 @@ def _rasterize_bwd(tiling, residuals, cotangents):
   def cond(state):
     return jnp.any(state[0] < num_chunks)
 
-  def step(sel, state):
-    chunk_index, transmittance, done, g_prefix, grads = state
+  def step(state, sel):
+    """The selected tiles' next chunk: (their new state rows [S, ...], gradient rows)."""
+    chunk_index, transmittance, done, g_prefix, _ = state
     chunk = _load_chunk(
       chunk_index[sel], attrs, gaussian_ids, starts[sel], ends[sel], centres[sel], tiling
     )
@@ -391,17 +414,20 @@ def _rasterize_bwd(tiling, residuals, cotangents):
     )
     rows = jnp.concatenate([v_geometry, v_features], axis=-1)
     rows = jnp.where(chunk.slot_valid[..., None], rows, 0.0)
-    grads = grads.at[chunk.gaussian_ids.reshape(-1)].add(rows.reshape(-1, rows.shape[-1]))
-    return (
-      chunk_index.at[sel].set(chunk_index[sel] + 1),
-      transmittance.at[sel].set(trans.transmittance),
-      done.at[sel].set(trans.done),
-      g_prefix.at[sel].set(g_before + jnp.sum(contrib, axis=gauss_axis)),
-      grads,
-    )
+    # padded to the largest block with out-of-range ids (dropped): a shape the switch can return
+    pad = (tiling.tiles_per_step - sel.shape[0]) * tiling.chunk_size
+    ids = jnp.pad(chunk.gaussian_ids.reshape(-1), (0, pad), constant_values=attrs.shape[0])
+    rows = jnp.pad(rows.reshape(-1, rows.shape[-1]), ((0, pad), (0, 0)))
+    new = (chunk_index[sel] + 1, trans.transmittance, trans.done)
+    return new + (g_before + jnp.sum(contrib, axis=gauss_axis),), (ids, rows)
 
   def body(state):
-    return _step_on_active_tiles(state[0] < num_chunks, state, step, tiling)
+    # The state is written outside the switch (see `_step_on_active_tiles`), grads included.
+    index, new, (ids, rows) = _step_on_active_tiles(
+      state[0] < num_chunks, functools.partial(step, state), tiling
+    )
+    grads = state[-1].at[ids].add(rows, mode="drop")
+    return _scatter_rows(state[:-1], index, new) + (grads,)
 
   init = (
     jnp.zeros(starts.shape, jnp.int32),
