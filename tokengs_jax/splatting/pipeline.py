@@ -20,6 +20,24 @@ _DEPTH_ALPHA_FLOOR = 1e-10  # gsplat's clamp in D / alpha for "ED" depth
 # CPU fwd+bwd at 2.8 pairs per Gaussian, +25% at 11.3; docs/benchmarks.md, "Renderer"). Counted
 # per drawn Gaussian: culled ones (and a compaction's padding) do not dilute it (issue 27).
 _SPLIT_MAX_PAIRS_PER_GAUSSIAN = 6
+# Or where lists are short: the split costs every listed pair but saves only on what is composited
+# before pixels saturate, most of a short list (65k fine at 1024²: 11.1 pairs per Gaussian, 178 a
+# tile, -34% fwd+bwd; TokenGS-like, >= 1,200 a tile: no gain; "Pixel scaling at 1024²").
+_SPLIT_MAX_PAIRS_PER_TILE = 512
+
+
+def _split_pays(pairs, drawn, tiles) -> jax.Array:
+  """Whether to split the lists into sub-tiles: [] bool from the radius boxes' (Gaussian, tile)
+  pairs, the drawn Gaussians and the tiles ([] each, summed over the cameras binned together)."""
+  per_gaussian = pairs <= _SPLIT_MAX_PAIRS_PER_GAUSSIAN * drawn
+  return per_gaussian | (pairs <= _SPLIT_MAX_PAIRS_PER_TILE * tiles)
+
+
+def _split_pays_for(cameras: _Camera, tiles_per_camera: int) -> jax.Array:
+  """`_split_pays` of C cameras [C, ...] binned together."""
+  drawn = jnp.sum(cameras.proj.cull_code == projection.VISIBLE)
+  tiles = cameras.box_pairs.shape[0] * tiles_per_camera
+  return _split_pays(jnp.sum(cameras.box_pairs), drawn, tiles)
 
 
 def compute_dtype(dtype) -> jnp.dtype:
@@ -128,7 +146,7 @@ def _bin(
 
   Sorting dominates binning and grows with the buffer, so a scene needing few pairs sorts a small
   buffer; the lists are then split into sub-tiles (`config.subtile_size`) when the Gaussians are
-  small against a tile, else each sub-tile reads its tile's list, and padded to the full budget
+  small against a tile or the lists short (`_split_pays`), else each sub-tile reads its tile's list, and padded to the full budget
   (times the sub-tiles per tile; the compositor never reads the padding).
   Under `jax.vmap(render)` the switch turns into running every size (correct, slower).
   """
@@ -187,8 +205,7 @@ def _bin(
     def run(cameras):
       bins = jax.vmap(bin_one)(cameras)
       if parts > 1:
-        drawn = jnp.sum(cameras.proj.cull_code == projection.VISIBLE)
-        small = jnp.sum(cameras.box_pairs) <= _SPLIT_MAX_PAIRS_PER_GAUSSIAN * drawn
+        small = _split_pays_for(cameras, tiling["tiles_x"] * tiling["tiles_y"])
         bins = jax.lax.cond(small, jax.vmap(split_one), jax.vmap(share_one), cameras, bins)
       pad = parts * budget - bins.gaussian_ids.shape[-1]
       return dataclasses.replace(bins, gaussian_ids=jnp.pad(bins.gaussian_ids, ((0, 0), (0, pad))))
