@@ -106,3 +106,44 @@ def test_input_supervision_refuses_the_targets_flows():
   batch["target_flows"] = np.zeros((1, 2, DYNAMIC_SIZE, DYNAMIC_SIZE, 3), np.float32)
   with pytest.raises(ValueError, match="target_flows"):
     supervised_views(batch, ObjectiveConfig(use_input_supervision=True))
+
+
+def test_the_flow_term_scores_the_dynamic_gaussians_only():
+  """Gaussians whose centres move with time: with every Gaussian static (`num_static_gaussians`
+  = N) the flow term renders no velocity and is 0 against zero flows; scored as dynamic (None) it
+  is their moving render's error; the static ones are never scored."""
+  from tokengs_jax.objective import time_conditioned_loss
+
+  gaussians, velocity, (world_to_camera, intrinsics) = _scene()
+  num = gaussians.means.shape[-2]
+
+  def gaussians_at(times, _):
+    means = gaussians.means[:, :1] + times[..., None, None] * velocity[:, :1]
+    return dataclasses.replace(
+      jax.tree.map(
+        lambda x: jnp.broadcast_to(x[:, :1], (1, times.shape[1]) + x.shape[2:]), gaussians
+      ),
+      means=means,
+    )
+
+  images = jnp.zeros((1, 1, SIZE, SIZE, 3))
+  flows = jnp.full((1, 1, SIZE, SIZE, 3), 0.5)
+  config = losses.LossConfig(lambda_flow=1.0)
+
+  def flow_term(num_static):
+    _, terms = time_conditioned_loss(
+      gaussians_at,
+      jnp.array([[0.3]]),
+      images,
+      world_to_camera,
+      intrinsics,
+      config,
+      splatting.RenderConfig(),
+      ObjectiveConfig(decode_times="per_view"),
+      num_static_gaussians=num_static,
+      flows=flows,
+    )
+    return float(terms["flow"])
+
+  assert flow_term(num) == 0.0
+  assert flow_term(None) > 0.01

@@ -87,9 +87,10 @@ class LossConfig:
     lambda_mask: weight of `mask_loss` (official `lambda_mask`, 0 in every official preset): the
       rendered alpha against the target views' foreground masks; > 0 needs the batch's
       `target_masks` (the model losses raise ValueError without them).
-    lambda_flow: weight of the scene-flow term (`objective.flow.flow_loss`): each Gaussian's
-      velocity, rendered into the target views, against the velocity of the surface every pixel
-      sees (the batch's `target_flows`, from Kubric's depths, segmentations and object poses).
+    lambda_flow: weight of the scene-flow term (`objective.flow.flow_loss`): the dynamic
+      Gaussians' velocities, rendered into the target views, against alpha x the velocity of the
+      surface each moving pixel sees (the batch's `target_flows`, from Kubric's depths,
+      segmentations and object poses).
       Not in the paper or the official code (0 there; docs/deviations.md): the photometric loss
       alone does not make dynamic Gaussians follow small moving objects (issue 24).
 
