@@ -89,11 +89,13 @@ class Task:
     """Token tuning's loss: the training loss without the LPIPS term (VGG's cost per tuning
     step is not paid at test time), and with the official dynamic auxiliary term: the input
     views it tunes on are their own nearest views, so no pixel of theirs moved, and carry no
-    segmentation or mask (official token tuning scores no mask either: `to_ttt` has none)."""
+    segmentation, mask or scene flow (official token tuning scores no mask either: `to_ttt` has
+    none)."""
     return dataclasses.replace(
       self.loss_config(experiment),
       lambda_lpips=0.0,
       lambda_mask=0.0,
+      lambda_flow=0.0,
       dyn_aux_on_motion=False,
       dyn_aux_on_objects=False,
     )

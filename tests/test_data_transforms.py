@@ -141,6 +141,20 @@ def test_depth_follows_the_image_crop_and_keeps_unknown_pixels_unknown():
     assert (resized[cropped[..., 0] == 0] == 0.0).all()
 
 
+def test_values_follow_the_image_crop_with_their_sign():
+  """Signed per-pixel values (a scene-flow component) go through the images' scale and crop:
+  negative on the left of the frame, positive on the right, wherever the image is dark / light."""
+  values = np.full((1, 48, 64), -0.5, np.float32)
+  values[:, :, 32:] = 2.0
+  image = np.where(values[..., None] > 0, 200, 0).astype(np.uint8).repeat(3, -1)
+  for shape in [(24, 24), (24, 32), (40, 40)]:
+    cropped, _ = transforms.resize_and_center_crop(image, np.array([[40.0, 40, 32, 24]]), shape)
+    resized = transforms.resize_and_center_crop_values(values, shape)
+    assert resized.shape == (1, *shape) and resized.dtype == np.float32
+    np.testing.assert_allclose(resized[cropped[..., 0] == 0], -0.5, atol=1e-6)
+    np.testing.assert_allclose(resized[cropped[..., 0] == 200], 2.0, atol=1e-6)
+
+
 @pytest.mark.parametrize("field", ["target_depths", "target_objects", "target_masks"])
 def test_make_example_per_target_maps_follow_the_targets_images(field):
   """`target_depths` (the record's depths, scaled as the cameras), `target_objects` (its

@@ -126,6 +126,31 @@ def test_lambda_mask_flag_reaches_the_kubric_loss_and_only_then_the_examples_car
   assert "lambda_mask=-1.0" in _refusal(capsys, parse, "--train.lambda-mask", "-1")
 
 
+def test_lambda_flow_flag_reaches_the_kubric_loss_and_only_then_the_examples_carry_flows(capsys):
+  """`--lambda-flow` weighs the scene-flow term of Kubric's training loss; only then do the
+  training examples carry the targets' flows (evaluation's and token tuning's never); refused
+  with input supervision (the inputs carry no flow) and on a model without dynamic tokens."""
+  from experiments import kubric
+  from experiments.kubric_task import KubricTask, kubric_example_config
+
+  def parse(*argv):
+    return cli.parse(list(argv), kubric.PRESETS, "synthetic-tiny", "prog")[1]
+
+  plain = parse("run", "pretrain")
+  assert not kubric_example_config(plain, training=True).target_flows
+  flowing = parse("run", "pretrain", "--lambda-flow", "30")
+  assert KubricTask().loss_config(flowing) == dataclasses.replace(
+    KubricTask().loss_config(plain), lambda_flow=30.0
+  )
+  assert kubric_example_config(flowing, training=True).target_flows
+  assert not kubric_example_config(flowing, training=False).target_flows
+  assert KubricTask().tuning_loss_config(flowing).lambda_flow == 0.0
+  said = _refusal(capsys, parse, "--lambda-flow", "1", "--train.use-input-supervision")
+  assert "lambda_flow" in said and "use_input_supervision" in said
+  said = _refusal(capsys, parse, "run", "paper-static", "--lambda-flow", "1")
+  assert "--lambda-flow" in said
+
+
 def test_kubric_synthetic_subsets_are_published_whole_stamped_and_rewritten_when_changed(
   tmp_path, monkeypatch
 ):
