@@ -66,7 +66,8 @@ def re10k_scenes(root: str, count: int):
 def kubric_scenes(root: str, count: int):
   """(experiment, [(key, batch of one)]): the Kubric default's first `count` test scenes."""
   from experiments import kubric
-  from experiments.kubric_task import TEST_SUBSET, KubricTask
+  from experiments.kubric_data import TEST_SUBSET
+  from experiments.kubric_task import KubricTask
   from tokengs_jax.data.kubric import KubricSceneSource
   from tokengs_jax.data.synthetic import generate_kubric_like
 

@@ -8,7 +8,8 @@ Laid out by role (`docs/design.md` has a line per module):
   (synthetic sets, batches, held-out scenes), `tasks` (the commands and the static datasets'
   `Task`), `training` (the library loop with a progress bar and TensorBoard), `results` (the
   results folder), `weights` (params on disk, a command's starting weights).
-- per dataset: `kubric_task` (Kubric's settings and `Task`).
+- per dataset: `kubric_task` (Kubric's settings and `Task`), `kubric_data` (its synthetic subsets,
+  scene sources, example configuration and view selection).
 - figures: `figures` (picture grids and charts, PIL), `dynamic_pictures` (Kubric's dynamic
   pictures and scene-flow scores), `dynamic_videos` (Kubric's videos, as the official
   `render_kubric_dyn.py`'s).

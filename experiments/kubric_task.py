@@ -1,13 +1,12 @@
 """What `python -m experiments.kubric` runs besides its presets: `KubricExperiment` (the
 settings: `Experiment` plus the Kubric view sampling, loss weights and synthetic rig) and
-`KubricTask` (Kubric data, generated when synthetic; the evaluated views, by index or the default
-protocol; the dynamic loss, the static-only baseline and the dynamic pictures). The presets and
+`KubricTask` (the training batches and the evaluated views, by index or the default protocol, on
+`kubric_data`'s sources; the dynamic loss, the static-only baseline and the dynamic pictures). The presets and
 their description (`--help`) are the entry point's, `experiments/kubric.py`."""
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import pathlib
 from typing import Literal
 
@@ -15,32 +14,28 @@ import numpy as np
 
 from experiments import data, dynamic_pictures, dynamic_videos, weights
 from experiments.config import SSIM_LOSS, Experiment, TrainSettings
+from experiments.kubric_data import (
+  OOD_SUBSET,
+  data_root,
+  kubric_example_config,
+  kubric_views,
+  ood_source,
+  scene_sources,
+)
 from experiments.tasks import Task, TrainedBaseline
 from tokengs_jax import evaluation, losses
-from tokengs_jax.data import (
-  DATASET_PRESETS,
-  EvaluationIndexReport,
-  ExampleConfig,
-  InputPipeline,
-  make_example,
-)
+from tokengs_jax.data import EvaluationIndexReport, InputPipeline, make_example
 from tokengs_jax.data.kubric import (
   KubricSceneSource,
   default_evaluation_views,
   evaluation_fields,
   flat_views,
-  kubric_view_selector,
-  list_kubric_scenes,
   load_kubric_evaluation_index,
   validate_kubric_evaluation_index,
 )
-from tokengs_jax.data.synthetic import generate_kubric_like
 from tokengs_jax.data.synthetic.kubric_ood import FROZEN_SEED as OOD_SEED
-from tokengs_jax.data.synthetic.kubric_ood import generate_kubric_ood
 from tokengs_jax.objective import ObjectiveConfig
 
-# The held-out dynamic family's subset is also its test set's name in the results.
-TRAIN_SUBSET, TEST_SUBSET, OOD_SUBSET = "v0", "test", "ood_kubric"
 # Training settings whose loss terms are the official Kubric release's (L1 x 0.8 + SSIM x 0.2).
 KUBRIC_TRAIN = TrainSettings(**SSIM_LOSS)
 
@@ -167,35 +162,6 @@ class KubricExperiment(Experiment):
     return fields
 
 
-def kubric_example_config(experiment: KubricExperiment, *, training: bool) -> ExampleConfig:
-  """The official Kubric example preset (pointmap scale) at the experiment's image size, camera
-  normalisation and pointmap trim; random flips only in training, where the targets' object
-  pixels, masks (PNG alpha) and flows come too when a loss term scores them."""
-  return dataclasses.replace(
-    DATASET_PRESETS["kubric"],
-    image_shape=tuple(experiment.image_size),
-    normalization=experiment.normalization,
-    pointmap_trim_lo=experiment.pointmap_trim_lo,
-    pointmap_trim_hi=experiment.pointmap_trim_hi,
-    random_flip=training,
-    deterministic=not training,
-    target_objects=training and experiment.dyn_aux_on_objects,
-    target_flows=training and experiment.lambda_flow > 0,
-    target_masks=training and experiment.train.lambda_mask > 0,
-  )
-
-
-def kubric_views(experiment: KubricExperiment, num_targets: int):
-  """The official dynamic view selection (inputs from `context_cameras` cameras in turn if set)."""
-  return kubric_view_selector(
-    experiment.num_context_views,
-    num_targets,
-    experiment.min_gap,
-    experiment.max_gap,
-    context_cameras=experiment.context_cameras,
-  )
-
-
 class KubricTask(Task):
   """Kubric data (generated when synthetic), the dynamic loss and the dynamic pictures; a model
   without time embedding trains with the library's static loss on the same examples (the common
@@ -204,86 +170,13 @@ class KubricTask(Task):
   name = "kubric"
 
   def prepare(self, experiment: KubricExperiment) -> None:
-    self.root(experiment)
-
-  def root(self, experiment: KubricExperiment) -> pathlib.Path:
-    """The data root; synthetic: writes each subset (the training family's train / test, and
-    `synthetic.num_ood` scenes of the frozen held-out family,
-    `tokengs_jax.data.synthetic.kubric_ood`) that is missing or was written with other arguments
-    (`data.ensure_generated_set`: staged, stamped `<subset>/generator.json`)."""
-    if experiment.data_dir:
-      return pathlib.Path(experiment.data_dir)
-    root = pathlib.Path(experiment.synthetic_dir)
-    s = experiment.synthetic
-    generators = {
-      TRAIN_SUBSET: (generate_kubric_like, s.num_train, {"seed": experiment.seed}),
-      TEST_SUBSET: (generate_kubric_like, s.num_test, {"seed": experiment.seed + 1000}),
-      OOD_SUBSET: (generate_kubric_ood, s.num_ood, {}),  # its own frozen seed
-    }
-    height, width = experiment.image_size
-    for subset, (generate, count, seed_argument) in generators.items():
-      if count <= 0:
-        continue
-      arguments = {
-        "num_scenes": count,
-        "height": height,
-        "width": width,
-        "frames": s.frames,
-        "num_cameras": experiment.num_cameras,
-        **seed_argument,
-      }
-      data.ensure_generated_set(
-        root,
-        (subset,),
-        {"generator": generate.__name__, **arguments},
-        functools.partial(generate, subset=subset, workers=s.workers, **arguments),
-        stamp=f"{subset}/generator.json",
-        what=f"{count} synthetic Kubric scenes to {root / subset}",
-        replace_other_settings=True,
-      )
-    return root
-
-  def sources(self, experiment: KubricExperiment) -> tuple[KubricSceneSource, KubricSceneSource]:
-    """(training scenes, held-out scenes): the synthetic subsets, or with `--data-dir` the last
-    `eval.num_scenes` (default 16) scenes of the listing held out; with `--data-dir` and
-    `--eval-index`, every scene of the listing is searched for the index's keys and those the
-    index names are left out of training."""
-    root = self.root(experiment)
-    if not experiment.data_dir:
-      return (
-        KubricSceneSource(root, [TRAIN_SUBSET], num_cameras=experiment.num_cameras),
-        KubricSceneSource(root, [TEST_SUBSET], num_cameras=experiment.num_cameras),
-      )
-    scenes = list_kubric_scenes(root)
-    if experiment.eval_index:
-      named = set(load_kubric_evaluation_index(experiment.eval_index))
-      return (
-        KubricSceneSource(
-          scenes=[s for s in scenes if s.name not in named], num_cameras=experiment.num_cameras
-        ),
-        KubricSceneSource(scenes=scenes, num_cameras=experiment.num_cameras),
-      )
-    held_out = experiment.eval.num_scenes or 16
-    return (
-      KubricSceneSource(scenes=scenes[:-held_out], num_cameras=experiment.num_cameras),
-      KubricSceneSource(scenes=scenes[-held_out:], num_cameras=experiment.num_cameras),
-    )
-
-  def ood_source(self, experiment: KubricExperiment) -> KubricSceneSource | None:
-    """The first `synthetic.num_ood` scenes of the frozen held-out family; None for real data or
-    `synthetic.num_ood = 0`."""
-    if experiment.data_dir or experiment.synthetic.num_ood <= 0:
-      return None
-    scenes = list_kubric_scenes(self.root(experiment), [OOD_SUBSET])
-    return KubricSceneSource(
-      scenes=scenes[: experiment.synthetic.num_ood], num_cameras=experiment.num_cameras
-    )
+    data_root(experiment)
 
   def training_batches(self, experiment: KubricExperiment):
     """This process's batches from the shared input pipeline: grain workers, and an iterator
     state the checkpoints save, so a resumed run continues the data stream where it stopped."""
     local = data.local_batch_size(experiment.train.batch_size)  # before any data is written
-    train, _ = self.sources(experiment)
+    train, _ = scene_sources(experiment)
     pipeline = InputPipeline(
       train,
       kubric_example_config(experiment, training=True),
@@ -300,7 +193,7 @@ class KubricTask(Task):
     (`ood_kubric`; the default protocol's views, drawn with the family's frozen seed so they do
     not follow `--seed`). The static galleries and courtyards are not scored: they do not move."""
     sets = {"test": self.evaluation_scenes(experiment)}
-    ood = self.ood_source(experiment)
+    ood = ood_source(experiment)
     if ood is not None:
       sets[OOD_SUBSET] = self._evaluation_scenes(
         experiment, ood, self._default_views(experiment, ood, 0, OOD_SEED), OOD_SEED
@@ -312,7 +205,7 @@ class KubricTask(Task):
     bad `--eval-index` (or a clip too short for the default protocol) fails now; returns the
     index report for metrics.json (None without an index)."""
     _, report = self.evaluation_views(experiment)
-    ood = self.ood_source(experiment)
+    ood = ood_source(experiment)
     if ood is not None:
       self._default_views(experiment, ood, 0, OOD_SEED)
     return None if report is None else report.as_dict()
@@ -323,7 +216,7 @@ class KubricTask(Task):
     """(position in the held-out source, (context [Vc, 2], target [Vt, 2]) (camera, frame)
     pairs) of each evaluated scene, at most `eval.num_scenes` (0: all), and the index's report
     (None without `--eval-index`: the default protocol, drawn per scene from (seed, position))."""
-    _, test = self.sources(experiment)
+    _, test = scene_sources(experiment)
     limit = experiment.eval.num_scenes
     if experiment.eval_index:
       index = load_kubric_evaluation_index(experiment.eval_index)
@@ -358,7 +251,7 @@ class KubricTask(Task):
 
   def evaluation_scenes(self, experiment: KubricExperiment) -> list[tuple[str, dict]]:
     """(key, batch of one) per evaluated scene of the test split (`_evaluation_scenes`)."""
-    _, test = self.sources(experiment)
+    _, test = scene_sources(experiment)
     return self._evaluation_scenes(
       experiment, test, self.evaluation_views(experiment)[0], experiment.seed
     )
@@ -483,7 +376,7 @@ class KubricTask(Task):
   def _videos(self, experiment: KubricExperiment, config, params, examples) -> dict:
     """`dynamic_videos.write_scene_videos` of the first `eval.media_scenes` (0: all) of the
     evaluated `examples`, from their records in the held-out source."""
-    _, test = self.sources(experiment)
+    _, test = scene_sources(experiment)
     count = experiment.eval.media_scenes
     keys = [key for key, _ in (examples if count == 0 else examples[:count])]
     return dynamic_videos.write_scene_videos(

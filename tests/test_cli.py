@@ -92,7 +92,8 @@ def test_dl3dv_base_preset_is_the_official_train_dl3dv_base(official):
 
 def test_kubric_static_preset_is_the_official_finetune_dl3dv_kubric_static(official):
   from experiments import kubric
-  from experiments.kubric_task import KubricTask, kubric_example_config, kubric_views
+  from experiments.kubric_data import kubric_example_config, kubric_views
+  from experiments.kubric_task import KubricTask
 
   options = official.config_defaults["finetune_dl3dv_kubric_static"]
   command, experiment = cli.parse(["finetune", "paper-static"], kubric.PRESETS, "paper", "p")
@@ -154,7 +155,7 @@ def test_kubric_pointmap_trim_flags_reach_the_examples_and_bad_ones_are_refused(
   capsys, monkeypatch
 ):
   from experiments import kubric
-  from experiments.kubric_task import kubric_example_config
+  from experiments.kubric_data import kubric_example_config
 
   monkeypatch.setenv("COLUMNS", "400")  # tyro's error box on one line
   _, default = cli.parse(["run", "paper"], kubric.PRESETS, "paper", "p")

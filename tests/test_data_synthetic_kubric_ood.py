@@ -178,7 +178,8 @@ def _tiny_experiment(tmp_path, **changes):
 
 
 def test_the_kubric_experiment_scores_the_held_out_family(tmp_path):
-  from experiments.kubric_task import OOD_SUBSET, KubricTask
+  from experiments.kubric_data import OOD_SUBSET
+  from experiments.kubric_task import KubricTask
 
   task, experiment = KubricTask(), _tiny_experiment(tmp_path)
   task.prepare(experiment)

@@ -10,7 +10,8 @@ import pytest
 
 from experiments import dynamic_videos, weights
 from experiments.config import PRETRAINED_KUBRIC
-from experiments.kubric_task import KubricTask, kubric_example_config
+from experiments.kubric_data import kubric_example_config, scene_sources
+from experiments.kubric_task import KubricTask
 from small_experiments import tiny_kubric
 from tokengs_jax import export
 
@@ -47,7 +48,7 @@ def scene(tmp_path_factory):
   experiment = dataclasses.replace(experiment, num_cameras=4, synthetic=synthetic)
   experiment = dataclasses.replace(experiment, model=experiment.model.replace(image_size=(32, 32)))
   task = KubricTask()
-  _, test = task.sources(experiment)
+  _, test = scene_sources(experiment)
   params = weights.load_params(PRETRAINED_KUBRIC / "params.msgpack")
   config = kubric_example_config(experiment, training=False)
   batch = dynamic_videos.video_example(test[0], config, experiment.num_context_views, 3)

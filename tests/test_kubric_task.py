@@ -1,16 +1,13 @@
 """experiments/kubric_task.py: the Kubric presets' loss (the official release's, scaled to the run;
-the common `--train.*` flags) and its synthetic subsets (published whole, stamped, rewritten when
-their settings change)."""
+the common `--train.*` flags, `--train.lambda-mask`, `--lambda-flow`)."""
 
 import dataclasses
 import json
 import re
-import shutil
 
 import pytest
 
 from experiments import cli
-from small_experiments import tiny_kubric as _tiny_kubric
 
 
 def test_kubric_loss_is_the_official_release_scaled_to_the_run():
@@ -106,7 +103,8 @@ def test_lambda_mask_flag_reaches_the_kubric_loss_and_only_then_the_examples_car
   the training examples carry the targets' masks (evaluation's never; token tuning scores none,
   as official); with input supervision (the inputs carry no masks) or negative: refused."""
   from experiments import kubric
-  from experiments.kubric_task import KubricTask, kubric_example_config
+  from experiments.kubric_data import kubric_example_config
+  from experiments.kubric_task import KubricTask
 
   def parse(*argv):
     return cli.parse(list(argv), kubric.PRESETS, "synthetic-tiny", "prog")[1]
@@ -131,7 +129,8 @@ def test_lambda_flow_flag_reaches_the_kubric_loss_and_only_then_the_examples_car
   training examples carry the targets' flows (evaluation's and token tuning's never); refused
   with input supervision (the inputs carry no flow) and on a model without dynamic tokens."""
   from experiments import kubric
-  from experiments.kubric_task import KubricTask, kubric_example_config
+  from experiments.kubric_data import kubric_example_config
+  from experiments.kubric_task import KubricTask
 
   def parse(*argv):
     return cli.parse(list(argv), kubric.PRESETS, "synthetic-tiny", "prog")[1]
@@ -149,51 +148,3 @@ def test_lambda_flow_flag_reaches_the_kubric_loss_and_only_then_the_examples_car
   assert "lambda_flow" in said and "use_input_supervision" in said
   said = _refusal(capsys, parse, "run", "paper-static", "--lambda-flow", "1")
   assert "--lambda-flow" in said
-
-
-def test_kubric_synthetic_subsets_are_published_whole_stamped_and_rewritten_when_changed(
-  tmp_path, monkeypatch
-):
-  """Each subset goes through `data.ensure_generated_set`: reused under the same settings,
-  written anew under others, never left half-written, and refused when it records none."""
-  from experiments import kubric_task
-
-  task, experiment = kubric_task.KubricTask(), _tiny_kubric(tmp_path)
-  root = task.root(experiment)
-  assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]  # no staging folder left
-  assert sorted(p.name for p in root.iterdir()) == ["test", "v0"]
-  stamp = json.loads((root / "v0" / "generator.json").read_text())
-  assert stamp["generator"] == "generate_kubric_like" and stamp["seed"] == experiment.seed
-  for subset in ("v0", "test"):
-    (root / subset / "kept").touch()
-  task.root(experiment)  # the same settings: both subsets reused
-  assert (root / "v0" / "kept").exists() and (root / "test" / "kept").exists()
-
-  reseeded = dataclasses.replace(experiment, seed=experiment.seed + 1)
-  task.root(reseeded)  # another seed: both subsets written anew, nothing left aside
-  assert not (root / "v0" / "kept").exists() and not (root / "test" / "kept").exists()
-  assert json.loads((root / "v0" / "generator.json").read_text())["seed"] == reseeded.seed
-  assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
-  assert sorted(p.name for p in root.iterdir()) == ["test", "v0"]
-  more = dataclasses.replace(
-    reseeded, synthetic=dataclasses.replace(reseeded.synthetic, num_train=2)
-  )
-  assert len(task.sources(more)[0]) == 2
-
-  def interrupted(staging, subset, **arguments):
-    (staging / subset / "scene_000000").mkdir(parents=True)
-    raise RuntimeError("interrupted")
-
-  shutil.rmtree(root / "v0")  # missing: the next call writes it
-  monkeypatch.setattr(kubric_task, "generate_kubric_like", interrupted)
-  with pytest.raises(RuntimeError, match="interrupted"):
-    task.root(more)
-  assert not (root / "v0").exists()  # the half-written subset was never published
-  monkeypatch.undo()
-  assert len(task.sources(more)[0]) == 2
-  assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
-
-  (root / "v0" / "generator.json").unlink()  # a subset from before the settings were recorded
-  with pytest.raises(ValueError, match="not recorded.*another --synthetic-dir"):
-    task.root(more)
-  assert (root / "v0" / "scene_000000").exists()  # refused, not deleted
