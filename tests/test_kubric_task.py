@@ -7,11 +7,10 @@ import re
 
 import pytest
 
-from experiments import cli
+from experiments import cli, kubric
 
 
 def test_kubric_loss_is_the_official_release_scaled_to_the_run():
-  from experiments import kubric
   from experiments.kubric_task import KubricTask
 
   paper = kubric.PRESETS["paper"]
@@ -98,53 +97,42 @@ def test_kubric_presets_keep_their_loss_and_honour_the_common_train_flags(capsys
   assert KubricTask().loss_config(read) == dataclasses.replace(expected["pretrain"], rgb_loss="l2")
 
 
-def test_lambda_mask_flag_reaches_the_kubric_loss_and_only_then_the_examples_carry_masks(capsys):
-  """`--train.lambda-mask` (official `lambda_mask`) weighs Kubric's training loss; only then do
-  the training examples carry the targets' masks (evaluation's never; token tuning scores none,
-  as official); with input supervision (the inputs carry no masks) or negative: refused."""
-  from experiments import kubric
+def _parse_kubric(*argv):
+  return cli.parse(list(argv), kubric.PRESETS, "synthetic-tiny", "prog")[1]
+
+
+@pytest.mark.parametrize(
+  "preset, flag, field, example_field",
+  [
+    ("paper", "--train.lambda-mask", "lambda_mask", "target_masks"),
+    ("pretrain", "--lambda-flow", "lambda_flow", "target_flows"),
+  ],
+)
+def test_per_pixel_loss_flags_reach_the_kubric_loss_and_only_then_the_examples_carry_their_truth(
+  capsys, preset, flag, field, example_field
+):
+  """`--train.lambda-mask` (official `lambda_mask`) and `--lambda-flow` (the scene-flow term)
+  weigh Kubric's training loss; only then do the training examples carry the targets' masks /
+  flows (evaluation's never; token tuning scores neither, as official for the mask); with input
+  supervision (the inputs carry neither) or negative: refused."""
   from experiments.kubric_data import kubric_example_config
   from experiments.kubric_task import KubricTask
 
-  def parse(*argv):
-    return cli.parse(list(argv), kubric.PRESETS, "synthetic-tiny", "prog")[1]
-
-  plain = parse("run", "paper")
-  assert KubricTask().loss_config(plain).lambda_mask == 0.0
-  assert not kubric_example_config(plain, training=True).target_masks
-  masked = parse("run", "paper", "--train.lambda-mask", "0.5")
-  assert KubricTask().loss_config(masked) == dataclasses.replace(
-    KubricTask().loss_config(plain), lambda_mask=0.5
+  plain = _parse_kubric("run", preset)
+  assert getattr(KubricTask().loss_config(plain), field) == 0.0
+  assert not getattr(kubric_example_config(plain, training=True), example_field)
+  weighted = _parse_kubric("run", preset, flag, "0.5")
+  assert KubricTask().loss_config(weighted) == dataclasses.replace(
+    KubricTask().loss_config(plain), **{field: 0.5}
   )
-  assert kubric_example_config(masked, training=True).target_masks
-  assert not kubric_example_config(masked, training=False).target_masks
-  assert KubricTask().tuning_loss_config(masked).lambda_mask == 0.0
-  said = _refusal(capsys, parse, "--train.lambda-mask", "0.5", "--train.use-input-supervision")
-  assert "lambda_mask" in said and "use_input_supervision" in said
-  assert "lambda_mask=-1.0" in _refusal(capsys, parse, "--train.lambda-mask", "-1")
+  assert getattr(kubric_example_config(weighted, training=True), example_field)
+  assert not getattr(kubric_example_config(weighted, training=False), example_field)
+  assert getattr(KubricTask().tuning_loss_config(weighted), field) == 0.0
+  said = _refusal(capsys, _parse_kubric, flag, "0.5", "--train.use-input-supervision")
+  assert field in said and "use_input_supervision" in said
+  assert f"{field}=-1.0" in _refusal(capsys, _parse_kubric, flag, "-1")
 
 
-def test_lambda_flow_flag_reaches_the_kubric_loss_and_only_then_the_examples_carry_flows(capsys):
-  """`--lambda-flow` weighs the scene-flow term of Kubric's training loss; only then do the
-  training examples carry the targets' flows (evaluation's and token tuning's never); refused
-  with input supervision (the inputs carry no flow) and on a model without dynamic tokens."""
-  from experiments import kubric
-  from experiments.kubric_data import kubric_example_config
-  from experiments.kubric_task import KubricTask
-
-  def parse(*argv):
-    return cli.parse(list(argv), kubric.PRESETS, "synthetic-tiny", "prog")[1]
-
-  plain = parse("run", "pretrain")
-  assert not kubric_example_config(plain, training=True).target_flows
-  flowing = parse("run", "pretrain", "--lambda-flow", "30")
-  assert KubricTask().loss_config(flowing) == dataclasses.replace(
-    KubricTask().loss_config(plain), lambda_flow=30.0
-  )
-  assert kubric_example_config(flowing, training=True).target_flows
-  assert not kubric_example_config(flowing, training=False).target_flows
-  assert KubricTask().tuning_loss_config(flowing).lambda_flow == 0.0
-  said = _refusal(capsys, parse, "--lambda-flow", "1", "--train.use-input-supervision")
-  assert "lambda_flow" in said and "use_input_supervision" in said
-  said = _refusal(capsys, parse, "run", "paper-static", "--lambda-flow", "1")
+def test_lambda_flow_needs_a_model_with_dynamic_tokens(capsys):
+  said = _refusal(capsys, _parse_kubric, "run", "paper-static", "--lambda-flow", "1")
   assert "--lambda-flow" in said
