@@ -145,8 +145,8 @@ def _bin(
   """Tile lists of C cameras [C, ...], sorted at the smallest ladder size that holds them all.
 
   Sorting dominates binning and grows with the buffer, so a scene needing few pairs sorts a small
-  buffer; the lists are then split into sub-tiles (`config.subtile_size`) when the Gaussians are
-  small against a tile or the lists short (`_split_pays`), else each sub-tile reads its tile's list, and padded to the full budget
+  buffer; the lists are split into sub-tiles (`config.subtile_size`) where that pays
+  (`_split_pays`), else each sub-tile reads its tile's list, and padded to the full budget
   (times the sub-tiles per tile; the compositor never reads the padding).
   Under `jax.vmap(render)` the switch turns into running every size (correct, slower).
   """
