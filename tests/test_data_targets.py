@@ -82,3 +82,21 @@ def test_target_flows_need_the_object_poses():
   config = ExampleConfig((HEIGHT, WIDTH), sampler, 0.25, random_flip=False, target_flows=True)
   with pytest.raises(BadExampleError, match="object_poses"):
     make_example(record, config, np.random.default_rng(0), views=(np.array([0, 1]), np.array([2])))
+
+
+def test_target_flows_refuse_a_non_finite_depth_map():
+  """A NaN on an object pixel of the target's depth map would be a NaN velocity and a NaN loss:
+  the example is refused as bad data instead, naming the frame."""
+  record = _moving_object_record(np.random.default_rng(2), np.ones(3))
+  damaged = np.full((HEIGHT, WIDTH), 2.0, np.float32)
+  damaged[3, 2] = np.nan
+  record["depths"] = [damaged if f == 2 else d for f, d in enumerate(record["depths"])]
+  sampler = BoundedSamplerConfig(2, 1, 1, 5, 0, 0, 1, 5)
+  config = ExampleConfig((HEIGHT, WIDTH), sampler, 0.25, random_flip=False, target_flows=True)
+  with pytest.raises(BadExampleError, match=r"frames \[2\].*1 of 96 depth values are NaN or inf"):
+    make_example(record, config, np.random.default_rng(0), views=(np.array([0, 1]), np.array([2])))
+  # the same record with the damage in a frame no example view uses still gives its flows
+  example = make_example(
+    record, config, np.random.default_rng(0), views=(np.array([0, 1]), np.array([3]))
+  )
+  assert np.isfinite(example["target_flows"]).all()

@@ -14,7 +14,7 @@ from typing import Sequence
 
 import numpy as np
 
-from tokengs_jax.data.kubric.camera_tar import unproject_ray_depth
+from tokengs_jax.data.kubric.camera_tar import check_finite_depth, unproject_ray_depth
 from tokengs_jax.data.transforms import (
   resize_and_center_crop,
   resize_and_center_crop_mask,
@@ -92,10 +92,16 @@ def target_flows(
 
   Returns:
     float32 [Vt, H, W, 3] at `config.image_shape`.
+
+  Raises:
+    MissingTargetField: the record lacks a field (or a target frame's map).
+    KubricError: a target frame's depth map holds NaN or inf.
   """
   if "object_poses" not in record:
     raise MissingTargetField("target_flows needs the record's 'object_poses'")
   depths = _read(record, "depths", target, "target_flows").astype(np.float64)
+  # a damaged map would give its object pixels NaN velocities, and the step a NaN loss
+  check_finite_depth(depths, f"target_flows: the depth maps of frames {[int(i) for i in target]}")
   segmentations = _read(record, "segmentations", target, "target_flows")
   poses = np.asarray(record["object_poses"], np.float64)  # [K, F, 4, 4]
   times = np.asarray(record["times"])
