@@ -6,9 +6,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scenes import official_fixture
+from scenes import FULL, official_fixture
 
-from tokengs_jax.model import param_shapes, predict_gaussians, preset
+from tokengs_jax.model import (
+  cast_matmul_kernels,
+  init_params,
+  param_shapes,
+  predict_gaussians,
+  preset,
+)
 from tokengs_jax.model.layers import attend
 from tokengs_jax.model.matmul import dense_dot_general, matmul
 
@@ -127,6 +133,37 @@ def test_bf16_matmul_train_step_runs_only_bf16_dots_but_the_heads():
   assert signatures.count(("bf16", "bf16")) > 20
   assert _dot_signatures(mixed) == {("bf16", "bf16", "f32"), ("f32", "f32", "f32")}
   assert "bf16" not in program(config)
+
+
+def test_kernels_cast_once_give_the_same_gaussians_bit_for_bit():
+  """`cast_matmul_kernels` stores every rounded kernel rounded; the Gaussians do not change, and
+  a kernel the model keeps in float32 (the Gaussian head's) would change them if it were cast."""
+  config = FULL.replace(dynamic_motion="linear", matmul_dtype="bfloat16")
+  keys = iter(jax.random.split(jax.random.key(3), 200))
+  # every weight away from its (often zero) initial value, so that any wrong cast shows
+  params = jax.tree.map(
+    lambda x: x + 0.1 * jax.random.normal(next(keys), x.shape),
+    init_params(jax.random.key(0), config),
+  )
+  images, plucker = jnp.zeros((1, 2, 16, 16, 3)), jnp.zeros((1, 2, 16, 16, 6))
+  images = images + jax.random.uniform(jax.random.key(4), images.shape)
+  plucker = plucker + jax.random.normal(jax.random.key(5), plucker.shape)
+  times, target_times = jnp.array([[0.0, 0.5]]), jnp.array([0.25])
+  forward = jax.jit(predict_gaussians, static_argnums=3)
+
+  def gaussians(p):
+    return np.asarray(forward(p, images, plucker, config, times, target_times))
+
+  cast = cast_matmul_kernels(params, config)
+  dtypes = [leaf.dtype for leaf in jax.tree.leaves(cast)]
+  assert dtypes.count(BF16) > 20
+  assert cast["activation_head"]["deconv"]["kernel"].dtype == jnp.float32
+  assert cast["motion_head"]["kernel"].dtype == jnp.float32
+  np.testing.assert_array_equal(gaussians(cast), gaussians(params))
+  head = cast["activation_head"]["deconv"]
+  wrong = {**cast, "activation_head": {"deconv": {**head, "kernel": _rounded(head["kernel"])}}}
+  assert np.abs(gaussians(wrong) - gaussians(params)).max() > 0
+  assert cast_matmul_kernels(params, FULL) is params  # float32 matmuls: nothing to round
 
 
 def test_matmul_dtype_is_validated():

@@ -4,6 +4,7 @@ from tokengs_jax.model import preset, init_params, reconstruct
 """
 
 from tokengs_jax.model.api import (
+  cast_matmul_kernels,
   count_params,
   decode,
   decode_at_times,
@@ -31,6 +32,7 @@ __all__ = [
   "EncoderOutput",
   "ModelConfig",
   "TokenGS",
+  "cast_matmul_kernels",
   "config_from_official",
   "count_params",
   "decode",

@@ -76,6 +76,39 @@ def count_params(config: ModelConfig) -> int:
   return sum(leaf.size for leaf in jax.tree_util.tree_leaves(param_shapes(config)))
 
 
+# The Dense modules built without `matmul_dtype`: their products stay in the compute dtype, so
+# their kernels must too (`GaussianHead`'s readout, the linear motion head).
+_FULL_PRECISION_MODULES = frozenset({"activation_head", "motion_head"})
+
+
+def cast_matmul_kernels(params: Params, config: ModelConfig) -> Params:
+  """The params with every kernel that `config.matmul_dtype` rounds stored already rounded.
+
+  For inference with frozen weights (evaluation, token tuning, serving): every call would
+  otherwise round the same kernels again, 35 casts of the small benchmark's forward, ~4% of its
+  bf16 time (docs/benchmarks.md). The network computes the same Gaussians bit for bit from
+  either tree (`tests/test_model_matmul.py`). Not for training: the optimiser would update the
+  rounded copies. Without a `matmul_dtype` the params come back unchanged.
+
+  Args:
+    params: the params pytree (float32 leaves).
+    config: the architecture; its `matmul_dtype` decides.
+
+  Returns:
+    The same pytree with the matmuls' kernels in `config.matmul_dtype`, everything else as given.
+  """
+  operand_dtype = config.matmul_operand_dtype
+  if operand_dtype is None:
+    return params
+
+  def cast(path, leaf):
+    names = [entry.key for entry in path]
+    rounded = names[-1] == "kernel" and names[0] not in _FULL_PRECISION_MODULES
+    return leaf.astype(operand_dtype) if rounded else leaf
+
+  return jax.tree_util.tree_map_with_path(cast, params)
+
+
 def normalize_images(images: jax.Array) -> jax.Array:
   """RGB -> the encoder's input (ImageNet mean/std, as the official data provider).
 
