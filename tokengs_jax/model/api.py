@@ -84,9 +84,10 @@ _FULL_PRECISION_MODULES = frozenset({"activation_head", "motion_head"})
 def cast_matmul_kernels(params: Params, config: ModelConfig) -> Params:
   """The params with every kernel that `config.matmul_dtype` rounds stored already rounded.
 
-  For inference with frozen weights (evaluation, token tuning, serving): every call would
-  otherwise round the same kernels again, 35 casts of the small benchmark's forward, ~4% of its
-  bf16 time (docs/benchmarks.md). The network computes the same Gaussians bit for bit from
+  For repeated calls on frozen weights (serving, evaluating scene by scene): every call would
+  otherwise round the same kernels again, 35 casts in the small benchmark's forward, ~4% of its
+  bf16 time (docs/benchmarks.md). Inside one jitted loop (token tuning's scan) XLA already hoists
+  the casts out of the loop. The network computes the same Gaussians bit for bit from
   either tree (`tests/test_model_matmul.py`). Not for training: the optimiser would update the
   rounded copies. Without a `matmul_dtype` the params come back unchanged.
 
