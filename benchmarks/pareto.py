@@ -292,8 +292,8 @@ def write_table(path: pathlib.Path, rows: list[dict], copy: dict, facts: dict) -
     f"    {facts['command']}",
     "",
     f"- Scenes: the first {facts['scenes']} of the RE10K default's 24 `ood_galleries` "
-    f"({facts['views']} each); model: the shipped `synthetic-tiny` weights (128 tokens x 16 "
-    "Gaussians); PSNR / LPIPS: `evaluation.evaluate`, mean over scenes.",
+    f"({facts['views']} each); model: the shipped `synthetic-tiny` weights ({facts['model']}); "
+    "PSNR / LPIPS: `evaluation.evaluate`, mean over scenes.",
     f"- Machine: {facts['cpu']}; {facts['jax']}; niceness {facts['niceness']}; {facts['date']}.",
     f"- Load average (1 / 5 / 15 min) before: {facts['load_before']}, after: "
     f"{facts['load_after']}. The seconds are figures of the machine as loaded then (other runs "
@@ -387,6 +387,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
   _, batch = scenes[0]
   facts = machine_state()
   facts.update(scenes=len(scenes), load_before=_load(load_before), load_after=_load())
+  config = experiment.model
+  facts["model"] = f"{config.num_gs_tokens} tokens x {config.gaussians_per_token} Gaussians"
   facts["views"] = "{}x{}, {} inputs, {} targets".format(
     *batch["target_images"].shape[-3:-1],
     batch["context_images"].shape[1],

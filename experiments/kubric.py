@@ -35,8 +35,9 @@ Presets:
   the shipped weights of `pretrain` (`experiments/pretrained/kubric_synthetic`: the dynamic model
   and the static-only model), 0 training steps; `--train.steps N` trains on from them.
 - `pretrain`: what trained them, the paper's recipe at small scale. The static base is the RE10K
-  default's shipped weights (`experiments/pretrained/re10k_synthetic`, its model: 128 static
-  tokens, colours read from the input views); 32 dynamic tokens are copied from its static ones
+  default's 128-token weights of sessions 12-21 (`experiments/pretrained/re10k_synthetic_128`:
+  128 static tokens, colours read from the input views; the RE10K default has 512 since session
+  22, untried on Kubric); 32 dynamic tokens are copied from its static ones
   plus noise, with a fresh time embedding; 1200 steps at lr 3e-4 on 4 input views (as the
   paper) + 2 targets at one time, 32x32, and the static-only model of the same budget the same
   way. Deviations, each measured (docs/experiments.md, "Kubric default"): cameras in the first
@@ -83,7 +84,7 @@ import dataclasses
 from experiments.cli import main
 from experiments.config import (
   PRETRAINED_KUBRIC,
-  PRETRAINED_SYNTHETIC,
+  PRETRAINED_SYNTHETIC_128,
   SSIM_LOSS,
   SYNTHETIC_MODEL,
   EvalSettings,
@@ -96,8 +97,10 @@ from tokengs_jax import model
 _PRETRAIN = KubricExperiment(
   output_dir="outputs/kubric/pretrain",
   synthetic_dir="outputs/synthetic_kubric",
-  checkpoint=str(PRETRAINED_SYNTHETIC / "params.msgpack"),
-  model=SYNTHETIC_MODEL.replace(num_input_views=4, num_dynamic_gs_tokens=32, time_embedding=True),
+  checkpoint=str(PRETRAINED_SYNTHETIC_128 / "params.msgpack"),
+  model=SYNTHETIC_MODEL.replace(
+    num_input_views=4, num_gs_tokens=128, num_dynamic_gs_tokens=32, time_embedding=True
+  ),
   synthetic=SyntheticSettings(num_train=96, num_test=4, frames=12, num_ood=8, workers=2),
   background="input_mean",
   normalization="first_cam",

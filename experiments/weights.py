@@ -98,14 +98,20 @@ def ship(run_dir, destination) -> dict:
   """Copies a finished run's weights (`params.msgpack` and its trained baselines'
   `<name>.msgpack`) to `destination` with `provenance.json`: the command, the experiment, the
   training time, the commit and each file's SHA-256, so the shipped weights can be reproduced
-  and checked (`tests/test_pretrained.py`)."""
+  and checked (`tests/test_pretrained.py`).
+
+  Weights already shipped in `destination` that the run did not write (a baseline it did not
+  retrain) stay, and their record in the previous `provenance.json` moves under `carried_over`
+  (a file that record does not vouch for, by name and SHA-256, is refused)."""
   run_dir, destination = pathlib.Path(run_dir), pathlib.Path(destination)
   metrics = json.loads((run_dir / "metrics.json").read_text())
+  sources = {path.name: path for path in sorted(run_dir.glob("*.msgpack"))}
+  carried_over = _carried_over(destination, set(sources))
   destination.mkdir(parents=True, exist_ok=True)
-  files = {}
-  for source in sorted(run_dir.glob("*.msgpack")):
-    shutil.copyfile(source, destination / source.name)
-    files[source.name] = sha256(source)
+  files = {name: record["sha256"] for name, record in carried_over.items()}
+  for name, source in sources.items():
+    shutil.copyfile(source, destination / name)
+    files[name] = sha256(source)
   provenance = {
     "command": metrics["command"],
     "commit": metrics.get("commit"),
@@ -114,10 +120,35 @@ def ship(run_dir, destination) -> dict:
     "train_seconds": metrics.get("train_seconds"),
     "total_seconds": metrics.get("total_seconds"),
     "devices": metrics.get("devices"),
-    "files": files,
+    "files": dict(sorted(files.items())),
   }
+  if carried_over:
+    provenance["carried_over"] = carried_over
   (destination / "provenance.json").write_text(json.dumps(provenance, indent=1) + "\n")
   return provenance
+
+
+def _carried_over(destination: pathlib.Path, written: set[str]) -> dict:
+  """Name -> {sha256, command, commit, train_steps} of each weights file in `destination` that
+  a ship writing `written` leaves in place, from the provenance that shipped it."""
+  kept = sorted(path for path in destination.glob("*.msgpack") if path.name not in written)
+  if not kept:
+    return {}
+  record_path = destination / "provenance.json"
+  previous = json.loads(record_path.read_text()) if record_path.exists() else {}
+  records = {}
+  for path in kept:
+    digest = sha256(path)
+    if previous.get("files", {}).get(path.name) != digest:
+      raise ValueError(
+        f"{path} is not the file {record_path} records; remove it or ship the run that wrote it"
+      )
+    # a file carried over twice keeps the record of the run that trained it
+    source = previous.get("carried_over", {}).get(path.name) or {
+      field: previous.get(field) for field in ("command", "commit", "train_steps")
+    }
+    records[path.name] = {**source, "sha256": digest}
+  return records
 
 
 if __name__ == "__main__":

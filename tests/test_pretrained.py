@@ -15,29 +15,42 @@ import jax
 import pytest
 
 from experiments import kubric, re10k, weights
-from experiments.config import PRETRAINED_KUBRIC, PRETRAINED_SYNTHETIC
+from experiments.config import PRETRAINED_KUBRIC, PRETRAINED_SYNTHETIC, PRETRAINED_SYNTHETIC_128
 from tokengs_jax import model
 
-# (presets, shipped folder, the files it holds)
+TOKENGS_AND_PIXEL_ALIGNED = {"params.msgpack", "pixel_aligned.msgpack"}
+# (presets, shipped folder, the files it holds) of each default's weights
 SHIPPED = {
-  "re10k": (re10k.PRESETS, PRETRAINED_SYNTHETIC, {"params.msgpack", "pixel_aligned.msgpack"}),
+  "re10k": (re10k.PRESETS, PRETRAINED_SYNTHETIC, TOKENGS_AND_PIXEL_ALIGNED),
   "kubric": (kubric.PRESETS, PRETRAINED_KUBRIC, {"params.msgpack", "static_only.msgpack"}),
 }
+# shipped folder -> the files it holds, the Kubric default's static base included
+FOLDERS = {folder: files for _, folder, files in SHIPPED.values()} | {
+  PRETRAINED_SYNTHETIC_128: TOKENGS_AND_PIXEL_ALIGNED
+}
 REPO = pathlib.Path(__file__).resolve().parent.parent
+# recorded fields the trained weights do not depend on: where a run wrote, and how often it saved
+NOT_WEIGHT_FIELDS = {"output_dir", "synthetic_dir", "train.checkpoint_every"}
+
+
+def _provenance(folder: pathlib.Path) -> dict:
+  return json.loads((folder / "provenance.json").read_text())
 
 
 @pytest.fixture(scope="module", params=sorted(SHIPPED))
 def shipped(request):
   presets, folder, files = SHIPPED[request.param]
-  provenance = json.loads((folder / "provenance.json").read_text())
-  return presets, folder, files, provenance
+  return presets, folder, files, _provenance(folder)
 
 
-def test_shipped_files_match_their_recorded_digests(shipped):
-  _, folder, files, provenance = shipped
-  assert set(provenance["files"]) == files
+@pytest.mark.parametrize("folder", sorted(FOLDERS), ids=lambda folder: folder.name)
+def test_shipped_files_match_their_recorded_digests(folder):
+  provenance = _provenance(folder)
+  assert set(provenance["files"]) == FOLDERS[folder]
   for name, digest in provenance["files"].items():
     assert weights.sha256(folder / name) == digest, name
+  for name, record in provenance.get("carried_over", {}).items():
+    assert record["sha256"] == provenance["files"][name] and record["command"], name
 
 
 def _recorded_fields_differing(recorded: dict, expected: dict, prefix: str = "") -> list[str]:
@@ -53,16 +66,21 @@ def _recorded_fields_differing(recorded: dict, expected: dict, prefix: str = "")
 
 
 def _in_repository(path: str | None) -> str | None:
-  """A recorded path inside the checkout that wrote it, relative to that checkout's root."""
+  """A recorded path inside the checkout that wrote it, relative to that checkout's root; for
+  shipped weights since moved, where they are now (their folder's provenance says `moved_from`)."""
   if path is None:
     return None
   parts = pathlib.PurePath(path).parts
-  return str(pathlib.PurePath(*parts[parts.index("experiments") :]))
+  path = pathlib.PurePath(*parts[parts.index("experiments") :])
+  for folder in FOLDERS:
+    if _provenance(folder).get("moved_from") == str(path.parent):
+      return str(folder.relative_to(REPO) / path.name)
+  return str(path)
 
 
 def test_shipped_weights_come_from_the_pretrain_preset(shipped):
-  """Its recorded experiment is the `pretrain` preset's (apart from where it wrote and how it
-  evaluated, which the weights do not depend on; a starting checkpoint in the repository is
+  """Its recorded experiment is the `pretrain` preset's (apart from where it wrote, how often it
+  saved and how it evaluated, which the weights do not depend on; a starting checkpoint in the repository is
   compared by its path there, and a record older than a setting is upgraded as it is on loading),
   so the preset reproduces them; and its model is the one the default loads them into."""
   presets, _, _, provenance = shipped
@@ -73,10 +91,26 @@ def test_shipped_weights_come_from_the_pretrain_preset(shipped):
   assert _in_repository(recorded.pop("checkpoint")) == _in_repository(pretrain.checkpoint)
   expected = json.loads(json.dumps(dataclasses.asdict(pretrain)))
   recorded.pop("eval")
-  differing = _recorded_fields_differing(recorded, expected)
-  assert sorted(differing) == ["output_dir", "synthetic_dir"]
+  assert set(_recorded_fields_differing(recorded, expected)) <= NOT_WEIGHT_FIELDS
   assert pretrain.model == presets["synthetic-tiny"].model
   assert pretrain.checkpoint is None or (REPO / _in_repository(pretrain.checkpoint)).exists()
+
+
+def test_the_kubric_static_base_is_the_re10k_recipe_at_its_128_tokens():
+  recorded = dict(_provenance(PRETRAINED_SYNTHETIC_128)["experiment"])
+  pretrain = re10k.PRESETS["pretrain"]
+  recorded = getattr(type(pretrain), "upgrade_record", lambda fields: fields)(recorded)
+  assert recorded.pop("checkpoint") is None
+  recorded.pop("eval")
+  at_128 = dataclasses.replace(pretrain, model=pretrain.model.replace(num_gs_tokens=128))
+  expected = json.loads(json.dumps(dataclasses.asdict(at_128)))
+  assert set(_recorded_fields_differing(recorded, expected)) <= NOT_WEIGHT_FIELDS
+  kubric_pretrain = kubric.PRESETS["pretrain"]
+  assert kubric_pretrain.checkpoint == str(PRETRAINED_SYNTHETIC_128 / "params.msgpack")
+  static = kubric_pretrain.model.replace(
+    num_input_views=2, num_dynamic_gs_tokens=0, time_embedding=False
+  )
+  assert static == at_128.model
 
 
 def test_default_starts_from_the_shipped_weights_with_nothing_fresh(shipped):

@@ -1,6 +1,7 @@
 """experiments.weights: the starting weights of a run."""
 
 import dataclasses
+import json
 import pathlib
 
 import numpy as np
@@ -25,3 +26,42 @@ def test_official_weights_seed_a_grown_model_for_finetuning_but_must_match_for_e
   assert started["gs_tokens"].shape == (6, 32) and started["gs_tokens_dynamic"].shape == (2, 32)
   with pytest.raises(ValueError, match="gs_tokens_dynamic"):
     weights.initial_params(experiment, finetune=False)
+
+
+def _finished_run(folder: pathlib.Path, command: str, **weights_files: bytes) -> pathlib.Path:
+  """A run folder as `ship` reads it: metrics.json and the named weights files."""
+  folder.mkdir()
+  (folder / "metrics.json").write_text(
+    json.dumps({"command": command, "commit": command + "-commit", "experiment": {}})
+  )
+  for name, content in weights_files.items():
+    (folder / f"{name}.msgpack").write_bytes(content)
+  return folder
+
+
+def test_shipping_a_run_keeps_the_baselines_it_did_not_retrain_with_their_record(tmp_path):
+  shipped = tmp_path / "shipped"
+  first = _finished_run(tmp_path / "first", "both", params=b"old", pixel_aligned=b"pixel")
+  weights.ship(first, shipped)
+  second = _finished_run(tmp_path / "second", "tokengs only", params=b"new")
+  provenance = weights.ship(second, shipped)
+  assert provenance == json.loads((shipped / "provenance.json").read_text())
+  assert provenance["command"] == "tokengs only"
+  assert provenance["files"] == {
+    "params.msgpack": weights.sha256(shipped / "params.msgpack"),
+    "pixel_aligned.msgpack": weights.sha256(first / "pixel_aligned.msgpack"),
+  }
+  assert (shipped / "params.msgpack").read_bytes() == b"new"
+  carried = {"command": "both", "commit": "both-commit", "train_steps": None}
+  assert provenance["carried_over"] == {
+    "pixel_aligned.msgpack": {**carried, "sha256": provenance["files"]["pixel_aligned.msgpack"]}
+  }
+  # shipped again, the baseline still names the run that trained it
+  third = _finished_run(tmp_path / "third", "again", params=b"newer")
+  assert weights.ship(third, shipped)["carried_over"] == provenance["carried_over"]
+  # a weights file that no record vouches for is refused, and nothing is written
+  (shipped / "pixel_aligned.msgpack").write_bytes(b"edited")
+  with pytest.raises(ValueError, match="pixel_aligned.msgpack is not the file"):
+    weights.ship(second, shipped)
+  assert (shipped / "params.msgpack").read_bytes() == b"newer"
+  assert json.loads((shipped / "provenance.json").read_text())["command"] == "again"

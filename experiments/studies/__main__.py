@@ -185,8 +185,10 @@ def header(settings: All, scale: Scale, seconds: float) -> list[str]:
     "",
     "The pixel-aligned (GS-LRM-style) baseline is trained exactly as TokenGS (same data, loss, "
     "optimiser, steps and seeds; `Task.trained_baselines`) and reads its colours from the input "
-    'views as TokenGS does (`gaussian_colours="inputs"`); its 2 views x 32x32 pixels give '
-    "2048 Gaussians, TokenGS's budget. Each study runs on its own too "
+    'views as TokenGS does (`gaussian_colours="inputs"`); its '
+    f"{model.num_input_views} views x {model.image_size[0]}x{model.image_size[1]} pixels give "
+    f"{model.num_input_views * model.image_size[0] * model.image_size[1]} Gaussians, TokenGS "
+    f"{model.num_gaussians}. Each study runs on its own too "
     "(`python -m experiments.studies.<study>`, `experiments/studies/__init__.py`).",
   ]
 
