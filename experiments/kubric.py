@@ -129,7 +129,7 @@ _PRETRAIN = KubricExperiment(
 
 PRESETS = {
   # What trained the shipped Kubric weights: the paper's recipe at small scale, from the RE10K
-  # default's shipped static weights (module docstring), with the static-only model beside it.
+  # default's 128-token static weights (module docstring), with the static-only model beside it.
   "pretrain": _PRETRAIN,
   # The shipped weights of `pretrain` (both models), evaluated as they are: the run writes its
   # data and scores every set in a few minutes; `--train.steps N` trains on from them.
