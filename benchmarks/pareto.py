@@ -14,7 +14,7 @@ own pieces: methods as `tasks.Task.methods` builds them (the tuning targets, ste
 scores, prediction and render times from `evaluation.evaluate`, the one evaluation code path.
 
 The points: feed-forward; token tuning at 5 / 10 / 25 / 50 / 100 steps; Gaussian tuning and joint
-tuning (tokens + Gaussians) at the default's 50 steps; 32 / 64 / 256 / 512 tokens (128 trained);
+tuning (tokens + Gaussians) at the default's 50 steps; 32 / 64 / 128 / 256 tokens (512 trained);
 bf16 matmul operands (`ModelConfig.matmul_dtype="bfloat16"`) feed-forward and with 50 tuning
 steps; the exact skips (`Method.compact`: `render_targets(compact=True)`, docs/benchmarks.md,
 "Skipping what a scene does not need") feed-forward and with 50 tuning steps. The nearest input
@@ -47,7 +47,7 @@ REPO = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))  # `python benchmarks/pareto.py` imports `experiments`
 
 TUNING_STEPS = (5, 10, 25, 50, 100)
-TOKEN_COUNTS = (32, 64, 256, 512)
+TOKEN_COUNTS = (32, 64, 128, 256)
 QUICK_POINTS = ("feed-forward", "token tuning 5", "bf16 matmuls", "skips")
 COPY = "nearest input view"
 
@@ -307,7 +307,7 @@ def write_table(path: pathlib.Path, rows: list[dict], copy: dict, facts: dict) -
     "",
     f"- The last row, the {COPY} (`evaluation.baselines`), is the copy a model must beat; it "
     "renders nothing and is not drawn.",
-    *(f"- {note}" for note in NOTES),
+    *(f"- {note.format(**facts)}" for note in NOTES),
   ]
   path.parent.mkdir(parents=True, exist_ok=True)
   path.write_text("\n".join(lines) + "\n")
@@ -322,10 +322,11 @@ NOTES = (
   "The points run in the table's order in one process (a fresh persistent compilation cache), "
   "so a point pays only for what no earlier one compiled: the skips and the bf16 points share "
   "the target render with feed-forward, and tuning at other step counts compiles its scan anew.",
-  "Token counts: the trained 128-token table resampled to K rows (`train.transplant_params`, as "
+  "Token counts: the trained {tokens}-token table resampled to K rows (`train.transplant_params`, as "
   "`experiments/studies/token_count.py`), no retraining; feed-forward.",
   "Tuning: `tasks.Task.methods` with `--eval.tuning-target tokens|gaussians|tokens+gaussians "
-  "--eval.tuning-steps N` (lr 1e-4 tokens, 1e-3 Gaussians; the run's tuning loss).",
+  "--eval.tuning-steps N` (lr {token_rate:g} tokens, {gaussian_rate:g} Gaussians; the run's tuning "
+  "loss).",
   "bf16: `ModelConfig.matmul_dtype='bfloat16'` (bf16 operands, float32 accumulation).",
   "skips: `Method.compact`, i.e. `render_targets(compact=True)`: the Gaussians no target camera "
   "can draw moved out before the render (the same images, exactly).",
@@ -389,6 +390,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
   facts.update(scenes=len(scenes), load_before=_load(load_before), load_after=_load())
   config = experiment.model
   facts["model"] = f"{config.num_gs_tokens} tokens x {config.gaussians_per_token} Gaussians"
+  facts.update(
+    tokens=config.num_gs_tokens,
+    token_rate=experiment.eval.tuning_learning_rate,
+    gaussian_rate=experiment.eval.tuning_gaussian_learning_rate,
+  )
   facts["views"] = "{}x{}, {} inputs, {} targets".format(
     *batch["target_images"].shape[-3:-1],
     batch["context_images"].shape[1],

@@ -24,13 +24,14 @@ def test_points_cover_every_choice_of_the_issue():
     *(f"token tuning {n}" for n in (5, 10, 25, 50, 100)),
     "Gaussian tuning 50",
     "joint tuning 50",
-    *(f"{k} tokens" for k in (32, 64, 256, 512)),
+    *(f"{k} tokens" for k in (32, 64, 128, 256)),
     "bf16 matmuls",
     "bf16, token tuning 50",
     "skips",
     "skips, token tuning 50",
   ]
   assert set(pareto.QUICK_POINTS) <= {p.name for p in found}
+  assert experiment.model.num_gs_tokens not in pareto.TOKEN_COUNTS  # that point is feed-forward
 
 
 def test_one_gallery_two_points_write_the_table_and_the_chart(tmp_path):
@@ -49,6 +50,11 @@ def test_one_gallery_two_points_write_the_table_and_the_chart(tmp_path):
   for name in ("| feed-forward |", "| skips |", f"| {pareto.COPY} |", "Load average"):
     assert name in table
   assert "python benchmarks/pareto.py --scenes 1" in table
+  from experiments import re10k
+
+  default = re10k.PRESETS["synthetic-tiny"]
+  assert f"the trained {default.model.num_gs_tokens}-token table" in table
+  assert f"(lr {default.eval.tuning_learning_rate:g} tokens," in table
   image = np.asarray(Image.open(tmp_path / "docs" / "pareto.png"))
   assert image.shape == (pareto.PANEL[1] + 28, 2 * pareto.PANEL[0], 3)
   assert (image < 128).any()  # something is drawn
