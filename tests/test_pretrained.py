@@ -80,9 +80,10 @@ def _in_repository(path: str | None) -> str | None:
 
 def test_shipped_weights_come_from_the_pretrain_preset(shipped):
   """Its recorded experiment is the `pretrain` preset's (apart from where it wrote, how often it
-  saved and how it evaluated, which the weights do not depend on; a starting checkpoint in the repository is
-  compared by its path there, and a record older than a setting is upgraded as it is on loading),
-  so the preset reproduces them; and its model is the one the default loads them into."""
+  saved and how it evaluated, which the weights do not depend on; a starting checkpoint in the
+  repository is compared by its path there, and a record older than a setting is upgraded as it
+  is on loading), so the preset reproduces them; and its model is the one the default loads them
+  into."""
   presets, _, _, provenance = shipped
   pretrain = presets["pretrain"]
   recorded = dict(provenance["experiment"])
