@@ -134,9 +134,7 @@ def our_timers(folder: pathlib.Path, size: tuple, repeats: int) -> dict:
   timers = {}
   for name, (matmul_dtype, cast_once) in OUR_VARIANTS.items():
     config = model.config_from_official(options, matmul_dtype=matmul_dtype)
-    params = weights
-    if cast_once:
-      params = model.cast_matmul_kernels(params, config)
+    params = model.cast_matmul_kernels(weights, config) if cast_once else weights
     # On the device once, as the official model holds its weights: numpy leaves would be copied
     # in at every call.
     params = jax.device_put(params)

@@ -389,8 +389,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
   facts = machine_state()
   facts.update(scenes=len(scenes), load_before=_load(load_before), load_after=_load())
   config = experiment.model
-  facts["model"] = f"{config.num_gs_tokens} tokens x {config.gaussians_per_token} Gaussians"
   facts.update(
+    model=f"{config.num_gs_tokens} tokens x {config.gaussians_per_token} Gaussians",
     tokens=config.num_gs_tokens,
     token_rate=experiment.eval.tuning_learning_rate,
     gaussian_rate=experiment.eval.tuning_gaussian_learning_rate,

@@ -78,34 +78,34 @@ def _in_repository(path: str | None) -> str | None:
   return str(path)
 
 
-def test_shipped_weights_come_from_the_pretrain_preset(shipped):
-  """Its recorded experiment is the `pretrain` preset's (apart from where it wrote, how often it
-  saved and how it evaluated, which the weights do not depend on; a starting checkpoint in the
-  repository is compared by its path there, and a record older than a setting is upgraded as it
-  is on loading), so the preset reproduces them; and its model is the one the default loads them
-  into."""
-  presets, _, _, provenance = shipped
-  pretrain = presets["pretrain"]
+def _assert_recorded_as(provenance: dict, preset) -> None:
+  """The recorded experiment is `preset`, apart from NOT_WEIGHT_FIELDS and how it evaluated, which
+  the weights do not depend on; a starting checkpoint in the repository is compared by its path
+  there, and a record older than a setting is upgraded as it is on loading."""
   recorded = dict(provenance["experiment"])
   # an older record reads as its class reads it (`config.from_fields`)
-  recorded = getattr(type(pretrain), "upgrade_record", lambda fields: fields)(recorded)
-  assert _in_repository(recorded.pop("checkpoint")) == _in_repository(pretrain.checkpoint)
-  expected = json.loads(json.dumps(dataclasses.asdict(pretrain)))
+  recorded = getattr(type(preset), "upgrade_record", lambda fields: fields)(recorded)
+  assert _in_repository(recorded.pop("checkpoint")) == _in_repository(preset.checkpoint)
   recorded.pop("eval")
+  expected = json.loads(json.dumps(dataclasses.asdict(preset)))
   assert set(_recorded_fields_differing(recorded, expected)) <= NOT_WEIGHT_FIELDS
+
+
+def test_shipped_weights_come_from_the_pretrain_preset(shipped):
+  """Recorded as the `pretrain` preset (`_assert_recorded_as`), so the preset reproduces them;
+  and its model is the one the default loads them into."""
+  presets, _, _, provenance = shipped
+  pretrain = presets["pretrain"]
+  _assert_recorded_as(provenance, pretrain)
   assert pretrain.model == presets["synthetic-tiny"].model
   assert pretrain.checkpoint is None or (REPO / _in_repository(pretrain.checkpoint)).exists()
 
 
 def test_the_kubric_static_base_is_the_re10k_recipe_at_its_128_tokens():
-  recorded = dict(_provenance(PRETRAINED_SYNTHETIC_128)["experiment"])
   pretrain = re10k.PRESETS["pretrain"]
-  recorded = getattr(type(pretrain), "upgrade_record", lambda fields: fields)(recorded)
-  assert recorded.pop("checkpoint") is None
-  recorded.pop("eval")
   at_128 = dataclasses.replace(pretrain, model=pretrain.model.replace(num_gs_tokens=128))
-  expected = json.loads(json.dumps(dataclasses.asdict(at_128)))
-  assert set(_recorded_fields_differing(recorded, expected)) <= NOT_WEIGHT_FIELDS
+  assert at_128.checkpoint is None
+  _assert_recorded_as(_provenance(PRETRAINED_SYNTHETIC_128), at_128)
   kubric_pretrain = kubric.PRESETS["pretrain"]
   assert kubric_pretrain.checkpoint == str(PRETRAINED_SYNTHETIC_128 / "params.msgpack")
   static = kubric_pretrain.model.replace(
