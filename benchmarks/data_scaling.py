@@ -1,14 +1,17 @@
 """The data-scaling curve (issue 23): the held-out margin over the best copy baseline against the
-number of distinct training scenes, at the default's fixed step budget.
+number of distinct training scenes, at a fixed step budget.
 
-Each point is one `python -m experiments.re10k` run of the varied training family with
-`--synthetic.num-train N` (16 frames a scene, everything else the default), in
-`<root>/n<N>_s<seed>/` (data in `<root>/data_n<N>_s<seed>/`). A run whose `metrics.json` is
-already there is not repeated, so points can be added one at a time. The table and plot go to
-`docs/data_scaling.{md,png}`.
+Each point trains TokenGS from scratch with the recipe of the shipped weights (`python -m
+experiments.re10k run pretrain`: the varied family, 16 frames a scene) on `--synthetic.num-train
+N` scenes for `--steps` steps, in `<root>/n<N>_s<seed>/` (data in `<root>/data_n<N>_s<seed>/`),
+and scores it feed-forward. The default run (`python -m experiments.re10k`) trains nothing (it
+evaluates the shipped weights), so it cannot give a point. A run whose `metrics.json` is
+already there is not repeated, so points can be added one at a time; one trained with other
+steps or scenes is refused, not tabulated. The table and plot go to `docs/data_scaling.{md,png}`.
 
-    python benchmarks/data_scaling.py --scenes 48 240 960 --seeds 0
-    python benchmarks/data_scaling.py --scenes 48 240 960 --seeds 0 --collect-only
+    python benchmarks/data_scaling.py --scenes 48 240 960 3840 --seeds 0 --steps 3000
+    python benchmarks/data_scaling.py --scenes 48 240 960 3840 --seeds 0 --steps 3000 \
+        --collect-only
 
 Columns per test set: the feed-forward PSNR minus the better of the nearest-view and
 input-average copies (dB), and the feed-forward LPIPS, holes and depth AbsRel.
@@ -27,31 +30,53 @@ SETS = ("test", "ood_galleries", "frozen_courtyards")
 COPIES = ("nearest_view", "input_average")
 
 
-def run_point(root: pathlib.Path, scenes: int, seed: int, extra: list[str]) -> pathlib.Path:
-  out = root / f"n{scenes}_s{seed}"
-  if (out / "metrics.json").exists():
-    return out
-  command = [
+def point_command(root: pathlib.Path, scenes: int, seed: int, steps: int) -> list[str]:
+  """The command that trains and scores the point (`scenes`, `seed`) under `root`."""
+  return [
     sys.executable,
     "-m",
     "experiments.re10k",
+    "run",
+    "pretrain",
     "--output-dir",
-    str(out),
+    str(root / f"n{scenes}_s{seed}"),
     "--synthetic-dir",
     str(root / f"data_n{scenes}_s{seed}"),
-    "--synthetic.family",
-    "varied",
     "--synthetic.num-train",
     str(scenes),
-    "--synthetic.frames",
-    "16",
     "--seed",
     str(seed),
-    *extra,
+    "--train.steps",
+    str(steps),
+    "--train.checkpoint-every",
+    str(steps),
+    "--eval.no-pixel-baseline",
+    "--eval.tuning-steps",
+    "0",
+    "--eval.video-frames",
+    "0",
   ]
+
+
+def run_point(root: pathlib.Path, scenes: int, seed: int, steps: int, extra: list[str]) -> None:
+  if (root / f"n{scenes}_s{seed}" / "metrics.json").exists():
+    return
+  command = point_command(root, scenes, seed, steps) + extra
   print("[scaling]", " ".join(command), flush=True)
   subprocess.run(command, cwd=REPO, check=True)
-  return out
+
+
+def checked_metrics(out: pathlib.Path, scenes: int, steps: int) -> dict:
+  """`out/metrics.json`, refused unless its run trained `steps` steps on `scenes` scenes (a
+  folder left by another budget, or by a run that trained nothing, is not this curve's point)."""
+  metrics = json.loads((out / "metrics.json").read_text())
+  trained = (metrics.get("train_steps"), metrics["experiment"]["synthetic"]["num_train"])
+  if trained != (steps, scenes):
+    raise SystemExit(
+      f"{out}: trained {trained[0]} steps on {trained[1]} scenes, not {steps} on {scenes}; "
+      "remove the folder or ask for its budget"
+    )
+  return metrics
 
 
 def margins(metrics: dict) -> dict[str, dict[str, float]]:
@@ -76,6 +101,7 @@ def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   parser.add_argument("--scenes", type=int, nargs="+", default=[48, 240, 960])
   parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+  parser.add_argument("--steps", type=int, default=6000, help="training steps of every point")
   parser.add_argument("--root", default="outputs/data_scaling")
   parser.add_argument("--collect-only", action="store_true", help="tabulate existing runs only")
   parser.add_argument("--docs", default=str(REPO / "docs"))
@@ -90,10 +116,10 @@ def main() -> None:
     for seed in args.seeds:
       out = root / f"n{scenes}_s{seed}"
       if not args.collect_only:
-        run_point(root, scenes, seed, extra)
+        run_point(root, scenes, seed, args.steps, extra)
       if not (out / "metrics.json").exists():
         continue
-      rows = margins(json.loads((out / "metrics.json").read_text()))
+      rows = margins(checked_metrics(out, scenes, args.steps))
       cells = [
         "{margin:+.2f} / {lpips:.3f} / {holes:.3f} / {absrel:.3f}".format(**rows[s])
         if s in rows
@@ -110,8 +136,10 @@ def main() -> None:
   (docs / "data_scaling.md").write_text(
     "# Data scaling (generated by `python benchmarks/data_scaling.py`)\n\n"
     "Feed-forward PSNR minus the better copy baseline (dB), LPIPS, holes and depth AbsRel of the "
-    "trained model per test set, against distinct training scenes of the varied family at the "
-    "default's step budget.\n\n" + table + "\n![data scaling](data_scaling.png)\n"
+    "trained model per test set, against distinct training scenes of the varied family, each "
+    f"point trained from scratch by `run pretrain` for {args.steps} steps.\n\n"
+    + table
+    + "\n![data scaling](data_scaling.png)\n"
   )
   sys.path.insert(0, str(REPO))
   from experiments import figures
@@ -119,7 +147,7 @@ def main() -> None:
   figures.line_plot(
     docs / "data_scaling.png",
     {s: c for s, c in curves.items() if c[0]},
-    title="Held-out margin over the best copy vs training scenes",
+    title=f"Held-out margin over the best copy vs training scenes ({args.steps} steps)",
     xlabel="distinct training scenes",
     ylabel="PSNR margin (dB)",
     log_x=True,

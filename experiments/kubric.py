@@ -36,11 +36,11 @@ Presets:
   and the static-only model), 0 training steps; `--train.steps N` trains on from them.
 - `pretrain`: what trained them, the paper's recipe at small scale. The static base is the RE10K
   default's 128-token weights of sessions 12-21 (`experiments/pretrained/re10k_synthetic_128`:
-  128 static tokens, colours read from the input views; the RE10K default has 512 since session
-  22, untried on Kubric); 32 dynamic tokens are copied from its static ones
-  plus noise, with a fresh time embedding; 1200 steps at lr 3e-4 on 4 input views (as the
-  paper) + 2 targets at one time, 32x32, and the static-only model of the same budget the same
-  way. Deviations, each measured (docs/experiments.md, "Kubric default"): cameras in the first
+  128 static tokens, colours read from the input views; the RE10K default's 512-token base
+  lifts only the static-only model here, docs/experiments.md); 32 dynamic tokens are copied
+  from its static ones plus noise, with a fresh time embedding; 1200 steps at lr 3e-4 on 4 input
+  views (as the paper) + 2 targets at one time, 32x32, and the static-only model of the same
+  budget the same way. Deviations, each measured (docs/experiments.md, "Kubric default"): cameras in the first
   input camera's frame (`normalization="first_cam"`, the frame the static base was trained in;
   in the official mean-camera frame this small model renders blobs), the input views' mean
   colour behind the Gaussians (`background="input_mean"`), colours read from the input views
