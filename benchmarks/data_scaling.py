@@ -131,10 +131,7 @@ def main() -> None:
         curves[s][0].append(scenes)
         curves[s][1].append(rows[s]["margin"])
   table = "\n".join(lines) + "\n"
-  counts, seeds = (" ".join(map(str, values)) for values in (args.scenes, args.seeds))
-  command = (
-    f"python benchmarks/data_scaling.py --scenes {counts} --seeds {seeds} --steps {args.steps}"
-  )
+  command = " ".join(["python benchmarks/data_scaling.py", *sys.argv[1:]])
   print(table)
   docs = pathlib.Path(args.docs)
   (docs / "data_scaling.md").write_text(
