@@ -40,11 +40,11 @@ Presets:
   lifts only the static-only model here, docs/experiments.md); 32 dynamic tokens are copied
   from its static ones plus noise, with a fresh time embedding; 1200 steps at lr 3e-4 on 4 input
   views (as the paper) + 2 targets at one time, 32x32, and the static-only model of the same
-  budget the same way. Deviations, each measured (docs/experiments.md, "Kubric default"): cameras in the first
-  input camera's frame (`normalization="first_cam"`, the frame the static base was trained in;
-  in the official mean-camera frame this small model renders blobs), the input views' mean
-  colour behind the Gaussians (`background="input_mean"`), colours read from the input views
-  weighted toward the view whose ray is nearest the rendering camera's
+  budget the same way. Deviations, each measured (docs/experiments.md, "Kubric default"):
+  cameras in the first input camera's frame (`normalization="first_cam"`, the frame the static
+  base was trained in; in the official mean-camera frame this small model renders blobs), the
+  input views' mean colour behind the Gaussians (`background="input_mean"`), colours read from
+  the input views weighted toward the view whose ray is nearest the rendering camera's
   (`input_colour_weights="viewer"`, `tokengs_jax.model.colours`), the moving pixels weighted 5x
   and the auxiliary loss on them only, held all run (`lambda_motion`, `dyn_aux_on_motion`), and
   token tuning at lr 1e-3 (the paper's 1e-4 gains less here).
