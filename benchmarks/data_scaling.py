@@ -30,6 +30,11 @@ SETS = ("test", "ood_galleries", "frozen_courtyards")
 COPIES = ("nearest_view", "input_average")
 
 
+def point_folder(root: pathlib.Path, scenes: int, seed: int) -> pathlib.Path:
+  """Where the point (`scenes`, `seed`) writes its run, `metrics.json` included."""
+  return root / f"n{scenes}_s{seed}"
+
+
 def point_command(root: pathlib.Path, scenes: int, seed: int, steps: int) -> list[str]:
   """The command that trains and scores the point (`scenes`, `seed`) under `root`."""
   return [
@@ -39,7 +44,7 @@ def point_command(root: pathlib.Path, scenes: int, seed: int, steps: int) -> lis
     "run",
     "pretrain",
     "--output-dir",
-    str(root / f"n{scenes}_s{seed}"),
+    str(point_folder(root, scenes, seed)),
     "--synthetic-dir",
     str(root / f"data_n{scenes}_s{seed}"),
     "--synthetic.num-train",
@@ -59,7 +64,7 @@ def point_command(root: pathlib.Path, scenes: int, seed: int, steps: int) -> lis
 
 
 def run_point(root: pathlib.Path, scenes: int, seed: int, steps: int, extra: list[str]) -> None:
-  if (root / f"n{scenes}_s{seed}" / "metrics.json").exists():
+  if (point_folder(root, scenes, seed) / "metrics.json").exists():
     return
   command = point_command(root, scenes, seed, steps) + extra
   print("[scaling]", " ".join(command), flush=True)
@@ -114,7 +119,7 @@ def main() -> None:
   curves: dict[str, tuple[list[float], list[float]]] = {s: ([], []) for s in SETS}
   for scenes in args.scenes:
     for seed in args.seeds:
-      out = root / f"n{scenes}_s{seed}"
+      out = point_folder(root, scenes, seed)
       if not args.collect_only:
         run_point(root, scenes, seed, args.steps, extra)
       if not (out / "metrics.json").exists():
