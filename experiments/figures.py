@@ -304,7 +304,9 @@ def line_plot(
 
   Args:
     path: output PNG path.
-    series: legend label -> (x values, y values); non-finite points are skipped.
+    series: legend label -> (x values, y values); non-finite points are skipped. Where an x
+      repeats (seeds of one setting), the line joins the mean at each x and every point keeps
+      its marker, so the line does not zigzag between repeats.
     title, xlabel, ylabel: texts.
     log_x: logarithmic x axis (x must be > 0).
     size: (width, height) in pixels.
@@ -315,9 +317,10 @@ def line_plot(
   image, draw, font = _chart(axes, title=title, xlabel=xlabel, ylabel=ylabel)
   colors = [PALETTE[index % len(PALETTE)] for index in range(len(clean))]
   for color, (name, (xs, ys)) in zip(colors, clean.items()):
-    order = np.argsort(xs)
-    points = [(axes.u(x), axes.v(y)) for x, y in zip(xs[order], ys[order])]
-    _draw_series(draw, points, color, dashed=name in dashed)
+    at = np.unique(xs)
+    means = [(axes.u(x), axes.v(ys[xs == x].mean())) for x in at]
+    _draw_series(draw, means, color, dashed=name in dashed, markers=False)
+    _draw_series(draw, [(axes.u(x), axes.v(y)) for x, y in zip(xs, ys)], color, joined=False)
   _legend(draw, font, size[0], list(zip(clean, colors)))
   return _save(image, path)
 

@@ -29,6 +29,21 @@ def test_line_plot_draws_every_series(tmp_path):
     assert np.any(np.all(image == np.array(color, np.uint8), axis=-1)), color
 
 
+def test_line_plot_joins_the_mean_of_repeats_not_each_repeat(tmp_path):
+  series = {"a": ([1, 1, 2], [0.0, 2.0, 1.0])}
+  path = figures.line_plot(tmp_path / "p.png", series, title="t", xlabel="x", ylabel="y")
+  image = np.asarray(Image.open(path))
+  axes = figures._Axes.fit(figures._finite_series(series, False), False, (640, 420))
+  color = np.array(figures.PALETTE[0], np.uint8)
+
+  def painted(x, y):
+    u, v = round(axes.u(x)), round(axes.v(y))
+    return np.any(np.all(image[v - 1 : v + 2, u - 1 : u + 2] == color, axis=-1))
+
+  assert painted(1, 0.0) and painted(1, 2.0) and painted(1.5, 1.0)  # markers and the mean line
+  assert not painted(1, 0.5)  # no segment between the two repeats at x = 1
+
+
 def test_trajectory_plot_on_background(tmp_path):
   tracks = np.stack([np.linspace([2, 2], [20, 10], 5), np.linspace([30, 5], [5, 30], 5)])
   path = figures.trajectory_plot(
