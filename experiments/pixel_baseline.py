@@ -108,6 +108,7 @@ def reconstruct(
       viewers=viewers,
       sharpness=config.viewer_colour_sharpness,
       occlusion_tolerance=config.input_occlusion_tolerance,
+      own_view=config.own_view_colours,
     )
   return Gaussians.from_flat(flat)
 

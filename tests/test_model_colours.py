@@ -90,7 +90,7 @@ def test_viewer_colours_follow_the_view_whose_ray_is_nearest():
   means = jnp.array([[[0.1, 0.0, 2.0], [1.1, 0.0, 2.0], [0.0, 0.0, -1.0]]])  # both, view 1, none
   viewers = jnp.array([[[0.0, 0.0, 0.0], [0.2, 0.0, 0.0], [0.1, 0.0, 0.0]]])
   colours, seen = viewer_colours(means, views, means, viewers, sharpness=1e4)
-  np.testing.assert_array_equal(np.asarray(seen), [[True, True, False]])
+  np.testing.assert_array_equal(np.asarray(seen), [[[True, True, False]] * 3])  # per viewer
   np.testing.assert_allclose(np.asarray(colours[0, :, 0, 0]), [0.2, 0.8, 0.5], atol=1e-5)
   np.testing.assert_allclose(np.asarray(colours[0, :, 1, 0]), 0.8, atol=1e-6)
   mean, _ = input_colours(means, views)
@@ -101,6 +101,26 @@ def test_viewer_colours_follow_the_view_whose_ray_is_nearest():
   assert 0.2 < float(soft[0, 0, 0, 0]) < 0.5
   grad = jax.grad(lambda m: jnp.sum(viewer_colours(m, views, m, viewers, 100.0)[0]))(means)
   assert bool(jnp.all(jnp.isfinite(grad)))
+
+
+def test_a_viewer_at_an_input_view_reads_only_the_other_views_without_own_view():
+  """own_view=False: from view 0's centre a point both see takes view 1's colour at any
+  sharpness, a point only view 0 sees is unseen from there (head colour), and a viewer elsewhere
+  weighs the views as before."""
+  views = _two_views()
+  means = jnp.array(
+    [[[0.1, 0.0, 2.0], [-0.9, 0.0, 2.0]]]
+  )  # both views; view 0 only (u = 0.4, -0.4)
+  viewers = jnp.array([[[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]]])  # view 0's centre; halfway
+  colours, seen = viewer_colours(means, views, means, viewers, 100.0, own_view=False)
+  np.testing.assert_array_equal(np.asarray(seen), [[[True, False], [True, True]]])
+  np.testing.assert_allclose(np.asarray(colours[0, 0, 0]), 0.8, atol=1e-6)
+  kept, kept_seen = viewer_colours(means, views, means, viewers, 100.0)
+  np.testing.assert_array_equal(np.asarray(kept_seen), True)
+  np.testing.assert_allclose(np.asarray(colours[0, 1]), np.asarray(kept[0, 1]), atol=1e-7)
+  flat = jnp.concatenate([means, jnp.zeros((1, 2, 8)), jnp.full((1, 2, 3), 0.33)], axis=-1)
+  coloured = with_input_colours(flat, views, viewers=viewers, sharpness=100.0, own_view=False)
+  np.testing.assert_allclose(np.asarray(coloured[0, 0, :, 11:]), [[0.8] * 3, [0.33] * 3], atol=1e-6)
 
 
 def test_decoded_for_cameras_one_set_each_same_geometry(tiny_inputs_model):

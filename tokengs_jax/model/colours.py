@@ -51,6 +51,8 @@ from tokengs_jax.splatting import render
 NEAR = 0.025
 # Render alpha above which a view's expected depth is a surface that can hide what is behind it.
 OPAQUE = 0.5
+# Relative distance under which a viewer's centre is an input view's (`own_view=False`).
+COINCIDENT = 1e-6
 
 
 @flax.struct.dataclass
@@ -207,6 +209,7 @@ def viewer_colours(
   viewers: jax.Array,
   sharpness: float,
   occluders: Occluders | None = None,
+  own_view: bool = True,
 ) -> tuple[jax.Array, jax.Array]:
   """Colours as seen from `viewers`: each view's sample weighted by how close its ray through the
   Gaussian is to the viewer's (the unstructured-lumigraph rule; module docstring).
@@ -223,19 +226,28 @@ def viewer_colours(
     sharpness: the softmax's inverse temperature (large: the nearest ray's view alone); a
       scalar, or [N] one per Gaussian.
     occluders: with them, views that hide a Gaussian get no weight (module docstring).
+    own_view: False: a view whose centre is the viewer's (an input view rendered again) gets no
+      weight for that viewer, so its render shows the other views' colours at the Gaussians'
+      places and tests the geometry instead of returning the view's own pixels.
 
   Returns:
-    (colours [B, T, N, 3] float32, seen [B, N] bool).
+    (colours [B, T, N, 3] float32, seen [B, T, N] bool: a view that weighs in contains the
+    projection).
   """
   samples, inside, positions = _sampled(means, views, occluders)
   centres = invert_rigid(views.world_to_camera)[..., :3, 3]  # [B, V, 3]
   from_views = safe_normalize(positions - centres[:, :, None])  # [B, V, N, 3]
   from_viewers = safe_normalize(present[:, None] - viewers[:, :, None])  # [B, T, N, 3]
   cosines = jnp.einsum("bvnk,btnk->btvn", from_views, from_viewers)
+  usable = jnp.broadcast_to(inside[:, None], cosines.shape)  # [B, T, V, N]
+  if not own_view:
+    offset = jnp.linalg.norm(viewers[:, :, None] - centres[:, None], axis=-1)  # [B, T, V]
+    scale = 1.0 + jnp.linalg.norm(centres, axis=-1)[:, None]
+    usable = usable & (offset > COINCIDENT * scale)[..., None]
   # views that do not contain the projection get no weight (uniform where none does: unseen)
-  weights = jax.nn.softmax(jnp.where(inside[:, None], sharpness * cosines, -1e9), axis=2)
+  weights = jax.nn.softmax(jnp.where(usable, sharpness * cosines, -1e9), axis=2)
   colours = jnp.einsum("btvn,bvnc->btnc", weights, samples)
-  return colours, jnp.any(inside, axis=1)
+  return colours, jnp.any(usable, axis=2)
 
 
 def with_input_colours(
@@ -246,6 +258,7 @@ def with_input_colours(
   sharpness: float = 0.0,
   occlusion_tolerance: float | None = None,
   dynamic_sharpness: float | None = None,
+  own_view: bool = True,
 ) -> jax.Array:
   """flat Gaussians [B, N, 14] -> the same with RGB read from the views where any sees them.
 
@@ -258,6 +271,7 @@ def with_input_colours(
   occlusion_tolerance: None reads every view the projection falls in; a fraction: views that
   hide the Gaussian behind their render of the scene are left out (`Occluders`).
   dynamic_sharpness: the viewer weights' sharpness for the dynamic Gaussians (None: `sharpness`).
+  own_view: False: a viewer at an input view's centre does not read that view (`viewer_colours`).
   """
   scenes = flat
   if dynamic_at_view_times is not None:
@@ -274,8 +288,9 @@ def with_input_colours(
       sharpness = jnp.concatenate(
         [jnp.full((first,), sharpness), jnp.full((num_dynamic,), dynamic_sharpness)]
       )  # [N]: per Gaussian
-    colours, seen = viewer_colours(means, views, flat[..., :3], viewers, sharpness, occluders)
-    flat, seen = flat[:, None], seen[:, None]
-    flat = jnp.broadcast_to(flat, colours.shape[:-1] + flat.shape[-1:])
+    colours, seen = viewer_colours(
+      means, views, flat[..., :3], viewers, sharpness, occluders, own_view
+    )
+    flat = jnp.broadcast_to(flat[:, None], colours.shape[:-1] + flat.shape[-1:])
   rgb = jnp.where(seen[..., None], colours, flat[..., 11:14])
   return jnp.concatenate([flat[..., :11], rgb], axis=-1)

@@ -80,6 +80,11 @@ class ModelConfig:
       cameras (export, `predict_gaussians`) they take the mean.
     viewer_colour_sharpness: the "viewer" weights' softmax inverse temperature on the rays'
       cosine (100: a view whose ray is 8 degrees further off gets 1/e the weight).
+    own_view_colours: with "viewer" weights, whether a camera at an input view's centre (that
+      view rendered again: input supervision, token tuning) reads that view. False: it reads
+      only the other views, so its render checks the geometry across views rather than copying
+      its own pixels back (`model.colours.viewer_colours`; not in the paper). Renders from any
+      other camera do not change.
     input_occlusion_tolerance: with colours read from the inputs, None reads every view a
       Gaussian projects into; a fraction leaves out the views that hide it (their render of the
       decoded scene is opaque at its projection, nearer than its own depth by more than this
@@ -128,6 +133,7 @@ class ModelConfig:
   gaussian_colours: str = "head"
   input_colour_weights: str = "mean"
   viewer_colour_sharpness: float = 100.0
+  own_view_colours: bool = True
   input_occlusion_tolerance: float | None = None
   dynamic_colour_sharpness: float | None = None
   dynamic_motion: str = "decoded"

@@ -395,6 +395,7 @@ class TokenGS(nn.Module):
         cfg.viewer_colour_sharpness,
         cfg.input_occlusion_tolerance,
         cfg.dynamic_colour_sharpness,
+        cfg.own_view_colours,
       )
     if viewers is not None and flat.ndim == 3:  # the same set for every camera
       flat = jnp.broadcast_to(flat[:, None], (flat.shape[0], viewers.shape[1]) + flat.shape[1:])
