@@ -15,6 +15,7 @@ from typing import Literal
 from tokengs_jax import export, model, tuning
 from tokengs_jax.data import mixing
 from tokengs_jax.data.synthetic import WalkConfig
+from tokengs_jax.objective.settings import ObjectiveConfig
 
 # Domain randomisation of the rooms' camera path (the issue-10 lever sweep, in git history): the
 # RE10K-like walk looks almost level and straight ahead; this one pitches from -34 to +9 degrees,
@@ -85,6 +86,9 @@ class TrainSettings:
       synthetic set refuse it on construction.
     use_input_supervision: also score the input views in the training loss (official
       `use_input_supervision`; `ObjectiveConfig.use_input_supervision`); off, as official.
+    eps2d: the renderer's screen-space low-pass (gsplat's `eps2d`, px² added to every splat's
+      2D covariance) in every render of the run's objective: training, token tuning and
+      evaluation (`ObjectiveConfig.eps2d`); 0.3: gsplat's default, as the official weights.
     grad_accum_steps: micro-batches per optimiser step (gradient accumulation): each
       step's `batch_size` examples are run as this many equal micro-batches one after
       another and their gradients averaged before one clipped AdamW update (`OptimConfig.
@@ -111,8 +115,8 @@ class TrainSettings:
 
   Bad settings (a negative or non-finite loss weight, an unknown `rgb_loss`, a batch that does
   not split into `grad_accum_steps` micro-batches, a negative period, an `ema_decay` outside
-  [0, 1)) raise ValueError on construction (`losses.LossConfig`'s checks for the loss), so the
-  command line refuses them before any work.
+  [0, 1), a negative eps2d) raise ValueError on construction (`losses.LossConfig`'s checks for
+  the loss), so the command line refuses them before any work.
   """
 
   steps: int = 1500
@@ -136,6 +140,7 @@ class TrainSettings:
   lambda_opacity: float = 0.0
   lambda_mask: float = 0.0
   use_input_supervision: bool = False
+  eps2d: float = 0.3
   grad_accum_steps: int = 1
   eval_every: int = 0
   eval_scenes: int = 2
@@ -144,6 +149,7 @@ class TrainSettings:
 
   def __post_init__(self):
     self.loss_config()  # its checks, at parse time
+    ObjectiveConfig(eps2d=self.eps2d)  # likewise
     if self.grad_accum_steps < 1:
       raise ValueError(f"grad_accum_steps must be >= 1, got {self.grad_accum_steps}")
     if self.batch_size % self.grad_accum_steps:

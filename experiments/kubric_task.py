@@ -342,6 +342,7 @@ class KubricTask(Task):
       view_chunk_size=experiment.train.view_chunk_size,
       decode_times=experiment.decode_times,
       use_input_supervision=experiment.train.use_input_supervision,
+      eps2d=experiment.train.eps2d,
     )
     if experiment.background == "input_mean":
       return dataclasses.replace(objective, background="input_mean")

@@ -45,6 +45,7 @@ import dataclasses
 from experiments.cli import main
 from experiments.config import (
   PRETRAINED_SYNTHETIC,
+  SYNTHETIC_MODEL,
   EvalSettings,
   Experiment,
   SyntheticSettings,
@@ -75,22 +76,46 @@ _PAPER_EVAL = EvalSettings(
 # steps (validation galleries +0.87 dB; 3e-4: +1.01; 1e-3: +1.21; docs/generalisation.md).
 _SYNTHETIC_EVAL = EvalSettings(tuning_learning_rate=1e-3)
 
+# The shipped weights' model and renderer (`finetune`): colours nearly from the view nearest the
+# viewer's ray alone, and a third of gsplat's low-pass, so that the renders come out as sharp as
+# the inputs (feed-forward LPIPS at or below the nearest input view's; docs/generalisation.md,
+# session 24). `pretrain` keeps the model and filter its weights were trained with.
+_SHARP_MODEL = SYNTHETIC_MODEL.replace(viewer_colour_sharpness=1000.0)
+_SHARP_EPS2D = 0.1
+
 PRESETS = {
-  # The shipped weights (6000 steps of `pretrain`), evaluated as they are: training on from them
-  # on the run's own scenes scored 0.1-0.4 dB lower (300 steps at a constant 1e-4, 600 of a 1e-3
-  # cosine; docs/generalisation.md), so the default trains 0 steps; `--train.steps N` trains on
-  # at that constant rate.
+  # The shipped weights (`pretrain`, then `finetune`), evaluated as they are; `--train.steps N`
+  # trains on from them at a constant 1e-4.
   "synthetic-tiny": Experiment(
     checkpoint=str(PRETRAINED_SYNTHETIC / "params.msgpack"),
+    model=_SHARP_MODEL,
     synthetic=SyntheticSettings(num_train=240),
-    train=TrainSettings(steps=0, learning_rate=1e-4, schedule="constant", warmup_steps=0),
+    train=TrainSettings(
+      steps=0, learning_rate=1e-4, schedule="constant", warmup_steps=0, eps2d=_SHARP_EPS2D
+    ),
     eval=_SYNTHETIC_EVAL,
   ),
-  # What trained the shipped weights (with the pixel-aligned baseline, both from scratch).
+  # The first stage of the shipped weights (with the pixel-aligned baseline, both from scratch).
   "pretrain": Experiment(
     output_dir="outputs/re10k/pretrain",
     synthetic_dir="outputs/synthetic_re10k_pretrain",
     train=TrainSettings(steps=6000, checkpoint_every=2000),
+    eval=dataclasses.replace(_SYNTHETIC_EVAL, pixel_baseline=True),
+  ),
+  # The second stage: `pretrain`'s two models trained on, on the same scenes, with the input
+  # views scored too and the sharp model and filter above.
+  "finetune": Experiment(
+    output_dir="outputs/re10k/finetune",
+    synthetic_dir="outputs/synthetic_re10k_pretrain",
+    checkpoint="outputs/re10k/pretrain/params.msgpack",
+    model=_SHARP_MODEL,
+    train=TrainSettings(
+      steps=1000,
+      learning_rate=3e-4,
+      warmup_steps=50,
+      use_input_supervision=True,
+      eps2d=_SHARP_EPS2D,
+    ),
     eval=dataclasses.replace(_SYNTHETIC_EVAL, pixel_baseline=True),
   ),
   "smoke": Experiment(

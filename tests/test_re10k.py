@@ -25,11 +25,12 @@ SMOKE_SCALE = [
 
 
 def test_entry_point_end_to_end(tmp_path):
-  """`python -m experiments.re10k run pretrain` (the command that trained the shipped weights)
-  at the smoke preset's scale: generate (the varied family), train TokenGS and the
-  pixel-aligned baseline from scratch, evaluate with geometry, write every file; then ship the
-  run's weights as the shipped ones were (`experiments.weights ship`), and re-evaluate the run
-  from its folder alone (`eval --from-run`) to the same scores."""
+  """`python -m experiments.re10k run pretrain` then `run finetune` (the two commands that
+  trained the shipped weights) at the smoke preset's scale: generate (the varied family), train
+  TokenGS and the pixel-aligned baseline from scratch, evaluate with geometry, write every file;
+  train both on from there with the finetune recipe; then ship those weights as the shipped ones
+  were (`experiments.weights ship`), and re-evaluate the run from its folder alone
+  (`eval --from-run`) to the same scores."""
   out = tmp_path / "results"
   run_entry_point(
     "-m",
@@ -87,11 +88,24 @@ def test_entry_point_end_to_end(tmp_path):
   ply = export.read_ply(out / "gaussians.ply")
   assert ply["means"].shape == (64, 3) and np.isfinite(ply["means"]).all()
 
+  # the second stage, from both of the first's models
+  pretrained, out = out, tmp_path / "finetuned"
+  finetune = run_entry_point(
+    *("-m", "experiments.re10k", "run", "finetune", "--checkpoint", pretrained / "params.msgpack"),
+    *("--output-dir", out, "--synthetic-dir", tmp_path / "data", *SMOKE_SCALE),
+  )
+  assert f"[pixel_aligned] starting from {pretrained / 'pixel_aligned.msgpack'}" in finetune.stdout
+  payload = json.loads((out / "metrics.json").read_text())
+  train, config = payload["experiment"]["train"], payload["experiment"]["model"]
+  assert train["use_input_supervision"] and train["eps2d"] == 0.1 and train["steps"] == 3
+  assert config["viewer_colour_sharpness"] == 1000.0
+  assert "pixel_aligned" in payload["metrics"]
+
   run_entry_point("-m", "experiments.weights", "ship", out, tmp_path / "shipped")
   provenance = json.loads((tmp_path / "shipped" / "provenance.json").read_text())
   assert set(provenance["files"]) == {"params.msgpack", "pixel_aligned.msgpack"}
   assert provenance["experiment"] == payload["experiment"]
-  assert provenance["command"].startswith("python -m experiments.re10k run pretrain")
+  assert provenance["command"].startswith("python -m experiments.re10k run finetune")
 
   # re-evaluated from its folder alone (`eval --from-run`): the same settings, the same scores
   run_entry_point("-m", "experiments.re10k", "eval", "--from-run", out)

@@ -40,7 +40,7 @@ def render_targets(
   context_images=None,
   compact: bool = False,
 ) -> Rendered:
-  """Renders cameras as training supervises them (the objective's background, near / far).
+  """Renders cameras as training supervises them (the objective's background, near / far, eps2d).
 
   The single render of evaluation (scores, grids, fly-throughs, studies): exact by construction
   (`splatting.render_exact` re-renders any camera whose intersection budget overflowed).
@@ -50,8 +50,8 @@ def render_targets(
     c2w: [B, V, 4, 4] camera-to-world.
     intrinsics: [B, V, 4] in pixels.
     height, width: image size.
-    render_config: renderer settings (default `RenderConfig()`).
-    objective: background and near / far (default: the official grey background).
+    render_config: renderer settings (default `RenderConfig()`; its eps2d is the objective's).
+    objective: background, near / far and eps2d (default: the official grey background).
     context_images: [B, Vi, H, W, 3] the input views, behind an "input_mean" background.
     compact: first move out the Gaussians no camera can draw (`splatting.compaction`; the same
       images, exactly). Off by default: on the shipped defaults it does not pay
@@ -64,7 +64,7 @@ def render_targets(
   per_view = len(gaussians.batch_shape) == world_to_camera.ndim - 2
   if per_view:  # each set seen by its own camera: a batch [B, V] of single-camera renders
     world_to_camera, intrinsics = world_to_camera[..., None, :, :], intrinsics[..., None, :]
-  settings = render_settings(objective, context_images, world_to_camera)
+  settings = render_settings(objective, context_images, world_to_camera, render_config)
   if compact:
     gaussians = splatting.compaction.compact_for_cameras(
       gaussians,
@@ -74,16 +74,10 @@ def render_targets(
       width=width,
       near=settings["near"],
       far=settings["far"],
-      config=render_config,
+      config=settings["config"],
     )
   result = splatting.render_exact(
-    gaussians,
-    world_to_camera,
-    intrinsics,
-    height=height,
-    width=width,
-    config=render_config,
-    **settings,
+    gaussians, world_to_camera, intrinsics, height=height, width=width, **settings
   )
   views = [np.asarray(x) for x in (result.rgb, result.depth, result.alpha)]
   if per_view:

@@ -21,6 +21,8 @@ A Gaussian's velocity is the difference quotient of its centre between the view'
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 
@@ -77,7 +79,7 @@ def flow_loss(
     intrinsics[:, :, None],
     height=flows.shape[-3],
     width=flows.shape[-2],
-    config=render_config,
+    config=dataclasses.replace(render_config, eps2d=objective.eps2d),
     near=objective.near,
     far=objective.far,
   )

@@ -2,12 +2,13 @@
 render (`background_colours`), handed to the renderer as `render_settings`.
 
 Training, tuning and evaluation read the same settings, so that a model is scored over the
-background and near / far it was supervised with.
+background, near / far and low-pass filter it was supervised with.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Literal
 
 import jax
@@ -35,6 +36,10 @@ class ObjectiveConfig:
       the input views too, as further supervision views after the targets (official
       `use_input_supervision`, off by default; `model_loss.supervised_views`). Tuning, which
       supervises the input views anyway, and evaluation, which scores the targets, ignore it.
+    eps2d: the screen-space low-pass added to every splat's 2D covariance in the objective's
+      renders; it replaces the `RenderConfig.eps2d` they are given (`render_settings`), so
+      weights trained with a filter are tuned and scored with it. 0.3: gsplat's default, which
+      the official weights were trained with.
   """
 
   view_chunk_size: int | None = None
@@ -43,8 +48,11 @@ class ObjectiveConfig:
   far: float = 125.0
   decode_times: Literal["per_view", "first"] = "per_view"
   use_input_supervision: bool = False
+  eps2d: float = 0.3
 
   def __post_init__(self):
+    if not (math.isfinite(self.eps2d) and self.eps2d >= 0):
+      raise ValueError(f"eps2d must be finite and >= 0, got {self.eps2d!r}")
     if self.decode_times not in ("per_view", "first"):
       raise ValueError(f"decode_times must be 'per_view' or 'first', got {self.decode_times!r}")
     rgb = not isinstance(self.background, str) and len(self.background) == 3
@@ -68,13 +76,17 @@ def background_colours(objective: ObjectiveConfig, context_images, world_to_came
   return mean.reshape(mean.shape[:1] + (1,) * (jnp.ndim(world_to_camera) - 3) + (3,))
 
 
-def render_settings(objective: ObjectiveConfig, context_images, world_to_camera) -> dict:
+def render_settings(
+  objective: ObjectiveConfig, context_images, world_to_camera, render_config
+) -> dict:
   """The keyword arguments of `splatting.render` / `render_exact` that `objective` decides for
-  renders into views `world_to_camera` [B, ..., V, 4, 4]: `background` (`background_colours`)
-  and the `near` / `far` culling. Training, tuning and evaluation all render through it, so a
-  run is scored with the render settings it was trained with."""
+  renders into views `world_to_camera` [B, ..., V, 4, 4]: `background` (`background_colours`),
+  the `near` / `far` culling and `config`: `render_config` (a `splatting.RenderConfig`) with the
+  objective's `eps2d`. Training, tuning and evaluation all render through it, so a run is scored
+  with the render settings it was trained with."""
   return dict(
     background=background_colours(objective, context_images, world_to_camera),
     near=objective.near,
     far=objective.far,
+    config=dataclasses.replace(render_config, eps2d=objective.eps2d),
   )

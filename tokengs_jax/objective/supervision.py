@@ -73,8 +73,7 @@ def render_views(
     intrinsics,
     height=height,
     width=width,
-    config=render_config,
-    **render_settings(objective, context_images, world_to_camera),
+    **render_settings(objective, context_images, world_to_camera, render_config),
   )
 
 
