@@ -23,15 +23,19 @@ Presets:
   150x larger head initialisation (`clip_head_readout_std=0.3`: the official 0.002 starts every
   Gaussian in one clump, which a few CPU minutes cannot spread over a room) and Gaussian colours
   read from the input views, each view weighted toward the rendering camera's ray
-  (`gaussian_colours="inputs"`, `input_colour_weights="viewer"`; not in the paper;
-  docs/generalisation.md).
-- `pretrain`: what trained the shipped weights: the same model from scratch on 960 scenes for
-  6000 steps (batch 4, 2 context + 2 target views, lr 3e-3 cosine, 100 warm-up), with the
-  pixel-aligned baseline trained the same way (`--eval.pixel-baseline`); about 35 minutes idle
-  (TokenGS 20 min; the shipped pixel-aligned weights are session 12's run of the same recipe,
-  which the token count does not change).
-  `python -m experiments.weights ship outputs/re10k/pretrain experiments/pretrained/re10k_synthetic`
-  ships its output.
+  (`gaussian_colours="inputs"`, `input_colour_weights="viewer"`, here at sharpness 1000; not in
+  the paper), rendered with a third of gsplat's low-pass filter (`--train.eps2d 0.1`), as the
+  weights were finetuned (docs/generalisation.md).
+- `pretrain`: the first stage of the shipped weights: the model (at sharpness 100 and gsplat's
+  filter) from scratch on 960 scenes for 6000 steps (batch 4, 2 context + 2 target views, lr
+  3e-3 cosine, 100 warm-up), with the pixel-aligned baseline trained the same way
+  (`--eval.pixel-baseline`); about 35 minutes idle.
+- `finetune`: the second stage: both of `pretrain`'s models (`--checkpoint`, and the
+  pixel-aligned weights beside it) trained on for 1000 steps (lr 3e-4 cosine, 50 warm-up) on the
+  same scenes with the input views scored too (`--train.use-input-supervision`), sharpness 1000
+  and `--train.eps2d 0.1`; about 10 minutes idle. `python -m experiments.weights ship
+  outputs/re10k/finetune experiments/pretrained/re10k_synthetic` ships its output, with
+  `pretrain`'s record under `started_from`.
 - `smoke`: the same pipeline at 32x32 with a one-block model, for tests (seconds, not minutes).
 - `paper`: the paper's RE10K base training (256x256, 6/24 layers, 1024 tokens, global batch 64,
   150k steps, cosine lr 4e-4 with 2k warm-up, DepthSplat sampler, translation scale 0.25).

@@ -100,19 +100,36 @@ def ship(run_dir, destination) -> dict:
   training time, the commit and each file's SHA-256, so the shipped weights can be reproduced
   and checked (`tests/test_pretrained.py`).
 
+  A run that started from a checkpoint records, under `started_from`, the record of the weights
+  it started from (`_record_of_start`), so a chain of stages stays reproducible after the
+  earlier stage's weights are overwritten.
+
   Weights already shipped in `destination` that the run did not write (a baseline it did not
   retrain) stay, and their record in the previous `provenance.json` moves under `carried_over`
   (a file that record does not vouch for, by name and SHA-256, is refused)."""
   run_dir, destination = pathlib.Path(run_dir), pathlib.Path(destination)
-  metrics = json.loads((run_dir / "metrics.json").read_text())
-  sources = {path.name: path for path in sorted(run_dir.glob("*.msgpack"))}
-  carried_over = _carried_over(destination, set(sources))
+  provenance = _run_record(run_dir)
+  checkpoint = provenance["experiment"].get("checkpoint")
+  started_from = _record_of_start(pathlib.Path(checkpoint)) if checkpoint else None
+  carried_over = _carried_over(destination, set(provenance["files"]))
   destination.mkdir(parents=True, exist_ok=True)
+  for name in provenance["files"]:
+    shutil.copyfile(run_dir / name, destination / name)
   files = {name: record["sha256"] for name, record in carried_over.items()}
-  for name, source in sources.items():
-    shutil.copyfile(source, destination / name)
-    files[name] = sha256(source)
-  provenance = {
+  provenance["files"] = dict(sorted({**files, **provenance["files"]}.items()))
+  if started_from is not None:
+    provenance["started_from"] = started_from
+  if carried_over:
+    provenance["carried_over"] = carried_over
+  (destination / "provenance.json").write_text(json.dumps(provenance, indent=1) + "\n")
+  return provenance
+
+
+def _run_record(run_dir: pathlib.Path) -> dict:
+  """What `ship` records of a finished run: its metrics.json's command, commit, experiment,
+  training time and devices, and the SHA-256 of each weights file it wrote."""
+  metrics = json.loads((run_dir / "metrics.json").read_text())
+  return {
     "command": metrics["command"],
     "commit": metrics.get("commit"),
     "experiment": metrics["experiment"],
@@ -120,12 +137,27 @@ def ship(run_dir, destination) -> dict:
     "train_seconds": metrics.get("train_seconds"),
     "total_seconds": metrics.get("total_seconds"),
     "devices": metrics.get("devices"),
-    "files": dict(sorted(files.items())),
+    "files": {path.name: sha256(path) for path in sorted(run_dir.glob("*.msgpack"))},
   }
-  if carried_over:
-    provenance["carried_over"] = carried_over
-  (destination / "provenance.json").write_text(json.dumps(provenance, indent=1) + "\n")
-  return provenance
+
+
+def _record_of_start(checkpoint: pathlib.Path) -> dict:
+  """The record of the weights a run started from: the `provenance.json` of shipped weights (it
+  must vouch for the checkpoint's SHA-256), or the record of the run folder that wrote them (not
+  what that run started from: its checkpoint's path may since hold other weights); a checkpoint
+  with neither is recorded by its SHA-256 alone."""
+  if not checkpoint.exists():
+    raise ValueError(f"{checkpoint}, which the run started from, is gone: nothing vouches for it")
+  folder, digest = checkpoint.parent, sha256(checkpoint)
+  if (folder / "provenance.json").exists():
+    record = json.loads((folder / "provenance.json").read_text())
+  elif (folder / "metrics.json").exists():
+    record = _run_record(folder)
+  else:
+    return {"files": {checkpoint.name: digest}}
+  if record["files"].get(checkpoint.name) != digest:
+    raise ValueError(f"{checkpoint} is not the file its folder's record describes")
+  return record
 
 
 def _carried_over(destination: pathlib.Path, written: set[str]) -> dict:

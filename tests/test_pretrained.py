@@ -1,7 +1,7 @@
 """The shipped weights (experiments/pretrained/): intact, and exactly what the defaults load.
 
-The commands that trained them (`python -m experiments.re10k run pretrain`, `python -m
-experiments.kubric run pretrain`) run at a small scale in `tests/test_re10k.py`
+The commands that trained them (`python -m experiments.re10k run pretrain` then `run finetune`,
+`python -m experiments.kubric run pretrain`) run at a small scale in `tests/test_re10k.py`
 (`test_entry_point_end_to_end`, which also ships its output the same way) and
 `tests/test_kubric_entry_point.py` (`test_kubric_entry_point_end_to_end`, which starts from static
 weights as the Kubric one does).
@@ -19,13 +19,24 @@ from experiments.config import PRETRAINED_KUBRIC, PRETRAINED_SYNTHETIC, PRETRAIN
 from tokengs_jax import model
 
 TOKENGS_AND_PIXEL_ALIGNED = {"params.msgpack", "pixel_aligned.msgpack"}
-# (presets, shipped folder, the files it holds) of each default's weights
+# (presets, shipped folder, the files it holds, the presets that trained them in order) of each
+# default's weights
 SHIPPED = {
-  "re10k": (re10k.PRESETS, PRETRAINED_SYNTHETIC, TOKENGS_AND_PIXEL_ALIGNED),
-  "kubric": (kubric.PRESETS, PRETRAINED_KUBRIC, {"params.msgpack", "static_only.msgpack"}),
+  "re10k": (
+    re10k.PRESETS,
+    PRETRAINED_SYNTHETIC,
+    TOKENGS_AND_PIXEL_ALIGNED,
+    ("pretrain", "finetune"),
+  ),
+  "kubric": (
+    kubric.PRESETS,
+    PRETRAINED_KUBRIC,
+    {"params.msgpack", "static_only.msgpack"},
+    ("pretrain",),
+  ),
 }
 # shipped folder -> the files it holds, the Kubric default's static base included
-FOLDERS = {folder: files for _, folder, files in SHIPPED.values()} | {
+FOLDERS = {folder: files for _, folder, files, _ in SHIPPED.values()} | {
   PRETRAINED_SYNTHETIC_128: TOKENGS_AND_PIXEL_ALIGNED
 }
 REPO = pathlib.Path(__file__).resolve().parent.parent
@@ -39,8 +50,8 @@ def _provenance(folder: pathlib.Path) -> dict:
 
 @pytest.fixture(scope="module", params=sorted(SHIPPED))
 def shipped(request):
-  presets, folder, files = SHIPPED[request.param]
-  return presets, folder, files, _provenance(folder)
+  presets, folder, files, stages = SHIPPED[request.param]
+  return presets, folder, files, _provenance(folder), stages
 
 
 @pytest.mark.parametrize("folder", sorted(FOLDERS), ids=lambda folder: folder.name)
@@ -78,27 +89,39 @@ def _in_repository(path: str | None) -> str | None:
   return str(path)
 
 
-def _assert_recorded_as(provenance: dict, preset) -> None:
+def _assert_recorded_as(provenance: dict, preset, *, checkpoint_by_path: bool = True) -> None:
   """The recorded experiment is `preset`, apart from NOT_WEIGHT_FIELDS and how it evaluated, which
   the weights do not depend on; a starting checkpoint in the repository is compared by its path
-  there, and a record older than a setting is upgraded as it is on loading."""
+  there (unless `checkpoint_by_path` is False: a later stage, whose start is checked by its
+  record instead), and a record older than a setting is upgraded as it is on loading."""
   recorded = dict(provenance["experiment"])
   # an older record reads as its class reads it (`config.from_fields`)
   recorded = getattr(type(preset), "upgrade_record", lambda fields: fields)(recorded)
-  assert _in_repository(recorded.pop("checkpoint")) == _in_repository(preset.checkpoint)
+  checkpoint = recorded.pop("checkpoint")
+  if checkpoint_by_path:
+    assert _in_repository(checkpoint) == _in_repository(preset.checkpoint)
   recorded.pop("eval")
   expected = json.loads(json.dumps(dataclasses.asdict(preset)))
   assert set(_recorded_fields_differing(recorded, expected)) <= NOT_WEIGHT_FIELDS
 
 
-def test_shipped_weights_come_from_the_pretrain_preset(shipped):
-  """Recorded as the `pretrain` preset (`_assert_recorded_as`), so the preset reproduces them;
-  and its model is the one the default loads them into."""
-  presets, _, _, provenance = shipped
-  pretrain = presets["pretrain"]
-  _assert_recorded_as(provenance, pretrain)
-  assert pretrain.model == presets["synthetic-tiny"].model
-  assert pretrain.checkpoint is None or (REPO / _in_repository(pretrain.checkpoint)).exists()
+def test_shipped_weights_come_from_their_presets_stage_by_stage(shipped):
+  """Each stage is recorded as its preset (`_assert_recorded_as`), the earlier stage under the
+  later one's `started_from` (`experiments.weights.ship`), so the presets reproduce the weights;
+  a later preset starts from the earlier one's output, and the last stage's model is the one the
+  default loads them into."""
+  presets, _, _, provenance, stages = shipped
+  for earlier, later in zip(stages, stages[1:]):
+    assert presets[later].checkpoint == f"{presets[earlier].output_dir}/params.msgpack"
+  record = provenance
+  for stage in reversed(stages[1:]):
+    _assert_recorded_as(record, presets[stage], checkpoint_by_path=False)
+    assert pathlib.PurePath(record["experiment"]["checkpoint"]).name == "params.msgpack"
+    record = record["started_from"]
+  first = presets[stages[0]]
+  _assert_recorded_as(record, first)
+  assert first.checkpoint is None or (REPO / _in_repository(first.checkpoint)).exists()
+  assert presets[stages[-1]].model == presets["synthetic-tiny"].model
 
 
 def test_the_kubric_static_base_is_the_re10k_recipe_at_its_128_tokens():
@@ -115,7 +138,7 @@ def test_the_kubric_static_base_is_the_re10k_recipe_at_its_128_tokens():
 
 
 def test_default_starts_from_the_shipped_weights_with_nothing_fresh(shipped):
-  presets, folder, files, _ = shipped
+  presets, folder, files, _, _ = shipped
   default = presets["synthetic-tiny"]
   assert default.checkpoint == str(folder / "params.msgpack")
   configs = {"params.msgpack": default.model}

@@ -28,11 +28,15 @@ def test_official_weights_seed_a_grown_model_for_finetuning_but_must_match_for_e
     weights.initial_params(experiment, finetune=False)
 
 
-def _finished_run(folder: pathlib.Path, command: str, **weights_files: bytes) -> pathlib.Path:
-  """A run folder as `ship` reads it: metrics.json and the named weights files."""
+def _finished_run(
+  folder: pathlib.Path, command: str, checkpoint=None, **weights_files: bytes
+) -> pathlib.Path:
+  """A run folder as `ship` reads it: metrics.json (its experiment started from `checkpoint`)
+  and the named weights files."""
   folder.mkdir()
+  experiment = {} if checkpoint is None else {"checkpoint": str(checkpoint)}
   (folder / "metrics.json").write_text(
-    json.dumps({"command": command, "commit": command + "-commit", "experiment": {}})
+    json.dumps({"command": command, "commit": command + "-commit", "experiment": experiment})
   )
   for name, content in weights_files.items():
     (folder / f"{name}.msgpack").write_bytes(content)
@@ -65,3 +69,32 @@ def test_shipping_a_run_keeps_the_baselines_it_did_not_retrain_with_their_record
     weights.ship(second, shipped)
   assert (shipped / "params.msgpack").read_bytes() == b"newer"
   assert json.loads((shipped / "provenance.json").read_text())["command"] == "again"
+
+
+def test_shipping_a_later_stage_records_the_weights_it_started_from(tmp_path):
+  shipped = tmp_path / "shipped"
+  first = weights.ship(_finished_run(tmp_path / "first", "stage 1", params=b"1"), shipped)
+  assert "started_from" not in first
+  # started from the shipped weights it overwrites: their record is kept whole
+  second_run = _finished_run(
+    tmp_path / "second", "stage 2", checkpoint=shipped / "params.msgpack", params=b"2"
+  )
+  second = weights.ship(second_run, shipped)
+  assert second["started_from"] == first and (shipped / "params.msgpack").read_bytes() == b"2"
+  # started from a run folder: that run's record, and so on down the chain
+  third_run = _finished_run(
+    tmp_path / "third", "stage 3", checkpoint=second_run / "params.msgpack", params=b"3"
+  )
+  third = weights.ship(third_run, tmp_path / "elsewhere")
+  assert third["started_from"] == {
+    **{field: second[field] for field in ("command", "commit", "experiment")},
+    **{field: None for field in ("train_steps", "train_seconds", "total_seconds", "devices")},
+    "files": {"params.msgpack": weights.sha256(second_run / "params.msgpack")},
+  }
+  # shipped weights their record does not vouch for, or weights that are gone, are refused
+  (shipped / "params.msgpack").write_bytes(b"edited")
+  with pytest.raises(ValueError, match="not the file its folder's record describes"):
+    weights.ship(second_run, shipped)
+  (second_run / "params.msgpack").unlink()
+  with pytest.raises(ValueError, match="is gone"):
+    weights.ship(third_run, tmp_path / "elsewhere")
