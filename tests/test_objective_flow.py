@@ -69,7 +69,10 @@ def test_velocities_are_the_centres_difference_quotient():
   np.testing.assert_allclose(velocities(gaussians, later), velocity, rtol=1e-4, atol=1e-4)
 
 
-@pytest.mark.parametrize("decode_times", ["first", "per_view"])
+# "first" is slow: "per_view" decodes at every view's time, the harder case of the same sum
+@pytest.mark.parametrize(
+  "decode_times", [pytest.param("first", marks=pytest.mark.slow), "per_view"]
+)
 def test_the_dynamic_loss_adds_the_weighted_flow_term(decode_times):
   """`lambda_flow` adds lambda x "flow" to the loss, and a flow map the model's motion cannot
   match gives the term a gradient in the network's parameters; without the weight (or without

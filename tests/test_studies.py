@@ -731,6 +731,7 @@ def test_visibility_main_end_to_end(smoke_study, smoke_model, tmp_path):
   assert (pathlib.Path(settings.output_dir) / "visibility" / "visibility.png").exists()
 
 
+@pytest.mark.slow  # compiles a train step per view count
 def test_train_variable_views_changes_the_weights(smoke_study, smoke_model):
   experiment = dataclasses.replace(  # a batch of 4: one example per (virtual) device
     smoke_study.experiment,

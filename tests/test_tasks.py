@@ -12,6 +12,7 @@ import pathlib
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from experiments import data, re10k, results, tasks
 from small_experiments import small_smoke as _small_smoke
@@ -163,6 +164,7 @@ def test_eval_exports_scenes_under_their_names_without_transparent_gaussians(tmp
   assert not (every / "flythrough").exists()  # no video frames
 
 
+@pytest.mark.slow  # compiles the VGG network's gradient
 def test_lpips_term_reaches_both_trained_models_but_not_token_tuning(tmp_path):
   smoke = re10k.PRESETS["smoke"]
   experiment = _small_smoke(tmp_path, {"pixel_baseline": True}, lambda_lpips=0.5)
