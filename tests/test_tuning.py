@@ -7,7 +7,15 @@ import pytest
 
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.splatting import RenderConfig, larger_budget
-from tokengs_jax.tuning import TuningConfig, _constrained, _offset, _tune_once, _unconstrained, tune
+from tokengs_jax.tuning import (
+  TuningConfig,
+  _adam_scan,
+  _constrained,
+  _offset,
+  _tune_once,
+  _unconstrained,
+  tune,
+)
 
 HEIGHT = WIDTH = 32
 
@@ -38,6 +46,29 @@ def test_gaussian_offsets_round_trip():
   shifted = _offset(g, jax.tree.map(jnp.ones_like, g))
   assert np.all((shifted.opacities > 0) & (shifted.opacities < 1)) and np.all(shifted.scales > 0)
   assert_close(_constrained(_unconstrained(g)), g)
+
+
+@pytest.mark.parametrize("schedule", ["constant", "cosine"])
+def test_the_schedule_sets_each_steps_rate(schedule):
+  """On a linear loss each Adam step moves by its rate (the normalised gradient is 1): the
+  official constant rate, or a cosine from the rate at the first step to 0 after the last,
+  half of it at the middle step, for each tuned variable with its own rate."""
+  steps = 50
+  rates = {"tokens": 1e-2, "gaussians": 3e-2}
+  variables = {name: jnp.zeros(()) for name in rates}
+  tuning = TuningConfig(steps=steps, schedule=schedule)
+
+  def loss_and_aux(v):
+    return v["tokens"] + v["gaussians"], v
+
+  _, _, trajectory = _adam_scan(loss_and_aux, variables, rates, tuning)
+  for name, rate in rates.items():
+    moves = -np.diff(np.asarray(trajectory[name]))  # the moves of steps 0 .. steps - 2
+    if schedule == "constant":
+      np.testing.assert_allclose(moves, rate, rtol=1e-4)
+    else:
+      np.testing.assert_allclose(moves[[0, steps // 2]], [rate, rate / 2], rtol=1e-3)
+      assert np.all(np.diff(moves) < 0) and moves[-1] < rate * 5e-3
 
 
 @pytest.mark.slow

@@ -56,6 +56,8 @@ class TuningConfig:
     steps: Adam steps.
     learning_rate: for tokens / latents (paper: 1e-4).
     gaussian_learning_rate: for Gaussian offsets ("gaussians", "tokens+gaussians").
+    schedule: "constant" (the official tuning's) or "cosine": each rate decays to 0 over the
+      steps (a deviation, so that a high rate's early gain is not spent in oscillation later).
     b1, b2: Adam moments (torch defaults, as the official tuning).
   """
 
@@ -63,6 +65,7 @@ class TuningConfig:
   steps: int = 50
   learning_rate: float = 1e-4
   gaussian_learning_rate: float = 1e-3
+  schedule: Literal["constant", "cosine"] = "constant"
   b1: float = 0.9
   b2: float = 0.999
 
@@ -361,8 +364,17 @@ def _adam_scan(loss_and_aux, variables: dict, learning_rates: dict, tuning: Tuni
   loss_and_aux: `variables -> ([] loss, aux pytree)`.
   Returns `(variables after the last step, losses [steps] and aux [steps, ...] before each)`.
   """
+
+  def schedule(rate):
+    if tuning.schedule == "cosine":
+      return optax.cosine_decay_schedule(rate, tuning.steps)
+    return rate
+
   optimizer = optax.multi_transform(
-    {name: optax.adam(rate, b1=tuning.b1, b2=tuning.b2) for name, rate in learning_rates.items()},
+    {
+      name: optax.adam(schedule(rate), b1=tuning.b1, b2=tuning.b2)
+      for name, rate in learning_rates.items()
+    },
     {name: name for name in variables},
   )
 
