@@ -54,12 +54,12 @@ def test_the_schedule_sets_each_steps_rate(schedule):
   official constant rate, or a cosine from the rate at the first step to 0 after the last,
   half of it at the middle step, for each tuned variable with its own rate."""
   steps = 50
-  rates = {"tokens": 1e-2, "gaussians": 3e-2}
+  rates = {"tokens": 1e-2, "offsets": 3e-2}
   variables = {name: jnp.zeros(()) for name in rates}
   tuning = TuningConfig(steps=steps, schedule=schedule)
 
   def loss_and_aux(v):
-    return v["tokens"] + v["gaussians"], v
+    return v["tokens"] + v["offsets"], v
 
   _, _, trajectory = _adam_scan(loss_and_aux, variables, rates, tuning)
   for name, rate in rates.items():
@@ -69,6 +69,13 @@ def test_the_schedule_sets_each_steps_rate(schedule):
     else:
       np.testing.assert_allclose(moves[[0, steps // 2]], [rate, rate / 2], rtol=1e-3)
       assert np.all(np.diff(moves) < 0) and moves[-1] < rate * 5e-3
+  # no steps: nothing to schedule (the feed-forward result)
+  unmoved, no_losses, _ = _adam_scan(
+    loss_and_aux, variables, rates, TuningConfig(steps=0, schedule=schedule)
+  )
+  assert no_losses.shape == (0,) and unmoved == variables
+  with pytest.raises(ValueError, match="unknown tuning schedule 'linear'"):
+    _adam_scan(loss_and_aux, variables, rates, TuningConfig(steps=steps, schedule="linear"))
 
 
 @pytest.mark.slow

@@ -366,9 +366,11 @@ def _adam_scan(loss_and_aux, variables: dict, learning_rates: dict, tuning: Tuni
   """
 
   def schedule(rate):
+    if tuning.schedule == "constant" or tuning.steps == 0:
+      return rate
     if tuning.schedule == "cosine":
       return optax.cosine_decay_schedule(rate, tuning.steps)
-    return rate
+    raise ValueError(f"unknown tuning schedule {tuning.schedule!r}")
 
   optimizer = optax.multi_transform(
     {
