@@ -233,7 +233,7 @@ class EvalSettings:
   tuning_learning_rate: float = 1e-4
   tuning_target: tuning.Target = "tokens"
   tuning_gaussian_learning_rate: float = 1e-3
-  tuning_schedule: Literal["constant", "cosine"] = "constant"
+  tuning_schedule: tuning.Schedule = "constant"
   lpips: bool = True
   grid_scenes: int = 4
   video_frames: int = 48

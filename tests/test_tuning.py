@@ -74,8 +74,9 @@ def test_the_schedule_sets_each_steps_rate(schedule):
     loss_and_aux, variables, rates, TuningConfig(steps=0, schedule=schedule)
   )
   assert no_losses.shape == (0,) and unmoved == variables
-  with pytest.raises(ValueError, match="unknown tuning schedule 'linear'"):
-    _adam_scan(loss_and_aux, variables, rates, TuningConfig(steps=steps, schedule="linear"))
+  for unknown in (TuningConfig(steps=steps, schedule="linear"), TuningConfig(steps=0, schedule="")):
+    with pytest.raises(ValueError, match="unknown tuning schedule"):
+      _adam_scan(loss_and_aux, variables, rates, unknown)
 
 
 @pytest.mark.slow

@@ -32,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
+import typing
 from typing import Literal
 
 import jax
@@ -45,6 +46,7 @@ from tokengs_jax.model.inputs import check_times
 from tokengs_jax.objective import ObjectiveConfig, supervision_loss, time_conditioned_loss
 
 Target = Literal["tokens", "latents", "gaussians", "tokens+gaussians"]
+Schedule = Literal["constant", "cosine"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,7 +67,7 @@ class TuningConfig:
   steps: int = 50
   learning_rate: float = 1e-4
   gaussian_learning_rate: float = 1e-3
-  schedule: Literal["constant", "cosine"] = "constant"
+  schedule: Schedule = "constant"
   b1: float = 0.9
   b2: float = 0.999
 
@@ -365,12 +367,13 @@ def _adam_scan(loss_and_aux, variables: dict, learning_rates: dict, tuning: Tuni
   Returns `(variables after the last step, losses [steps] and aux [steps, ...] before each)`.
   """
 
-  def schedule(rate):
-    if tuning.schedule == "constant" or tuning.steps == 0:
-      return rate
-    if tuning.schedule == "cosine":
-      return optax.cosine_decay_schedule(rate, tuning.steps)
+  if tuning.schedule not in typing.get_args(Schedule):
     raise ValueError(f"unknown tuning schedule {tuning.schedule!r}")
+
+  def schedule(rate):
+    if tuning.schedule == "cosine" and tuning.steps > 0:  # optax needs a positive decay length
+      return optax.cosine_decay_schedule(rate, tuning.steps)
+    return rate
 
   optimizer = optax.multi_transform(
     {
