@@ -86,6 +86,9 @@ class TrainSettings:
       synthetic set refuse it on construction.
     use_input_supervision: also score the input views in the training loss (official
       `use_input_supervision`; `ObjectiveConfig.use_input_supervision`); off, as official.
+    cross_view_renders: also score each input view rendered with the colours of the other
+      views only, in training and token tuning (`ObjectiveConfig.cross_view_renders`; static
+      models with colours read from the inputs by viewer weights); off (not in the paper).
     eps2d: the renderer's screen-space low-pass (gsplat's `eps2d`, px² added to every splat's
       2D covariance) in every render of the run's objective: training, token tuning and
       evaluation (`ObjectiveConfig.eps2d`); 0.3: gsplat's default, as the official weights.
@@ -140,6 +143,7 @@ class TrainSettings:
   lambda_opacity: float = 0.0
   lambda_mask: float = 0.0
   use_input_supervision: bool = False
+  cross_view_renders: bool = False
   eps2d: float = 0.3
   grad_accum_steps: int = 1
   eval_every: int = 0
@@ -338,6 +342,11 @@ class Experiment:
       raise ValueError(
         f"train.lambda_mask must be 0 on {self.dataset} (and the synthetic set): its examples "
         "carry no foreground masks (Kubric's do: python -m experiments.kubric)"
+      )
+    if self.train.cross_view_renders and not self.model.viewer_dependent:
+      raise ValueError(
+        "train.cross_view_renders needs colours read from the input views with viewer weights "
+        "(--model.gaussian-colours inputs --model.input-colour-weights viewer)"
       )
 
   @property

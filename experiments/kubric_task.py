@@ -115,6 +115,8 @@ class KubricExperiment(Experiment):
       )
     if self.train.lambda_depth > 0:
       raise ValueError("train.lambda_depth must be 0 on Kubric: its examples carry no true depth")
+    if self.train.cross_view_renders:
+      raise ValueError("train.cross_view_renders is for static models (experiments.re10k)")
     if (self.train.lambda_mask > 0 or self.lambda_flow > 0) and self.train.use_input_supervision:
       raise ValueError(
         "train.lambda_mask and lambda_flow need every supervised view's per-pixel truth, and the "

@@ -112,6 +112,7 @@ class Task:
     return ObjectiveConfig(
       view_chunk_size=experiment.train.view_chunk_size,
       use_input_supervision=experiment.train.use_input_supervision,
+      cross_view_renders=experiment.train.cross_view_renders,
       eps2d=experiment.train.eps2d,
     )
 

@@ -88,6 +88,8 @@ def test_kubric_presets_keep_their_loss_and_honour_the_common_train_flags(capsys
   assert "Unrecognized" in _refusal(capsys, parse, "--rgb-loss", "l2")  # the duplicate flag
   said = _refusal(capsys, parse, "--train.lambda-depth", "0.1")
   assert "lambda_depth must be 0 on Kubric" in said
+  said = _refusal(capsys, parse, "--train.cross-view-renders")
+  assert "cross_view_renders is for static models" in said
   assert "dyn_aux_on_motion needs lambda_motion" in _refusal(capsys, parse, "--lambda-motion", "0")
 
   old = json.loads(json.dumps(dataclasses.asdict(kubric.PRESETS["pretrain"]), default=str))

@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 from scenes import (
   DYNAMIC_CONFIG,
+  MICRO,
   dynamic_batch,
   dynamic_params,
+  gaussians_in_front,
   scene_of_two_examples,
   synthetic_batch,
 )
@@ -20,6 +22,8 @@ from tokengs_jax import losses, model, splatting
 from tokengs_jax.camera import invert_rigid
 from tokengs_jax.objective import (
   ObjectiveConfig,
+  dynamic_model_loss,
+  static_model_loss,
   supervision_loss,
   time_conditioned_loss,
   tokengs_loss_fn,
@@ -458,3 +462,63 @@ def test_objectives_render_one_set_per_view_as_each_view_alone():
 def _sets_of(gaussians):
   """Gaussians [B, V] -> the V sets [B]."""
   return [jax.tree.map(lambda a: a[:, v], gaussians) for v in range(gaussians.batch_shape[1])]
+
+
+def test_cross_view_renders_score_the_inputs_again_coloured_by_the_other_views():
+  """`cross_view_renders`: the supervision views are the targets (and the inputs, under input
+  supervision) coloured by the model as configured, then every input view again, coloured with
+  `own_view_colours=False` (a stand-in `reconstruct` paints each set by the config it is given).
+  Refused for a model whose colours do not depend on the camera and for time-conditioned ones."""
+  batch = synthetic_batch(batch_size=1, context_views=2, target_views=2)
+  config = MICRO.replace(gaussian_colours="inputs", input_colour_weights="viewer")
+  keys = jax.random.split(jax.random.key(4))
+  shared = gaussians_in_front(*keys, (1, 32), spread=0.5, opacity=0.8, scale=0.1)
+  painted = lambda grey: dataclasses.replace(shared, colors=jnp.full_like(shared.colors, grey))
+
+  def reconstruct(params, images, c2w, intrinsics, *, config, viewer_c2w):
+    grey = 0.3 if config.own_view_colours else 0.7
+    return jax.tree.map(lambda a: jnp.stack([a] * viewer_c2w.shape[1], axis=1), painted(grey))
+
+  settings = dict(
+    model_config=config,
+    loss_config=losses.LossConfig(),
+    render_config=splatting.RenderConfig(),
+    reconstruct=reconstruct,
+  )
+  views = {
+    name: jnp.concatenate([batch[f"target_{name}"], batch[f"context_{name}"]], axis=1)
+    for name in ("images", "c2w", "intrinsics")
+  }  # targets 0, 1; inputs 2, 3
+
+  def expected(indices, greys):
+    sets = jax.tree.map(lambda *a: jnp.stack(a, axis=1), *map(painted, greys))
+    return supervision_loss(
+      sets,
+      views["images"][:, indices],
+      invert_rigid(views["c2w"][:, indices]),
+      views["intrinsics"][:, indices],
+      settings["loss_config"],
+      settings["render_config"],
+      context_images=batch["context_images"],
+    )[0]
+
+  def loss(objective, **changes):
+    return static_model_loss(None, batch, objective=objective, **{**settings, **changes})[0]
+
+  cross = ObjectiveConfig(cross_view_renders=True)
+  np.testing.assert_allclose(loss(cross), expected([0, 1, 2, 3], [0.3, 0.3, 0.7, 0.7]), rtol=1e-5)
+  both = loss(dataclasses.replace(cross, use_input_supervision=True))
+  np.testing.assert_allclose(both, expected([0, 1, 2, 3, 2, 3], [0.3] * 4 + [0.7] * 2), rtol=1e-5)
+  assert abs(float(both) - float(expected([0, 1, 2, 3, 2, 3], [0.3] * 6))) > 1e-4
+  with pytest.raises(ValueError, match="viewer weights"):
+    loss(cross, model_config=MICRO.replace(gaussian_colours="inputs"))
+  with pytest.raises(ValueError, match="static models"):
+    dynamic_model_loss(
+      None,
+      batch,
+      0,
+      model_config=DYNAMIC_CONFIG,
+      loss_config=settings["loss_config"],
+      render_config=settings["render_config"],
+      objective=cross,
+    )

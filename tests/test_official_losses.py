@@ -261,4 +261,10 @@ def test_input_supervision_keeps_target_times_first_and_marks_input_depths_unkno
   np.testing.assert_allclose(views["target_times"], [[0.5, 0.5, 0.5, 0.1, 0.2]])
   assert views["target_images"].shape == (1, 5, 4, 4, 3)
   np.testing.assert_array_equal(views["target_depths"][0, :, 0, 0], [2.0, 2.0, 2.0, 0.0, 0.0])
+  # with the cross-view renders (`ObjectiveConfig.cross_view_renders`) the inputs come twice
+  views = supervised_views(
+    batch, ObjectiveConfig(use_input_supervision=True, cross_view_renders=True)
+  )
+  np.testing.assert_allclose(views["target_times"], [[0.5, 0.5, 0.5, 0.1, 0.2, 0.1, 0.2]])
+  np.testing.assert_array_equal(views["target_depths"][0, :, 0, 0], [2.0] * 3 + [0.0] * 4)
   np.testing.assert_array_equal(views["context_images"], batch["context_images"])

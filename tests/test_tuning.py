@@ -251,3 +251,57 @@ def test_overflowing_tuning_renders_are_redone_with_a_larger_budget(tiny):
   result = tune(params, *scene(), render_config=tight, **kwargs)
   np.testing.assert_array_equal(result.losses, full.losses)
   jax.tree.map(np.testing.assert_array_equal, result.gaussians, full.gaussians)
+
+
+def test_cross_view_renders_tune_on_each_input_view_twice():
+  """With `cross_view_renders` the tuning loss scores each input view twice: coloured by the
+  model as configured, and by the other views only (`cross_view_config`); at 0 steps it is that
+  loss of the feed-forward Gaussians, which the plain tuning loss is not. Timed views refuse it."""
+  from scenes import DYNAMIC_CONFIG, MICRO, dynamic_batch, dynamic_params, micro_params
+
+  from tokengs_jax import model
+  from tokengs_jax.camera import invert_rigid
+  from tokengs_jax.losses import LossConfig
+  from tokengs_jax.objective import (
+    ObjectiveConfig,
+    concatenate_views,
+    cross_view_config,
+    supervision_loss,
+  )
+
+  config = MICRO.replace(gaussian_colours="inputs", input_colour_weights="viewer")
+  params = micro_params()
+  images, c2w, intrinsics = scene()
+  cross = ObjectiveConfig(cross_view_renders=True)
+
+  def loss_at_start(objective):
+    steps = TuningConfig(steps=0)
+    result = tune(
+      params, images, c2w, intrinsics, model_config=config, tuning=steps, objective=objective
+    )
+    return result.losses[0]
+
+  read_by = lambda c: model.reconstruct(params, images, c2w, intrinsics, config=c, viewer_c2w=c2w)
+  twice = lambda x: jnp.concatenate([x, x], axis=1)
+  expected = supervision_loss(
+    concatenate_views(read_by(config), read_by(cross_view_config(config))),
+    twice(images),
+    twice(invert_rigid(c2w)),
+    twice(intrinsics),
+    LossConfig(),
+    RenderConfig(),
+    context_images=images,
+  )[0]
+  np.testing.assert_allclose(loss_at_start(cross), expected, rtol=1e-5)
+  assert abs(float(loss_at_start(ObjectiveConfig())) - float(expected)) > 1e-4
+  batch = dynamic_batch([[0.0, 1.0]], [[0.3, 0.8]])
+  with pytest.raises(ValueError, match="static models"):
+    tune(
+      dynamic_params(),
+      batch["context_images"],
+      batch["context_c2w"],
+      batch["context_intrinsics"],
+      model_config=DYNAMIC_CONFIG,
+      objective=cross,
+      times=batch["context_times"],
+    )

@@ -43,7 +43,13 @@ from tokengs_jax import losses, model, splatting
 from tokengs_jax.camera import invert_rigid
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.model.inputs import check_times
-from tokengs_jax.objective import ObjectiveConfig, supervision_loss, time_conditioned_loss
+from tokengs_jax.objective import (
+  ObjectiveConfig,
+  concatenate_views,
+  cross_view_config,
+  supervision_loss,
+  time_conditioned_loss,
+)
 
 Target = Literal["tokens", "latents", "gaussians", "tokens+gaussians"]
 Schedule = Literal["constant", "cosine"]
@@ -155,7 +161,7 @@ def tune(
     loss_config: `losses.LossConfig` (default: the training loss).
     render_config: `splatting.RenderConfig`.
     objective: the input-view renders' chunking, background ("input_mean": of `images`),
-      near/far (default `ObjectiveConfig()`; `decode_times` ignored: views have their times).
+      near/far, `cross_view_renders` (default `ObjectiveConfig()`; `decode_times` ignored).
     times: [B, V] normalised input-view times (time-conditioned models).
     output_times: [B, T] times of the returned Gaussians (default `times`).
     output_c2w: [B, T, 4, 4] the cameras the result is rendered from: a set per camera where
@@ -222,7 +228,7 @@ def _tune_once(
   loss_config = losses.LossConfig() if loss_config is None else loss_config
   objective = ObjectiveConfig() if objective is None else objective
   timed = times is not None
-  _check_times(model_config, images.shape[0], times, output_times)
+  _check_times(model_config, images.shape[0], times, output_times, objective)
   # The encoder runs once; stop_gradient keeps the loop from differentiating into it.
   encoded = jax.lax.stop_gradient(
     model.encode_views(params, images, c2w, intrinsics, model_config, times=times)
@@ -233,6 +239,9 @@ def _tune_once(
     params, encoded, decode, model_config, tuning, images.shape[0]
   )
   gaussians_of = functools.partial(_gaussians_of, decode, feed_forward)
+  if objective.cross_view_renders:  # the same variables, coloured by the other views
+    cross_decode = functools.partial(_decode, params, encoded, cross_view_config(model_config))
+    cross_gaussians_of = functools.partial(_gaussians_of, cross_decode, feed_forward)
 
   # the dynamic auxiliary term as official TTT: the loss of a fresh model, i.e. its base weight
   with_aux = model_config.num_dynamic_gs_tokens > 0 and model_config.num_gs_tokens > 0
@@ -255,15 +264,13 @@ def _tune_once(
         context_images=images,
       )
     else:
+      gaussians = gaussians_of(v, viewer_c2w=c2w)
+      views = (images, world_to_camera, intrinsics)
+      if objective.cross_view_renders:  # each input view again, coloured by the other views
+        gaussians = concatenate_views(gaussians, cross_gaussians_of(v, viewer_c2w=c2w))
+        views = tuple(jnp.concatenate([x, x], axis=1) for x in views)
       loss, terms = supervision_loss(
-        gaussians_of(v, viewer_c2w=c2w),
-        images,
-        world_to_camera,
-        intrinsics,
-        loss_config,
-        render_config,
-        objective,
-        context_images=images,
+        gaussians, *views, loss_config, render_config, objective, context_images=images
       )
     return loss, (terms["render_overflow"] > 0, terms["render_pairs_needed"])
 
@@ -283,10 +290,13 @@ def _tune_once(
   )
 
 
-def _check_times(model_config, batch: int, times, output_times) -> None:
-  """Trace-time checks of the input-view `times` [B, V] and `output_times` [B, T]."""
+def _check_times(model_config, batch: int, times, output_times, objective) -> None:
+  """Trace-time checks of the input-view `times` [B, V] and `output_times` [B, T] (and of an
+  `objective` whose cross-view renders are for views without times)."""
   if times is not None and not model_config.time_embedding:
     raise ValueError("times given for a model without time embedding")
+  if times is not None and objective.cross_view_renders:
+    raise ValueError("cross_view_renders is for static models; these views have times")
   if output_times is not None:
     if times is None:
       raise ValueError("output_times needs the input-view times")

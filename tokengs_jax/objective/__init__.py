@@ -12,13 +12,19 @@
 """
 
 from tokengs_jax.objective.model_loss import (
+  concatenate_views,
   dynamic_model_loss,
   static_model_loss,
   supervised_views,
   time_conditioned_loss,
   tokengs_loss_fn,
 )
-from tokengs_jax.objective.settings import ObjectiveConfig, background_colours, render_settings
+from tokengs_jax.objective.settings import (
+  ObjectiveConfig,
+  background_colours,
+  cross_view_config,
+  render_settings,
+)
 from tokengs_jax.objective.supervision import (
   add_opacity,
   add_visibility,
@@ -34,6 +40,8 @@ __all__ = [
   "add_opacity",
   "add_visibility",
   "background_colours",
+  "concatenate_views",
+  "cross_view_config",
   "dynamic_model_loss",
   "mean_over_view_chunks",
   "photometric_loss",

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.objective import flow
-from tokengs_jax.objective.settings import ObjectiveConfig
+from tokengs_jax.objective.settings import ObjectiveConfig, cross_view_config
 from tokengs_jax.objective.supervision import (
   add_coverage,
   add_mask,
@@ -283,30 +283,40 @@ def _scored_with_dynamic_aux(
 
 
 def supervised_views(batch: dict, objective: ObjectiveConfig) -> dict:
-  """The batch whose `target_*` views the model losses score: with
-  `objective.use_input_supervision` the targets followed by the input views (official
-  `images_all`, `cam_view_all`, ...), otherwise the batch itself.
+  """The batch whose `target_*` views the model losses score: the targets, followed by the input
+  views with `objective.use_input_supervision` (official `images_all`, `cam_view_all`, ...) and
+  by the input views again with `objective.cross_view_renders` (their other-view renders:
+  `cross_view_config`); otherwise the batch itself.
 
   Targets first, so that `decode_times="first"` still decodes at the first target's time, as the
   official code does with input supervision; the inputs' true depths are unknown (0).
   """
-  if not objective.use_input_supervision:
+  repeats = int(objective.use_input_supervision) + int(objective.cross_view_renders)
+  if not repeats:
     return batch
   for name in ("target_objects", "target_masks", "target_flows"):
     if name in batch:
-      raise ValueError(f"the input views carry no per-pixel truth: {name} with input supervision")
+      raise ValueError(
+        f"the input views carry no per-pixel truth: {name} with input supervision or "
+        "cross-view renders"
+      )
   views = dict(batch)
   for name in ("images", "c2w", "intrinsics", "times"):
     if f"target_{name}" in batch:
       views[f"target_{name}"] = jnp.concatenate(
-        [batch[f"target_{name}"], batch[f"context_{name}"]], axis=1
+        [batch[f"target_{name}"]] + [batch[f"context_{name}"]] * repeats, axis=1
       )
   if "target_depths" in batch:
     depths = batch["target_depths"]
-    num_inputs = batch["context_images"].shape[1]
+    num_inputs = batch["context_images"].shape[1] * repeats
     unknown = jnp.zeros((depths.shape[0], num_inputs, *depths.shape[2:]), depths.dtype)
     views["target_depths"] = jnp.concatenate([depths, unknown], axis=1)
   return views
+
+
+def concatenate_views(first: Gaussians, second: Gaussians) -> Gaussians:
+  """Two sets of one Gaussian set per view, [B, V1] and [B, V2] -> [B, V1 + V2]."""
+  return jax.tree.map(lambda a, b: jnp.concatenate([a, b], axis=1), first, second)
 
 
 def supervision_targets(batch: dict, loss_config) -> tuple[jax.Array, jax.Array | None]:
@@ -349,14 +359,21 @@ def static_model_loss(
   reconstruct = model.reconstruct if reconstruct is None else reconstruct
   batch = supervised_views(batch, objective)
   images, masks = supervision_targets(batch, loss_config)
-  gaussians = reconstruct(
-    params,
-    batch["context_images"],
-    batch["context_c2w"],
-    batch["context_intrinsics"],
-    config=model_config,
-    viewer_c2w=batch["target_c2w"] if model_config.viewer_dependent else None,
+  reconstruct_for = functools.partial(
+    reconstruct, params, batch["context_images"], batch["context_c2w"], batch["context_intrinsics"]
   )
+  if objective.cross_view_renders:  # the last input-many views read the other views
+    split = batch["target_c2w"].shape[1] - batch["context_c2w"].shape[1]
+    gaussians = concatenate_views(
+      reconstruct_for(config=model_config, viewer_c2w=batch["target_c2w"][:, :split]),
+      reconstruct_for(
+        config=cross_view_config(model_config), viewer_c2w=batch["target_c2w"][:, split:]
+      ),
+    )
+  else:
+    gaussians = reconstruct_for(
+      config=model_config, viewer_c2w=batch["target_c2w"] if model_config.viewer_dependent else None
+    )
   return supervision_loss(
     gaussians,
     images,
@@ -392,6 +409,8 @@ def dynamic_model_loss(
   from tokengs_jax import losses, model
   from tokengs_jax.camera import invert_rigid
 
+  if objective.cross_view_renders:
+    raise ValueError("cross_view_renders is for static models; this one is time-conditioned")
   batch = supervised_views(batch, objective)
   images, masks = supervision_targets(batch, loss_config)
   with_aux = (

@@ -36,6 +36,15 @@ class ObjectiveConfig:
       the input views too, as further supervision views after the targets (official
       `use_input_supervision`, off by default; `model_loss.supervised_views`). Tuning, which
       supervises the input views anyway, and evaluation, which scores the targets, ignore it.
+    cross_view_renders: static models whose colours are read from the input views with viewer
+      weights (`ModelConfig.viewer_dependent`): each input view is also rendered with every
+      Gaussian's colour read from the other views only (`ModelConfig.own_view_colours=False`)
+      and scored as one more supervision view, in training and token tuning. Such a render
+      matches its view only where the Gaussians sit where the views agree, so it checks the
+      geometry, which a render of the view's own colours, copied back pixel for pixel, hardly
+      does (not in the paper; docs/generalisation.md, "Issue 23 (session 28)"). Costs a second
+      pass of the model in training (of the decoder in tuning) and one more render per input
+      view. Evaluation, which scores the targets, ignores it.
     eps2d: the screen-space low-pass added to every splat's 2D covariance in the objective's
       renders; it replaces the `RenderConfig.eps2d` they are given (`render_settings`), so
       weights trained with a filter are tuned and scored with it. 0.3: gsplat's default, which
@@ -48,6 +57,7 @@ class ObjectiveConfig:
   far: float = 125.0
   decode_times: Literal["per_view", "first"] = "per_view"
   use_input_supervision: bool = False
+  cross_view_renders: bool = False
   eps2d: float = 0.3
 
   def __post_init__(self):
@@ -58,6 +68,19 @@ class ObjectiveConfig:
     rgb = not isinstance(self.background, str) and len(self.background) == 3
     if not (rgb or self.background == "input_mean"):
       raise ValueError(f"background must be an RGB or 'input_mean', got {self.background!r}")
+
+
+def cross_view_config(model_config):
+  """The model read for the cross-view renders (`ObjectiveConfig.cross_view_renders`): a camera
+  at an input view's centre takes its colours from the other views only. Refuses a model whose
+  colours do not depend on the camera (ValueError): its renders of an input view would not
+  change."""
+  if not model_config.viewer_dependent:
+    raise ValueError(
+      "cross_view_renders needs colours read from the input views with viewer weights "
+      '(gaussian_colours="inputs", input_colour_weights="viewer")'
+    )
+  return model_config.replace(own_view_colours=False)
 
 
 def background_colours(objective: ObjectiveConfig, context_images, world_to_camera) -> jax.Array:
