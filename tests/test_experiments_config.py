@@ -114,3 +114,21 @@ def test_data_mode_names_the_training_datasets_and_bad_entries_are_refused_at_pa
   with pytest.raises(SystemExit):
     cli.parse(["--data-mode", mix[1]], kubric.PRESETS, "synthetic-tiny", "prog")
   assert "a Kubric run trains on its one dataset" in " ".join(capsys.readouterr().err.split())
+
+
+def test_cross_view_renders_reach_the_objective_and_need_viewer_colours(capsys):
+  """`--train.cross-view-renders` is `ObjectiveConfig.cross_view_renders` in the run's objective
+  (training and token tuning); a model whose colours do not depend on the camera refuses it
+  before any work."""
+  from experiments import tasks
+
+  parse = lambda *argv: cli.parse(list(argv), re10k.PRESETS, "synthetic-tiny", "prog")[1]
+  assert tasks.Task().objective(parse()).cross_view_renders  # the default's, as its finetune's
+  switched_off = parse("run", "synthetic-tiny", "--train.no-cross-view-renders")
+  assert not tasks.Task().objective(switched_off).cross_view_renders
+  assert not tasks.Task().objective(parse("run", "pretrain")).cross_view_renders
+  flagged = parse("run", "pretrain", "--train.cross-view-renders")
+  assert tasks.Task().objective(flagged).cross_view_renders
+  with pytest.raises(SystemExit):
+    parse("--train.cross-view-renders", "--model.input-colour-weights", "mean")
+  assert "viewer weights" in capsys.readouterr().err
