@@ -15,7 +15,7 @@ from typing import Literal
 from tokengs_jax import export, model, tuning
 from tokengs_jax.data import mixing
 from tokengs_jax.data.synthetic import WalkConfig
-from tokengs_jax.objective.settings import ObjectiveConfig
+from tokengs_jax.objective.settings import ObjectiveConfig, cross_view_config
 
 # Domain randomisation of the rooms' camera path (the issue-10 lever sweep, in git history): the
 # RE10K-like walk looks almost level and straight ahead; this one pitches from -34 to +9 degrees,
@@ -343,11 +343,8 @@ class Experiment:
         f"train.lambda_mask must be 0 on {self.dataset} (and the synthetic set): its examples "
         "carry no foreground masks (Kubric's do: python -m experiments.kubric)"
       )
-    if self.train.cross_view_renders and not self.model.viewer_dependent:
-      raise ValueError(
-        "train.cross_view_renders needs colours read from the input views with viewer weights "
-        "(--model.gaussian-colours inputs --model.input-colour-weights viewer)"
-      )
+    if self.train.cross_view_renders:  # the model's check, at parse time
+      cross_view_config(self.model)
 
   @property
   def image_size(self) -> tuple[int, int]:
