@@ -108,6 +108,21 @@ def recorded_experiment(run_dir, experiment_type: type[Experiment]) -> Experimen
   return dataclasses.replace(experiment, **changes)
 
 
+def _spelt_out(
+  argv: list[str], presets: Mapping[str, Experiment], default_preset: str
+) -> list[str]:
+  """argv with an omitted command and preset written in ("run", the default preset).
+
+  tyro reads the flags of a default subcommand that is left out by another route, one that
+  drops the `--field.no-x` form of booleans ("Unrecognized options"); the spelt-out form
+  takes every flag. A request for help is left as it is, so that it lists the commands."""
+  if "-h" in argv or "--help" in argv:
+    return argv
+  command, rest = (argv[:1], argv[1:]) if argv and argv[0] in COMMANDS else (["run"], argv)
+  preset = [] if rest and rest[0] in presets else [default_preset]
+  return command + preset + rest
+
+
 def parse(
   argv: Sequence[str], presets: Mapping[str, Experiment], default_preset: str, prog: str
 ) -> tuple[Command, Experiment]:
@@ -120,7 +135,7 @@ def parse(
   command_type, default = _invocation_type(presets, default_preset)
   parsed = tyro.cli(
     command_type,
-    args=list(argv),
+    args=_spelt_out(list(argv), presets, default_preset),
     default=default,
     prog=prog,
     config=(tyro.conf.OmitSubcommandPrefixes, tyro.conf.CascadeSubcommandArgs),

@@ -25,6 +25,21 @@ def test_parse_defaults_to_run_with_default_preset():
   assert experiment.model == re10k.PRESETS["synthetic-tiny"].model
 
 
+@pytest.mark.parametrize("command", [[], ["eval"]])
+def test_parse_takes_negated_booleans_with_the_preset_omitted(command):
+  # tyro alone refused `--x.no-y` where the default preset was left out
+  flags = [
+    "--train.no-cross-view-renders",
+    "--eval.no-pixel-baseline",
+    "--model.no-own-view-colours",
+  ]
+  parsed, experiment = cli.parse(command + flags, re10k.PRESETS, "synthetic-tiny", "prog")
+  assert parsed == (command or ["run"])[0]
+  assert re10k.PRESETS["synthetic-tiny"].train.cross_view_renders
+  assert not experiment.train.cross_view_renders
+  assert not experiment.eval.pixel_baseline and not experiment.model.own_view_colours
+
+
 def test_parse_command_preset_and_typed_overrides():
   command, experiment = cli.parse(
     [
