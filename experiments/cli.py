@@ -119,8 +119,9 @@ def _spelt_out(
   if "-h" in argv or "--help" in argv:
     return argv
   command, rest = (argv[:1], argv[1:]) if argv and argv[0] in COMMANDS else (["run"], argv)
-  preset = [] if rest and rest[0] in presets else [default_preset]
-  return command + preset + rest
+  # one preset (`--from-run`) is no subcommand: tyro makes a union of one type that type
+  named = len(presets) == 1 or (rest and rest[0] in presets)
+  return command + ([] if named else [default_preset]) + rest
 
 
 def parse(

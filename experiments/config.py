@@ -15,7 +15,7 @@ from typing import Literal
 from tokengs_jax import export, model, tuning
 from tokengs_jax.data import mixing
 from tokengs_jax.data.synthetic import WalkConfig
-from tokengs_jax.objective.settings import ObjectiveConfig, cross_view_config
+from tokengs_jax.objective.settings import ObjectiveConfig, check_cross_view
 
 # Domain randomisation of the rooms' camera path (the issue-10 lever sweep, in git history): the
 # RE10K-like walk looks almost level and straight ahead; this one pitches from -34 to +9 degrees,
@@ -344,7 +344,7 @@ class Experiment:
         "carry no foreground masks (Kubric's do: python -m experiments.kubric)"
       )
     if self.train.cross_view_renders:  # the model's check, at parse time
-      cross_view_config(self.model)
+      check_cross_view(self.model)
 
   @property
   def image_size(self) -> tuple[int, int]:

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 from tokengs_jax.camera import invert_rigid, plucker_rays, ray_directions
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.model import ModelConfig, normalize_images
-from tokengs_jax.model.colours import InputViews, with_input_colours
+from tokengs_jax.model.colours import InputViews, own_view_reading, with_input_colours
 from tokengs_jax.model.encoder import EncoderBlock
 from tokengs_jax.model.head import RAW_CHANNELS, activate
 from tokengs_jax.model.layers import PatchEmbed, layer_norm
@@ -83,11 +83,13 @@ def reconstruct(
   *,
   config: ModelConfig,
   viewer_c2w: jax.Array | None = None,
+  own_view: jax.Array | None = None,
 ) -> Gaussians:
   """Images in [0, 1] [B, V, H, W, 3] + cameras -> Gaussians [B, V * H * W] on the pixel rays.
 
   Where `config.viewer_dependent`, colours are read for the cameras `viewer_c2w` [B, T, 4, 4]
-  as TokenGS's are: one set per camera, Gaussians [B, T, V * H * W]."""
+  as TokenGS's are: one set per camera, Gaussians [B, T, V * H * W], and `own_view` [T] bool
+  per camera as `model.reconstruct`'s."""
   height, width = images.shape[-3:-1]
   raw = PixelAlignedGS(config).apply(
     {"params": params}, normalize_images(images), plucker_rays(c2w, intrinsics, height, width)
@@ -108,7 +110,7 @@ def reconstruct(
       viewers=viewers,
       sharpness=config.viewer_colour_sharpness,
       occlusion_tolerance=config.input_occlusion_tolerance,
-      own_view=config.own_view_colours,
+      own_view=own_view_reading(config.own_view_colours, own_view),
     )
   return Gaussians.from_flat(flat)
 

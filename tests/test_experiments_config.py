@@ -57,6 +57,8 @@ def test_eval_from_run_takes_the_recorded_settings_and_flags_override_them(tmp_p
     output_dir=str(tmp_path / "x"),
     eval=dataclasses.replace(recorded.eval, num_scenes=4),
   )
+  _, negated = parse("eval", "--from-run", str(run), "--eval.no-lpips")
+  assert recorded.eval.lpips and not negated.eval.lpips
   with pytest.raises(SystemExit, match="eval --from-run"):
     parse("run", "--from-run", str(run))
   with pytest.raises(SystemExit, match="metrics.json"):

@@ -123,6 +123,27 @@ def test_a_viewer_at_an_input_view_reads_only_the_other_views_without_own_view()
   np.testing.assert_allclose(np.asarray(coloured[0, 0, :, 11:]), [[0.8] * 3, [0.33] * 3], atol=1e-6)
 
 
+def test_own_view_per_viewer_is_each_viewer_read_as_that_flag_alone(tiny_inputs_model):
+  """`own_view` [T] decides per viewer: one decode for the input cameras twice, flags
+  [True, True, False, False], equals the decodes with `own_view_colours` True and False side by
+  side; a model configured never to read its own view ignores the flags."""
+  config, params = tiny_inputs_model
+  config = config.replace(input_colour_weights="viewer", viewer_colour_sharpness=100.0)
+  views = _plane_views(size=(32, 32))
+  c2w = invert_rigid(views.world_to_camera)
+  twice = jnp.concatenate([c2w, c2w], axis=1)
+  args = (params, views.images, c2w, views.intrinsics)
+  flags = np.array([True, True, False, False])
+  mixed = model.reconstruct(*args, config=config, viewer_c2w=twice, own_view=flags).to_flat()
+  own = model.reconstruct(*args, config=config, viewer_c2w=c2w).to_flat()
+  others = config.replace(own_view_colours=False)
+  cross = model.reconstruct(*args, config=others, viewer_c2w=c2w).to_flat()
+  np.testing.assert_array_equal(np.asarray(mixed), np.concatenate([own, cross], axis=1))
+  assert np.abs(np.asarray(own - cross)).max() > 1e-3  # the flags matter here
+  never = model.reconstruct(*args, config=others, viewer_c2w=twice, own_view=flags).to_flat()
+  np.testing.assert_array_equal(np.asarray(never), np.concatenate([cross, cross], axis=1))
+
+
 def test_decoded_for_cameras_one_set_each_same_geometry(tiny_inputs_model):
   """`reconstruct(viewer_c2w=)`: one set per camera whose geometry is the camera-free decode's;
   viewer weights colour set v from view v (the input cameras themselves, sharp weights), mean

@@ -466,8 +466,9 @@ def _sets_of(gaussians):
 
 def test_cross_view_renders_score_the_inputs_again_coloured_by_the_other_views():
   """`cross_view_renders`: the supervision views are the targets (and the inputs, under input
-  supervision) coloured by the model as configured, then every input view again, coloured with
-  `own_view_colours=False` (a stand-in `reconstruct` paints each set by the config it is given).
+  supervision) coloured by the model as configured, then every input view again, coloured by
+  the other views only (`own_view` False: a stand-in `reconstruct` paints each camera's set by
+  the flag it is given).
   Refused for a model whose colours do not depend on the camera and for time-conditioned ones."""
   batch = synthetic_batch(batch_size=1, context_views=2, target_views=2)
   config = MICRO.replace(gaussian_colours="inputs", input_colour_weights="viewer")
@@ -475,9 +476,10 @@ def test_cross_view_renders_score_the_inputs_again_coloured_by_the_other_views()
   shared = gaussians_in_front(*keys, (1, 32), spread=0.5, opacity=0.8, scale=0.1)
   painted = lambda grey: dataclasses.replace(shared, colors=jnp.full_like(shared.colors, grey))
 
-  def reconstruct(params, images, c2w, intrinsics, *, config, viewer_c2w):
-    grey = 0.3 if config.own_view_colours else 0.7
-    return jax.tree.map(lambda a: jnp.stack([a] * viewer_c2w.shape[1], axis=1), painted(grey))
+  def reconstruct(params, images, c2w, intrinsics, *, config, viewer_c2w, own_view):
+    reads_own = [True] * viewer_c2w.shape[1] if own_view is None else own_view
+    sets = [painted(0.3 if own else 0.7) for own in reads_own]
+    return jax.tree.map(lambda *a: jnp.stack(a, axis=1), *sets)
 
   settings = dict(
     model_config=config,

@@ -255,19 +255,15 @@ def test_overflowing_tuning_renders_are_redone_with_a_larger_budget(tiny):
 
 def test_cross_view_renders_tune_on_each_input_view_twice():
   """With `cross_view_renders` the tuning loss scores each input view twice: coloured by the
-  model as configured, and by the other views only (`cross_view_config`); at 0 steps it is that
+  model as configured, and by the other views only (one decode: `own_view` per camera, here
+  against two decodes, the second with `own_view_colours=False`); at 0 steps it is that
   loss of the feed-forward Gaussians, which the plain tuning loss is not. Timed views refuse it."""
   from scenes import DYNAMIC_CONFIG, MICRO, dynamic_batch, dynamic_params, micro_params
 
   from tokengs_jax import model
   from tokengs_jax.camera import invert_rigid
   from tokengs_jax.losses import LossConfig
-  from tokengs_jax.objective import (
-    ObjectiveConfig,
-    concatenate_views,
-    cross_view_config,
-    supervision_loss,
-  )
+  from tokengs_jax.objective import ObjectiveConfig, supervision_loss
 
   config = MICRO.replace(gaussian_colours="inputs", input_colour_weights="viewer")
   params = micro_params()
@@ -282,9 +278,9 @@ def test_cross_view_renders_tune_on_each_input_view_twice():
     return result.losses[0]
 
   read_by = lambda c: model.reconstruct(params, images, c2w, intrinsics, config=c, viewer_c2w=c2w)
-  twice = lambda x: jnp.concatenate([x, x], axis=1)
+  twice = lambda x, y=None: jnp.concatenate([x, x if y is None else y], axis=1)
   expected = supervision_loss(
-    concatenate_views(read_by(config), read_by(cross_view_config(config))),
+    jax.tree.map(twice, read_by(config), read_by(config.replace(own_view_colours=False))),
     twice(images),
     twice(invert_rigid(c2w)),
     twice(intrinsics),

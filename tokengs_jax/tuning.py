@@ -45,8 +45,7 @@ from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.model.inputs import check_times
 from tokengs_jax.objective import (
   ObjectiveConfig,
-  concatenate_views,
-  cross_view_config,
+  cross_view_flags,
   supervision_loss,
   time_conditioned_loss,
 )
@@ -239,9 +238,6 @@ def _tune_once(
     params, encoded, decode, model_config, tuning, images.shape[0]
   )
   gaussians_of = functools.partial(_gaussians_of, decode, feed_forward)
-  if objective.cross_view_renders:  # the same variables, coloured by the other views
-    cross_decode = functools.partial(_decode, params, encoded, cross_view_config(model_config))
-    cross_gaussians_of = functools.partial(_gaussians_of, cross_decode, feed_forward)
 
   # the dynamic auxiliary term as official TTT: the loss of a fresh model, i.e. its base weight
   with_aux = model_config.num_dynamic_gs_tokens > 0 and model_config.num_gs_tokens > 0
@@ -264,13 +260,12 @@ def _tune_once(
         context_images=images,
       )
     else:
-      gaussians = gaussians_of(v, viewer_c2w=c2w)
-      views = (images, world_to_camera, intrinsics)
-      if objective.cross_view_renders:  # each input view again, coloured by the other views
-        gaussians = concatenate_views(gaussians, cross_gaussians_of(v, viewer_c2w=c2w))
-        views = tuple(jnp.concatenate([x, x], axis=1) for x in views)
-      loss, terms = supervision_loss(
-        gaussians, *views, loss_config, render_config, objective, context_images=images
+      loss, terms = _input_view_loss(
+        functools.partial(gaussians_of, v),
+        images,
+        c2w,
+        intrinsics,
+        (model_config, loss_config, render_config, objective),
       )
     return loss, (terms["render_overflow"] > 0, terms["render_pairs_needed"])
 
@@ -290,6 +285,30 @@ def _tune_once(
   )
 
 
+def _input_view_loss(gaussians_seen_by, images, c2w, intrinsics, settings):
+  """A time-free model's tuning loss on its input views [B, V] (each again, coloured by the other
+  views only, under `objective.cross_view_renders`); `(loss, terms)`.
+
+  gaussians_seen_by: `(viewer_c2w=[B, T, 4, 4], own_view=[T] or None) -> Gaussians [B, T]` of
+  the tuned variables; settings: (model_config, loss_config, render_config, objective)."""
+  model_config, loss_config, render_config, objective = settings
+  views = (images, invert_rigid(c2w), intrinsics, c2w)
+  if objective.cross_view_renders:
+    views = tuple(jnp.concatenate([x, x], axis=1) for x in views)
+  scored, world_to_camera, scored_intrinsics, viewers = views
+  own_view = cross_view_flags(objective, model_config, viewers.shape[1], images.shape[1])
+  return supervision_loss(
+    gaussians_seen_by(viewer_c2w=viewers, own_view=own_view),
+    scored,
+    world_to_camera,
+    scored_intrinsics,
+    loss_config,
+    render_config,
+    objective,
+    context_images=images,
+  )
+
+
 def _check_times(model_config, batch: int, times, output_times, objective) -> None:
   """Trace-time checks of the input-view `times` [B, V] and `output_times` [B, T] (and of an
   `objective` whose cross-view renders are for views without times)."""
@@ -304,10 +323,18 @@ def _check_times(model_config, batch: int, times, output_times, objective) -> No
 
 
 def _decode(
-  params, encoded, model_config, tokens=None, latents=None, at_times=None, viewer_c2w=None
+  params,
+  encoded,
+  model_config,
+  tokens=None,
+  latents=None,
+  at_times=None,
+  viewer_c2w=None,
+  own_view=None,
 ) -> Gaussians:
   """Gaussians [B] (time-free), or [B, T] at `at_times` [B, T], of the fixed encoding; with
-  `viewer_c2w` [B, T, 4, 4] and colours that depend on the viewer, one set per camera [B, T].
+  `viewer_c2w` [B, T, 4, 4] and colours that depend on the viewer, one set per camera [B, T]
+  (`own_view` [T] bool: `model.decode`'s).
 
   tokens: [B, T_tok, C] replacing the learnt Gaussian tokens; latents: [B, L, C] scene latents
   replacing the encoded ones (their keys/values are recomputed).
@@ -317,10 +344,14 @@ def _decode(
   else:
     source = model.kv_from_latents(params, latents, model_config).replace(views=encoded.views)
   if at_times is not None:
-    return model.decode_at_times(params, source, model_config, at_times, tokens, viewer_c2w)
+    return model.decode_at_times(
+      params, source, model_config, at_times, tokens, viewer_c2w, own_view
+    )
   if not model_config.viewer_dependent:
-    viewer_c2w = None
-  return Gaussians.from_flat(model.decode(params, source, model_config, tokens, None, viewer_c2w))
+    viewer_c2w = own_view = None
+  return Gaussians.from_flat(
+    model.decode(params, source, model_config, tokens, None, viewer_c2w, own_view=own_view)
+  )
 
 
 def _initial_variables(params, encoded, decode, model_config, tuning: TuningConfig, batch: int):
@@ -351,19 +382,20 @@ def _initial_variables(params, encoded, decode, model_config, tuning: TuningConf
   return variables, learning_rates, feed_forward
 
 
-def _gaussians_of(decode, feed_forward, v: dict, at_times=None, viewer_c2w=None) -> Gaussians:
+def _gaussians_of(
+  decode, feed_forward, v: dict, at_times=None, viewer_c2w=None, own_view=None
+) -> Gaussians:
   """The Gaussians of the tuned variables `v`: [B], or [B, T] at `at_times` [B, T] or seen from
-  `viewer_c2w` [B, T, 4, 4] (`_decode`)."""
+  `viewer_c2w` [B, T, 4, 4] (`own_view` [T]: `_decode`)."""
+  seen_by = {"at_times": at_times, "viewer_c2w": viewer_c2w, "own_view": own_view}
   if "offsets" not in v:
-    return decode(
-      tokens=v.get("tokens"), latents=v.get("latents"), at_times=at_times, viewer_c2w=viewer_c2w
-    )
+    return decode(tokens=v.get("tokens"), latents=v.get("latents"), **seen_by)
   if "tokens" in v:
-    base = decode(tokens=v["tokens"], at_times=at_times, viewer_c2w=viewer_c2w)
+    base = decode(tokens=v["tokens"], **seen_by)
   elif at_times is None and viewer_c2w is None:
     base = feed_forward
   else:  # the feed-forward Gaussians at these times / for these cameras (forward only)
-    base = jax.lax.stop_gradient(decode(at_times=at_times, viewer_c2w=viewer_c2w))
+    base = jax.lax.stop_gradient(decode(**seen_by))
   offsets = v["offsets"]
   if len(base.batch_shape) == 2:  # one offset per Gaussian, shared by every time and camera
     offsets = jax.tree.map(lambda x: x[:, None], offsets)

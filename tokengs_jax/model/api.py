@@ -201,6 +201,7 @@ def decode(
   times: jax.Array | None = None,
   viewer_c2w: jax.Array | None = None,
   static_scene: bool = False,
+  own_view: jax.Array | None = None,
 ) -> jax.Array:
   """Decoder + head: cached encoder output -> flat Gaussians.
 
@@ -219,6 +220,10 @@ def decode(
       `config.num_static_gaussians` of the full decode (colours too, except under
       `input_occlusion_tolerance`, where no dynamic Gaussian hides them). A model without
       dynamic tokens returns what it always does.
+    own_view: [Vr] bool, per camera of `viewer_c2w`: whether one at an input view's centre
+      reads that view's colours (False: the other views', a render that tests the geometry;
+      `ObjectiveConfig.cross_view_renders`). None: `config.own_view_colours` for all; that
+      False overrides it.
 
   Returns:
     [B, T * dec_patch_size², 14] float32 in the official flat layout
@@ -227,7 +232,14 @@ def decode(
   """
   viewers = None if viewer_c2w is None else jnp.asarray(viewer_c2w, jnp.float32)[..., :3, 3]
   return TokenGS(config).apply(
-    {"params": params}, encoded, tokens, times, viewers, static_scene, method=TokenGS.decode
+    {"params": params},
+    encoded,
+    tokens,
+    times,
+    viewers,
+    static_scene,
+    own_view,
+    method=TokenGS.decode,
   )
 
 
@@ -238,6 +250,7 @@ def decode_at_times(
   times: jax.Array,
   tokens: jax.Array | None = None,
   viewer_c2w: jax.Array | None = None,
+  own_view: jax.Array | None = None,
 ) -> Gaussians:
   """Gaussians of a time-conditioned model at several times, from one encoding.
 
@@ -254,6 +267,7 @@ def decode_at_times(
     viewer_c2w: [B, T, 4, 4] the camera each time's set is rendered from, or with T = 1
       [B, Vr, 4, 4]: one decode seen from Vr cameras; used where the colours depend on the
       camera (`model_config.viewer_dependent`), ignored otherwise.
+    own_view: [T] (or [Vr]) bool, per camera of `viewer_c2w`, as `decode`'s.
 
   Returns:
     `Gaussians` with batch shape [B, T] (static Gaussians first, identical at every time); [B, Vr]
@@ -263,16 +277,18 @@ def decode_at_times(
     viewer_c2w = None
   elif times.shape[1] == 1:
     return Gaussians.from_flat(
-      decode(params, encoded, model_config, tokens, times[:, 0], viewer_c2w)
+      decode(params, encoded, model_config, tokens, times[:, 0], viewer_c2w, own_view=own_view)
     )
 
-  def decode_one(time, c2w):  # time: [B]; c2w: [B, 4, 4] or None
+  def decode_one(time, c2w, own):  # time: [B]; c2w: [B, 4, 4] or None; own: [] bool or None
     if c2w is None:
       return decode(params, encoded, model_config, tokens=tokens, times=time)
-    return decode(params, encoded, model_config, tokens, time, c2w[:, None])[:, 0]
+    own = None if own is None else own[None]
+    return decode(params, encoded, model_config, tokens, time, c2w[:, None], own_view=own)[:, 0]
 
-  in_axes = (1, None if viewer_c2w is None else 1)
-  return Gaussians.from_flat(jax.vmap(decode_one, in_axes, out_axes=1)(times, viewer_c2w))
+  in_axes = (1, None if viewer_c2w is None else 1, None if own_view is None else 0)
+  decoded = jax.vmap(decode_one, in_axes, out_axes=1)(times, viewer_c2w, own_view)
+  return Gaussians.from_flat(decoded)
 
 
 def predict_gaussians(
@@ -341,6 +357,7 @@ def reconstruct(
   target_times: jax.Array | None = None,
   viewer_c2w: jax.Array | None = None,
   static_scene: bool = False,
+  own_view: jax.Array | None = None,
 ) -> Gaussians:
   """Images in [0, 1] and cameras -> Gaussians (`encode_views` + `decode`).
 
@@ -356,6 +373,7 @@ def reconstruct(
       [B, Vr], one set per camera, each coloured for its camera where `config.viewer_dependent`.
     static_scene: (static) skip the dynamic branch of a dynamic model (`decode`): the static
       Gaussians alone, `config.num_static_gaussians` per scene.
+    own_view: [Vr] bool, per camera of `viewer_c2w` (`decode`).
 
   Returns:
     `tokengs_jax.gaussians.Gaussians` with N = config.num_gaussians Gaussians per scene
@@ -371,6 +389,12 @@ def reconstruct(
     check_times("target_times", target_times, images.shape[:1], "[B]")
   return Gaussians.from_flat(
     decode(
-      params, encoded, config, times=target_times, viewer_c2w=viewer_c2w, static_scene=static_scene
+      params,
+      encoded,
+      config,
+      times=target_times,
+      viewer_c2w=viewer_c2w,
+      static_scene=static_scene,
+      own_view=own_view,
     )
   )

@@ -209,7 +209,7 @@ def viewer_colours(
   viewers: jax.Array,
   sharpness: float,
   occluders: Occluders | None = None,
-  own_view: bool = True,
+  own_view: bool | jax.Array = True,
 ) -> tuple[jax.Array, jax.Array]:
   """Colours as seen from `viewers`: each view's sample weighted by how close its ray through the
   Gaussian is to the viewer's (the unstructured-lumigraph rule; module docstring).
@@ -228,7 +228,8 @@ def viewer_colours(
     occluders: with them, views that hide a Gaussian get no weight (module docstring).
     own_view: False: a view whose centre is the viewer's (an input view rendered again) gets no
       weight for that viewer, so its render shows the other views' colours at the Gaussians'
-      places and tests the geometry instead of returning the view's own pixels.
+      places and tests the geometry instead of returning the view's own pixels. A [T] bool
+      array decides per viewer (the same decode then serves both kinds of render).
 
   Returns:
     (colours [B, T, N, 3] float32, seen [B, T, N] bool: a view that weighs in contains the
@@ -240,14 +241,22 @@ def viewer_colours(
   from_viewers = safe_normalize(present[:, None] - viewers[:, :, None])  # [B, T, N, 3]
   cosines = jnp.einsum("bvnk,btnk->btvn", from_views, from_viewers)
   usable = jnp.broadcast_to(inside[:, None], cosines.shape)  # [B, T, V, N]
-  if not own_view:
+  if own_view is not True:
     offset = jnp.linalg.norm(viewers[:, :, None] - centres[:, None], axis=-1)  # [B, T, V]
     scale = 1.0 + jnp.linalg.norm(centres, axis=-1)[:, None]
-    usable = usable & (offset > COINCIDENT * scale)[..., None]
+    reads_own = jnp.broadcast_to(jnp.asarray(own_view, bool), viewers.shape[1:2])  # [T]
+    usable = usable & ((offset > COINCIDENT * scale) | reads_own[:, None])[..., None]
   # views that do not contain the projection get no weight (uniform where none does: unseen)
   weights = jax.nn.softmax(jnp.where(usable, sharpness * cosines, -1e9), axis=2)
   colours = jnp.einsum("btvn,bvnc->btnc", weights, samples)
   return colours, jnp.any(usable, axis=2)
+
+
+def own_view_reading(configured: bool, per_viewer: jax.Array | None) -> bool | jax.Array:
+  """`viewer_colours`'s `own_view` for a model configured with `own_view_colours=configured`
+  and rendered for viewers that ask `per_viewer` ([T] bool, or None: as configured): a model
+  that never reads a viewer's own view does not for any."""
+  return configured if per_viewer is None or not configured else per_viewer
 
 
 def with_input_colours(
@@ -258,7 +267,7 @@ def with_input_colours(
   sharpness: float = 0.0,
   occlusion_tolerance: float | None = None,
   dynamic_sharpness: float | None = None,
-  own_view: bool = True,
+  own_view: bool | jax.Array = True,
 ) -> jax.Array:
   """flat Gaussians [B, N, 14] -> the same with RGB read from the views where any sees them.
 
@@ -271,7 +280,8 @@ def with_input_colours(
   occlusion_tolerance: None reads every view the projection falls in; a fraction: views that
   hide the Gaussian behind their render of the scene are left out (`Occluders`).
   dynamic_sharpness: the viewer weights' sharpness for the dynamic Gaussians (None: `sharpness`).
-  own_view: False: a viewer at an input view's centre does not read that view (`viewer_colours`).
+  own_view: False: a viewer at an input view's centre does not read that view; a [T] bool
+  array: per viewer (`viewer_colours`).
   """
   scenes = flat
   if dynamic_at_view_times is not None:

@@ -24,7 +24,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-from tokengs_jax.model.colours import InputViews, with_input_colours
+from tokengs_jax.model.colours import InputViews, own_view_reading, with_input_colours
 from tokengs_jax.model.configs import (
   LATENT_INIT_STD,
   LATENT_LAYER_SCALE_INIT,
@@ -364,11 +364,14 @@ class TokenGS(nn.Module):
     target_times: jax.Array | None = None,
     viewers: jax.Array | None = None,
     static_scene: bool = False,
+    own_view: jax.Array | None = None,
   ) -> jax.Array:
     """Flat Gaussians [B, T * p², 14] (see `decode_tokens` for the arguments), or with `viewers`
     [B, Vr, 3] (centres of the cameras they will be rendered from) one set per camera,
     [B, Vr, T * p², 14]: coloured for that camera under `input_colour_weights="viewer"`, else
-    the same set repeated. A `static_scene` skips the dynamic branch (tokens, head, motion and
+    the same set repeated; `own_view` [Vr] bool: whether a viewer at an input view's centre
+    reads that view (None: `own_view_colours` for every viewer, which False overrides). A
+    `static_scene` skips the dynamic branch (tokens, head, motion and
     the re-decodes at the input times): the static Gaussians alone, exactly the first
     `num_static_gaussians` of the full decode, time-invariant (under `input_occlusion_tolerance`
     the views' occlusion renders then hold no dynamic Gaussians, as befits a static scene, so
@@ -395,7 +398,7 @@ class TokenGS(nn.Module):
         cfg.viewer_colour_sharpness,
         cfg.input_occlusion_tolerance,
         cfg.dynamic_colour_sharpness,
-        cfg.own_view_colours,
+        own_view_reading(cfg.own_view_colours, own_view),
       )
     if viewers is not None and flat.ndim == 3:  # the same set for every camera
       flat = jnp.broadcast_to(flat[:, None], (flat.shape[0], viewers.shape[1]) + flat.shape[1:])

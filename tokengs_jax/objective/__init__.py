@@ -12,7 +12,6 @@
 """
 
 from tokengs_jax.objective.model_loss import (
-  concatenate_views,
   dynamic_model_loss,
   static_model_loss,
   supervised_views,
@@ -22,7 +21,8 @@ from tokengs_jax.objective.model_loss import (
 from tokengs_jax.objective.settings import (
   ObjectiveConfig,
   background_colours,
-  cross_view_config,
+  check_cross_view,
+  cross_view_flags,
   render_settings,
 )
 from tokengs_jax.objective.supervision import (
@@ -40,8 +40,8 @@ __all__ = [
   "add_opacity",
   "add_visibility",
   "background_colours",
-  "concatenate_views",
-  "cross_view_config",
+  "check_cross_view",
+  "cross_view_flags",
   "dynamic_model_loss",
   "mean_over_view_chunks",
   "photometric_loss",

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.objective import flow
-from tokengs_jax.objective.settings import ObjectiveConfig, cross_view_config
+from tokengs_jax.objective.settings import ObjectiveConfig, cross_view_flags
 from tokengs_jax.objective.supervision import (
   add_coverage,
   add_mask,
@@ -286,7 +286,7 @@ def supervised_views(batch: dict, objective: ObjectiveConfig) -> dict:
   """The batch whose `target_*` views the model losses score: the targets, followed by the input
   views with `objective.use_input_supervision` (official `images_all`, `cam_view_all`, ...) and
   by the input views again with `objective.cross_view_renders` (their other-view renders:
-  `cross_view_config`); otherwise the batch itself.
+  `cross_view_flags`); otherwise the batch itself.
 
   Targets first, so that `decode_times="first"` still decodes at the first target's time, as the
   official code does with input supervision; the inputs' true depths are unknown (0).
@@ -312,11 +312,6 @@ def supervised_views(batch: dict, objective: ObjectiveConfig) -> dict:
     unknown = jnp.zeros((depths.shape[0], num_inputs, *depths.shape[2:]), depths.dtype)
     views["target_depths"] = jnp.concatenate([depths, unknown], axis=1)
   return views
-
-
-def concatenate_views(first: Gaussians, second: Gaussians) -> Gaussians:
-  """Two sets of one Gaussian set per view, [B, V1] and [B, V2] -> [B, V1 + V2]."""
-  return jax.tree.map(lambda a, b: jnp.concatenate([a, b], axis=1), first, second)
 
 
 def supervision_targets(batch: dict, loss_config) -> tuple[jax.Array, jax.Array | None]:
@@ -349,9 +344,9 @@ def static_model_loss(
   the inputs with `objective.use_input_supervision`: `supervised_views`).
 
   reconstruct: `(params, images [B, V, H, W, 3], c2w [B, V, 4, 4], intrinsics [B, V, 4], *,
-    config, viewer_c2w [B, T, 4, 4] or None) -> Gaussians` of the model (None:
-    `model.reconstruct`); another model with its signature (the pixel-aligned baseline) is
-    scored by the same objective.
+    config, viewer_c2w [B, T, 4, 4] or None, own_view [T] bool or None) -> Gaussians` of the
+    model (None: `model.reconstruct`); another model with its signature (the pixel-aligned
+    baseline) is scored by the same objective.
   """
   from tokengs_jax import model
   from tokengs_jax.camera import invert_rigid
@@ -359,21 +354,17 @@ def static_model_loss(
   reconstruct = model.reconstruct if reconstruct is None else reconstruct
   batch = supervised_views(batch, objective)
   images, masks = supervision_targets(batch, loss_config)
-  reconstruct_for = functools.partial(
-    reconstruct, params, batch["context_images"], batch["context_c2w"], batch["context_intrinsics"]
+  gaussians = reconstruct(
+    params,
+    batch["context_images"],
+    batch["context_c2w"],
+    batch["context_intrinsics"],
+    config=model_config,
+    viewer_c2w=batch["target_c2w"] if model_config.viewer_dependent else None,
+    own_view=cross_view_flags(
+      objective, model_config, batch["target_c2w"].shape[1], batch["context_c2w"].shape[1]
+    ),
   )
-  if objective.cross_view_renders:  # the last input-many views read the other views
-    split = batch["target_c2w"].shape[1] - batch["context_c2w"].shape[1]
-    gaussians = concatenate_views(
-      reconstruct_for(config=model_config, viewer_c2w=batch["target_c2w"][:, :split]),
-      reconstruct_for(
-        config=cross_view_config(model_config), viewer_c2w=batch["target_c2w"][:, split:]
-      ),
-    )
-  else:
-    gaussians = reconstruct_for(
-      config=model_config, viewer_c2w=batch["target_c2w"] if model_config.viewer_dependent else None
-    )
   return supervision_loss(
     gaussians,
     images,

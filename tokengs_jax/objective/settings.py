@@ -13,6 +13,7 @@ from typing import Literal
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,13 +39,13 @@ class ObjectiveConfig:
       supervises the input views anyway, and evaluation, which scores the targets, ignore it.
     cross_view_renders: static models whose colours are read from the input views with viewer
       weights (`ModelConfig.viewer_dependent`): each input view is also rendered with every
-      Gaussian's colour read from the other views only (`ModelConfig.own_view_colours=False`)
-      and scored as one more supervision view, in training and token tuning. Such a render
-      matches its view only where the Gaussians sit where the views agree, so it checks the
-      geometry, which a render of the view's own colours, copied back pixel for pixel, hardly
-      does (not in the paper; docs/generalisation.md, "Issue 23 (session 28)"). Costs a second
-      pass of the model in training (of the decoder in tuning) and one more render per input
-      view. Evaluation, which scores the targets, ignores it.
+      Gaussian's colour read from the other views only (`own_view` False for that camera,
+      `cross_view_flags`) and scored as one more supervision view, in training and token
+      tuning. Such a render matches its view only where the Gaussians sit where the views
+      agree, so it checks the geometry, which a render of the view's own colours, copied back
+      pixel for pixel, hardly does (not in the paper; docs/generalisation.md, "Issue 23
+      (session 28)"). The same decode colours both renders; each input view costs one more
+      colour read and render. Evaluation, which scores the targets, ignores it.
     eps2d: the screen-space low-pass added to every splat's 2D covariance in the objective's
       renders; it replaces the `RenderConfig.eps2d` they are given (`render_settings`), so
       weights trained with a filter are tuned and scored with it. 0.3: gsplat's default, which
@@ -70,17 +71,27 @@ class ObjectiveConfig:
       raise ValueError(f"background must be an RGB or 'input_mean', got {self.background!r}")
 
 
-def cross_view_config(model_config):
-  """The model read for the cross-view renders (`ObjectiveConfig.cross_view_renders`): a camera
-  at an input view's centre takes its colours from the other views only. Refuses a model whose
-  colours do not depend on the camera (ValueError): its renders of an input view would not
-  change."""
+def check_cross_view(model_config) -> None:
+  """Refuses (ValueError) a model for the cross-view renders (`ObjectiveConfig.cross_view_renders`)
+  whose colours do not depend on the camera: its renders of an input view would not change."""
   if not model_config.viewer_dependent:
     raise ValueError(
       "cross_view_renders needs colours read from the input views with viewer weights "
       '(gaussian_colours="inputs", input_colour_weights="viewer")'
     )
-  return model_config.replace(own_view_colours=False)
+
+
+def cross_view_flags(
+  objective: ObjectiveConfig, model_config, num_views: int, num_inputs: int
+) -> np.ndarray | None:
+  """`model.reconstruct`'s `own_view` [num_views] for views whose last `num_inputs` are the input
+  views rendered again (`model_loss.supervised_views`; tuning's inputs, then the inputs again):
+  under `objective.cross_view_renders` False there, so a camera at an input view's centre takes
+  its colours from the other views only (`check_cross_view` first); None without them."""
+  if not objective.cross_view_renders:
+    return None
+  check_cross_view(model_config)
+  return np.arange(num_views) < num_views - num_inputs
 
 
 def background_colours(objective: ObjectiveConfig, context_images, world_to_camera) -> jax.Array:
