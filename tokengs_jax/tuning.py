@@ -45,6 +45,7 @@ from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.model.inputs import check_times
 from tokengs_jax.objective import (
   ObjectiveConfig,
+  check_cross_view,
   cross_view_flags,
   supervision_loss,
   time_conditioned_loss,
@@ -315,7 +316,7 @@ def _check_times(model_config, batch: int, times, output_times, objective) -> No
   if times is not None and not model_config.time_embedding:
     raise ValueError("times given for a model without time embedding")
   if times is not None and objective.cross_view_renders:
-    raise ValueError("cross_view_renders is for static models; these views have times")
+    check_cross_view(model_config)
   if output_times is not None:
     if times is None:
       raise ValueError("output_times needs the input-view times")

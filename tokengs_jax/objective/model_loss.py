@@ -24,7 +24,7 @@ import jax.numpy as jnp
 
 from tokengs_jax.gaussians import Gaussians
 from tokengs_jax.objective import flow
-from tokengs_jax.objective.settings import ObjectiveConfig, cross_view_flags
+from tokengs_jax.objective.settings import ObjectiveConfig, check_cross_view, cross_view_flags
 from tokengs_jax.objective.supervision import (
   add_coverage,
   add_mask,
@@ -401,7 +401,7 @@ def dynamic_model_loss(
   from tokengs_jax.camera import invert_rigid
 
   if objective.cross_view_renders:
-    raise ValueError("cross_view_renders is for static models; this one is time-conditioned")
+    check_cross_view(model_config)
   batch = supervised_views(batch, objective)
   images, masks = supervision_targets(batch, loss_config)
   with_aux = (

@@ -73,7 +73,11 @@ class ObjectiveConfig:
 
 def check_cross_view(model_config) -> None:
   """Refuses (ValueError) a model for the cross-view renders (`ObjectiveConfig.cross_view_renders`)
-  whose colours do not depend on the camera: its renders of an input view would not change."""
+  that is time-conditioned (its input views would need the other views' colours at their own
+  times) or whose colours do not depend on the camera (its renders of an input view would not
+  change)."""
+  if model_config.time_embedding:
+    raise ValueError("cross_view_renders is for static models; this one is time-conditioned")
   if not model_config.viewer_dependent:
     raise ValueError(
       "cross_view_renders needs colours read from the input views with viewer weights "
