@@ -86,14 +86,13 @@ class Task:
     return experiment.train.loss_config()
 
   def tuning_loss_config(self, experiment: Experiment):
-    """Token tuning's loss: the training loss without the LPIPS term (VGG's cost per tuning
-    step is not paid at test time), and with the official dynamic auxiliary term: the input
-    views it tunes on are their own nearest views, so no pixel of theirs moved, and carry no
-    segmentation, mask or scene flow (official token tuning scores no mask either: `to_ttt` has
-    none)."""
+    """Token tuning's loss: the training loss, its LPIPS term included (as the official
+    test-time training's `compute_loss`; `--train.lambda-lpips 0` on `eval` tunes without it),
+    with the official dynamic auxiliary term: the input views it tunes on are their own nearest
+    views, so no pixel of theirs moved, and carry no segmentation, mask or scene flow (official
+    token tuning scores no mask either: `to_ttt` has none)."""
     return dataclasses.replace(
       self.loss_config(experiment),
-      lambda_lpips=0.0,
       lambda_mask=0.0,
       lambda_flow=0.0,
       dyn_aux_on_motion=False,
@@ -101,7 +100,7 @@ class Task:
     )
 
   def lpips_params(self, experiment: Experiment):
-    """The VGG weights the training loss needs (None when `train.lambda_lpips` is 0)."""
+    """The VGG weights the training and tuning losses need (None when `train.lambda_lpips` is 0)."""
     if self.loss_config(experiment).lambda_lpips <= 0:
       return None
     from tokengs_jax.lpips import load_vgg_params
@@ -152,6 +151,7 @@ class Task:
         ),
         loss_config=self.tuning_loss_config(experiment),
         objective=objective,
+        lpips_params=self.lpips_params(experiment),
       )
     return methods
 

@@ -165,12 +165,12 @@ def test_eval_exports_scenes_under_their_names_without_transparent_gaussians(tmp
 
 
 @pytest.mark.slow  # compiles the VGG network's gradient
-def test_lpips_term_reaches_both_trained_models_but_not_token_tuning(tmp_path):
+def test_lpips_term_reaches_both_trained_models_and_token_tuning(tmp_path):
   smoke = re10k.PRESETS["smoke"]
   experiment = _small_smoke(tmp_path, {"pixel_baseline": True}, lambda_lpips=0.5)
   task = tasks.Task()
   assert task.loss_config(experiment).lambda_lpips == 0.5
-  assert task.tuning_loss_config(experiment).lambda_lpips == 0.0
+  assert task.tuning_loss_config(experiment).lambda_lpips == 0.5  # as official test-time training
   assert task.lpips_params(dataclasses.replace(experiment, train=smoke.train)) is None
   batch = next(iter(data.training_batches(experiment)))
   key, step = jax.random.key(0), jnp.asarray(0)

@@ -301,3 +301,59 @@ def test_cross_view_renders_tune_on_each_input_view_twice():
       objective=cross,
       times=batch["context_times"],
     )
+
+
+def test_the_tuning_loss_keeps_an_lpips_term_as_the_training_loss_does(monkeypatch):
+  """As the official test-time training (its `compute_loss`): a loss that weighs LPIPS scores
+  the input views with it, given the VGG weights, in the time-free and the time-conditioned
+  tuning loss, and refuses to run without them. A stand-in for the VGG distance (a weight times
+  the mean absolute error) keeps the check fast: the term is linear in that weight."""
+  from scenes import DYNAMIC_CONFIG, MICRO, dynamic_batch, dynamic_params, micro_params
+
+  from tokengs_jax import lpips
+  from tokengs_jax.losses import LossConfig
+
+  monkeypatch.setattr(
+    lpips,
+    "lpips_distance",
+    lambda weights, pred, target: weights["scale"] * jnp.mean(jnp.abs(pred - target), (-3, -2, -1)),
+  )
+  weighted = LossConfig(lambda_lpips=0.37)
+  stand_in = lambda scale: {"scale": jnp.float32(scale)}  # noqa: E731
+  params, inputs, start = micro_params(), scene(), TuningConfig(steps=0)
+
+  def first_loss(loss_config, lpips_params=None):
+    return tune(
+      params,
+      *inputs,
+      model_config=MICRO,
+      tuning=start,
+      loss_config=loss_config,
+      lpips_params=lpips_params,
+    ).losses[0]
+
+  plain = first_loss(LossConfig())
+  term_at_1, term_at_2 = (first_loss(weighted, stand_in(s)) - plain for s in (1.0, 2.0))
+  assert float(term_at_1) > 1e-3
+  np.testing.assert_allclose(term_at_2, 2 * term_at_1, rtol=1e-4)
+  with pytest.raises(ValueError, match="lpips_params"):
+    first_loss(weighted)
+
+  batch = dynamic_batch([[0.0, 1.0]], [[0.3, 0.8]])
+  context = (batch["context_images"], batch["context_c2w"], batch["context_intrinsics"])
+
+  def timed_shapes(lpips_params):
+    tune_timed = lambda *a: _tune_once(  # noqa: E731
+      *a,
+      model_config=DYNAMIC_CONFIG,
+      tuning=start,
+      loss_config=weighted,
+      render_config=RenderConfig(),
+      times=batch["context_times"],
+      lpips_params=lpips_params,
+    )
+    return jax.eval_shape(tune_timed, dynamic_params(), *context)  # traced, not compiled
+
+  timed_shapes(stand_in(1.0))
+  with pytest.raises(ValueError, match="lpips_params"):
+    timed_shapes(None)

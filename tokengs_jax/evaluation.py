@@ -177,12 +177,14 @@ def tuned(
   settings: tuning.TuningConfig,
   loss_config=None,
   objective: ObjectiveConfig = ObjectiveConfig(),
+  lpips_params=None,
 ) -> Method:
   """The network's Gaussians after test-time tuning on the input views (`tuning.tune`).
 
   Dynamic models tune with every input view at its own time and return the Gaussians at every
   target view's time. loss_config: the tuning loss (`losses.LossConfig`; None: the default).
   objective: the training objective, which renders both the tuned input views and the targets.
+  lpips_params: VGG weights when `loss_config.lambda_lpips > 0`.
   """
 
   def predict(batch):
@@ -200,6 +202,7 @@ def tuned(
       tuning=settings,
       loss_config=loss_config,
       objective=objective,
+      lpips_params=lpips_params,
       **keywords,
     ).gaussians
 

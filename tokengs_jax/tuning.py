@@ -1,7 +1,8 @@
 """Test-time scaling: token tuning, scene-latent tuning, Gaussian tuning, joint tuning.
 
 All variants minimise the training loss (`objective.supervision_loss`: RGB + SSIM +
-visibility) of renders of the *input* views, with Adam, as one jitted `lax.scan` over the steps.
+visibility, and LPIPS where the loss weighs it, as the official test-time training's
+`compute_loss`) of renders of the *input* views, with Adam, as one jitted `lax.scan` over the steps.
 The encoder runs once: its keys/values (or scene latents) are computed before the loop and held
 fixed, and the network parameters are never updated (they are closed over, not optimised).
 
@@ -137,6 +138,7 @@ def tune(
   times: jax.Array | None = None,
   output_times: jax.Array | None = None,
   output_c2w: jax.Array | None = None,
+  lpips_params=None,
 ) -> TuningResult:
   """Reconstructs a scene from its input views and tunes it on them.
 
@@ -154,11 +156,10 @@ def tune(
   Args:
     params: network parameters (read only).
     images: [B, V, H, W, 3] input views in [0, 1] (any V: context extension).
-    c2w: [B, V, 4, 4] normalised camera-to-world.
-    intrinsics: [B, V, 4] in pixels.
-    model_config: `model.ModelConfig`.
-    tuning: what to tune, steps, learning rates.
-    loss_config: `losses.LossConfig` (default: the training loss).
+    c2w: [B, V, 4, 4] normalised camera-to-world; intrinsics: [B, V, 4] in pixels.
+    model_config: `model.ModelConfig`; tuning: what to tune, steps, learning rates.
+    loss_config: `losses.LossConfig` (default: the training loss); lpips_params: the VGG weights
+      (`tokengs_jax.lpips.load_vgg_params()`) when its `lambda_lpips` > 0.
     render_config: `splatting.RenderConfig`.
     objective: the input-view renders' chunking, background ("input_mean": of `images`),
       near/far, `cross_view_renders` (default `ObjectiveConfig()`; `decode_times` ignored).
@@ -185,11 +186,10 @@ def tune(
       times=times,
       output_times=output_times,
       output_c2w=output_c2w,
+      lpips_params=lpips_params,
     )
     if isinstance(overflowed, jax.core.Tracer):
-      raise TypeError(
-        "tune re-runs overflowing renders from the host: call it outside jit/vmap/grad"
-      )
+      raise TypeError("tune re-runs overflowing renders from the host: call it outside jit")
     if not bool(overflowed):
       return result
     render_config = splatting.larger_budget(
@@ -222,6 +222,7 @@ def _tune_once(
   times: jax.Array | None = None,
   output_times: jax.Array | None = None,
   output_c2w: jax.Array | None = None,
+  lpips_params=None,
 ) -> tuple[TuningResult, jax.Array, jax.Array]:
   """`tune` at one render budget; also returns whether any of its renders overflowed ([] bool)
   and the most (Gaussian, tile) pairs one of their views needed ([] float32)."""
@@ -233,41 +234,27 @@ def _tune_once(
   encoded = jax.lax.stop_gradient(
     model.encode_views(params, images, c2w, intrinsics, model_config, times=times)
   )
-  world_to_camera = invert_rigid(c2w)
   decode = functools.partial(_decode, params, encoded, model_config)
   variables, learning_rates, feed_forward = _initial_variables(
     params, encoded, decode, model_config, tuning, images.shape[0]
   )
   gaussians_of = functools.partial(_gaussians_of, decode, feed_forward)
 
-  # the dynamic auxiliary term as official TTT: the loss of a fresh model, i.e. its base weight
-  with_aux = model_config.num_dynamic_gs_tokens > 0 and model_config.num_gs_tokens > 0
-  per_view = dataclasses.replace(objective, decode_times="per_view")
-
   def loss_and_budget(v):
     """Input-view loss of the variables `v`, and (whether its render overflowed, the pairs its
     views needed)."""
-    if timed:
-      loss, terms = time_conditioned_loss(
-        lambda t, w2c: gaussians_of(v, t, invert_rigid(w2c)),
-        times,
-        images,
-        world_to_camera,
-        intrinsics,
-        loss_config,
-        render_config,
-        per_view,
-        num_static_gaussians=model_config.num_static_gaussians if with_aux else None,
-        context_images=images,
-      )
-    else:
-      loss, terms = _input_view_loss(
-        functools.partial(gaussians_of, v),
-        images,
-        c2w,
-        intrinsics,
-        (model_config, loss_config, render_config, objective),
-      )
+    loss, terms = _input_view_loss(
+      functools.partial(gaussians_of, v),
+      images,
+      c2w,
+      intrinsics,
+      times,
+      model_config=model_config,
+      loss_config=loss_config,
+      render_config=render_config,
+      objective=objective,
+      lpips_params=lpips_params,
+    )
     return loss, (terms["render_overflow"] > 0, terms["render_pairs_needed"])
 
   variables, step_losses, (step_overflows, step_needs) = _adam_scan(
@@ -286,20 +273,51 @@ def _tune_once(
   )
 
 
-def _input_view_loss(gaussians_seen_by, images, c2w, intrinsics, settings):
-  """A time-free model's tuning loss on its input views [B, V] (each again, coloured by the other
-  views only, under `objective.cross_view_renders`); `(loss, terms)`.
+def _input_view_loss(
+  gaussians_of,
+  images,
+  c2w,
+  intrinsics,
+  times,
+  *,
+  model_config,
+  loss_config,
+  render_config,
+  objective,
+  lpips_params,
+):
+  """Tuning's loss on the input views [B, V]; `(loss, terms)`.
 
-  gaussians_seen_by: `(viewer_c2w=[B, T, 4, 4], own_view=[T] or None) -> Gaussians [B, T]` of
-  the tuned variables; settings: (model_config, loss_config, render_config, objective)."""
-  model_config, loss_config, render_config, objective = settings
+  Time-conditioned models (`times` [B, V]) render each view from the Gaussians at its own time;
+  time-free ones render each view once, and again coloured by the other views only under
+  `objective.cross_view_renders`.
+
+  gaussians_of: `(at_times=[B, T] or None, viewer_c2w=[B, T, 4, 4] or None, own_view=[T] or
+  None) -> Gaussians [B, T]` of the tuned variables (`_gaussians_of`).
+  """
+  if times is not None:
+    # the dynamic auxiliary term as official TTT: the loss of a fresh model, i.e. its base weight
+    with_aux = model_config.num_dynamic_gs_tokens > 0 and model_config.num_gs_tokens > 0
+    return time_conditioned_loss(
+      lambda t, w2c: gaussians_of(t, invert_rigid(w2c)),
+      times,
+      images,
+      invert_rigid(c2w),
+      intrinsics,
+      loss_config,
+      render_config,
+      dataclasses.replace(objective, decode_times="per_view"),
+      lpips_params,
+      num_static_gaussians=model_config.num_static_gaussians if with_aux else None,
+      context_images=images,
+    )
   views = (images, invert_rigid(c2w), intrinsics, c2w)
   if objective.cross_view_renders:
     views = tuple(jnp.concatenate([x, x], axis=1) for x in views)
   scored, world_to_camera, scored_intrinsics, viewers = views
   own_view = cross_view_flags(objective, model_config, viewers.shape[1], images.shape[1])
   return supervision_loss(
-    gaussians_seen_by(viewer_c2w=viewers, own_view=own_view),
+    gaussians_of(viewer_c2w=viewers, own_view=own_view),
     scored,
     world_to_camera,
     scored_intrinsics,
@@ -307,6 +325,7 @@ def _input_view_loss(gaussians_seen_by, images, c2w, intrinsics, settings):
     render_config,
     objective,
     context_images=images,
+    lpips_params=lpips_params,
   )
 
 
