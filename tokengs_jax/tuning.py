@@ -189,7 +189,7 @@ def tune(
       lpips_params=lpips_params,
     )
     if isinstance(overflowed, jax.core.Tracer):
-      raise TypeError("tune re-runs overflowing renders from the host: call it outside jit")
+      raise TypeError("tune redoes overflowing renders on the host: call it outside jit/vmap/grad")
     if not bool(overflowed):
       return result
     render_config = splatting.larger_budget(
