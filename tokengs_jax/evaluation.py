@@ -186,6 +186,8 @@ def tuned(
   objective: the training objective, which renders both the tuned input views and the targets.
   lpips_params: VGG weights when `loss_config.lambda_lpips > 0`.
   """
+  # on the device once: `load_vgg_params` gives host arrays, which every call would copy again
+  lpips_params = None if lpips_params is None else jax.device_put(lpips_params)
 
   def predict(batch):
     keywords = {}
